@@ -1,0 +1,82 @@
+"""The ``illuminet`` command line: global options, then one subcommand per module ``cmd_*.py``.
+
+Each command module in this package defines ``register(subparsers)``, which adds its parser and sets
+``func`` (called with the parsed ``args`` and the validated :class:`Config`, returning an exit
+code). Adding a command is adding a module name to :data:`COMMAND_MODULES`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import os
+import sys
+
+from illuminet import __version__
+from illuminet.runtime.config import Config, ConfigError, apply_overrides, load
+
+# The runtime must not phone home: DepthAI sends telemetry unless told not to.
+os.environ.setdefault("DEPTHAI_TELEMETRY", "0")
+
+#: command modules of this package, in the order --help lists them
+COMMAND_MODULES: list[str] = [
+    "cmd_config",
+]
+
+log = logging.getLogger("illuminet")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="illuminet",
+        description="IllumiNet-edge: light a virtual object by the real room it is placed in.",
+    )
+    parser.add_argument("--version", action="version", version=f"illuminet {__version__}")
+    parser.add_argument(
+        "--config", "-c", metavar="TOML",
+        help="configuration file (default: ./config.toml when present, else built-in defaults)",
+    )
+    parser.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+        help="override one configuration key (TOML value syntax); repeatable",
+    )
+    parser.add_argument("--log-level", choices=("debug", "info", "warning", "error"), help="overrides [logging] level")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name in COMMAND_MODULES:
+        importlib.import_module(f"illuminet.{name}").register(sub)
+    return parser
+
+
+def resolve_config(args: argparse.Namespace) -> Config:
+    """Config file (explicit, or ./config.toml when present) + --set overrides + flag overrides."""
+    path = args.config
+    if path is None and os.path.isfile("config.toml"):
+        path = "config.toml"
+    cfg = load(path)
+    overrides = list(args.overrides)
+    if args.log_level:
+        overrides.append(("logging", "level", args.log_level))
+    return apply_overrides(cfg, overrides)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        cfg = resolve_config(args)
+    except ConfigError as e:
+        print(f"illuminet: configuration error: {e}", file=sys.stderr)
+        return 2
+    logging.basicConfig(
+        level=getattr(logging, cfg.logging.level.upper()),
+        format="%(asctime)s %(levelname).1s %(name)s: %(message)s",
+    )
+    try:
+        return int(args.func(args, cfg) or 0)
+    except ConfigError as e:
+        print(f"illuminet: configuration error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130

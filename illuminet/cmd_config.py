@@ -1,0 +1,31 @@
+"""``illuminet config``: print the effective configuration (file + overrides) as TOML."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+
+def register(sub) -> None:
+    p = sub.add_parser("config", help="print the effective configuration as TOML",
+                       description="Print the configuration after the file and --set overrides are applied.")
+    p.set_defaults(func=run)
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return repr(v)
+
+
+def run(args: argparse.Namespace, cfg) -> int:
+    print(f"# effective configuration (from {cfg.origin})")
+    for section, values in cfg.items():
+        print(f"\n[{section}]")
+        for key, value in values.items():
+            print(f"{key} = {_toml_value(value)}")
+    return 0

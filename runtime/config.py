@@ -1,0 +1,257 @@
+"""Configuration: the schema (types, defaults, allowed values), loading config.toml, CLI overrides.
+
+The schema below is the single source of truth; ``config.toml`` at the repository root documents
+every key and must agree with it (a test checks). Loading refuses unknown sections and keys and
+wrong types with a :class:`ConfigError` that names the file, the key, the expected type and the
+value given. Command-line flags override file values through :func:`apply_overrides`
+(``--set section.key=value``, value in TOML syntax).
+"""
+
+from __future__ import annotations
+
+import copy
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+
+class ConfigError(ValueError):
+    """A configuration file or override is invalid; the message says where and what was expected."""
+
+
+@dataclass(frozen=True)
+class Field:
+    """One configuration key: its type(s), default, allowed values and a one-line description."""
+
+    types: tuple[type, ...]
+    default: Any
+    doc: str
+    choices: tuple[Any, ...] | None = None
+    length: int | None = None  # for lists: required length
+
+    def type_name(self) -> str:
+        names = {bool: "bool", int: "int", float: "float", str: "string", list: "list"}
+        s = " or ".join(names.get(t, t.__name__) for t in self.types)
+        if self.length is not None:
+            s += f" of length {self.length}"
+        if self.choices is not None:
+            s += " (one of " + ", ".join(repr(c) for c in self.choices) + ")"
+        return s
+
+
+def _f(types, default, doc, choices=None, length=None) -> Field:
+    if not isinstance(types, tuple):
+        types = (types,)
+    return Field(types, default, doc, choices, length)
+
+
+#: section -> key -> Field. Keep config.toml in step with this table.
+SCHEMA: dict[str, dict[str, Field]] = {
+    "source": {
+        "url": _f(str, "synthetic://indoor?seed=0", "frame source URL: oakd://, v4l2:///dev/videoN, replay://PATH, synthetic://SCENE"),
+        "timing": _f(str, "recorded", "replay timing", choices=("recorded", "asap")),
+        "loop": _f(bool, False, "replay: start again at the end"),
+        "max_frames": _f(int, 0, "stop after this many frames (0 = no limit)"),
+        "calibration": _f(str, "", "calibration file for v4l2:// stereo cameras (see `illuminet calibrate`)"),
+        "reconnect": _f(bool, True, "live sources: reconnect with backoff when the device is lost"),
+    },
+    "planes": {
+        "method": _f(str, "ransac", "plane segmentation", choices=("ransac", "region", "opencv")),
+        "redetect_every": _f(int, 30, "full re-detection every N frames (tracking in between)"),
+        "max_planes": _f(int, 4, "most planes kept per frame"),
+        "min_area_m2": _f(float, 0.02, "smallest plane kept, square metres"),
+        "inlier_threshold_m": _f(float, 0.01, "distance of an inlier at 1 m; grows with z^2 like stereo noise"),
+        "smoothing": _f(float, 0.8, "temporal smoothing of plane parameters, 0 = none, <1"),
+    },
+    "anchor": {
+        "mode": _f(str, "auto", "where the object stands", choices=("auto", "pixel", "point")),
+        "pixel": _f(list, [320, 300], "mode=pixel: colour-image pixel (x, y)", length=2),
+        "point": _f(list, [0.0, 0.3, 1.5], "mode=point: 3D point in camera coordinates, metres", length=3),
+    },
+    "plane_light": {
+        "grid": _f(int, 32, "plane OI grid is grid x grid vertices"),
+        "extent_m": _f(float, 1.0, "side of the square plane patch around the anchor, metres"),
+        "fusion": _f(float, 0.9, "temporal fusion weight of the previous estimate, 0 = none"),
+        "assumed_albedo": _f(float, 0.5, "mean albedo assumed for the plane (radiance -> irradiance)"),
+    },
+    "model": {
+        "bundle": _f(str, "builtin:vase", "object bundle: builtin:NAME or a bundle folder"),
+        "precision": _f(str, "int8", "ONNX chain used at run time", choices=("int8", "fp32")),
+        "shading": _f(str, "auto", "what drives the object's shading: the learned model, or a baseline",
+                      choices=("auto", "model", "sh", "ambient", "constant")),
+        "temporal_smoothing": _f(float, 0.7, "exponential smoothing of predicted shading, 0 = none"),
+    },
+    "render": {
+        "object_scale": _f(float, 1.0, "extra scale applied to the object's mesh"),
+        "shadow": _f(bool, True, "draw the object's shadow on the anchor plane"),
+        "shadow_map": _f(int, 1024, "shadow map resolution, pixels"),
+        "occlusion": _f(bool, True, "real geometry nearer than the object hides it"),
+        "msaa": _f(int, 4, "multisample anti-aliasing samples (0 = off)"),
+    },
+    "output": {
+        "video": _f(str, "", "write an .mp4/.avi video here ('' = off)"),
+        "png_dir": _f(str, "", "write a PNG per frame into this folder ('' = off)"),
+        "record": _f(str, "", "record the input session into this folder ('' = off)"),
+        "mjpeg": _f(bool, False, "serve MJPEG over HTTP with a status page"),
+        "listen": _f(str, "127.0.0.1", "MJPEG bind address; 0.0.0.0 serves the local network"),
+        "port": _f(int, 8080, "MJPEG port"),
+        "fps": _f(float, 30.0, "frame rate written into video files"),
+    },
+    "imu": {
+        "url": _f(str, "", "serial IMU URL for serial.serial_for_url, e.g. /dev/ttyUSB0 or loop:// ('' = none)"),
+        "baudrate": _f(int, 115200, "serial baud rate"),
+        "max_skew_ms": _f(float, 20.0, "largest IMU-to-frame timestamp gap accepted"),
+    },
+    "logging": {
+        "level": _f(str, "info", "log level", choices=("debug", "info", "warning", "error")),
+        "stats_json": _f(str, "", "write per-stage timing statistics as JSON here at the end ('' = off)"),
+        "strict": _f(bool, False, "raise on the first failing frame instead of counting it (tests)"),
+    },
+}
+
+
+class Section(Mapping[str, Any]):
+    """Read-only view of one section; keys are attributes too (``cfg.planes.method``)."""
+
+    def __init__(self, name: str, values: dict[str, Any]):
+        self._name = name
+        self._values = values
+
+    def __getattr__(self, key: str) -> Any:
+        try:
+            return self._values[key]
+        except KeyError:
+            raise AttributeError(f"config section [{self._name}] has no key {key!r}") from None
+
+    def __getitem__(self, key: str) -> Any:
+        return self._values[key]
+
+    def __iter__(self):
+        return iter(self._values)
+
+    def __len__(self) -> int:
+        return len(self._values)
+
+    def __repr__(self) -> str:
+        return f"Section({self._name!r}, {self._values!r})"
+
+
+class Config(Mapping[str, Section]):
+    """A validated configuration: every section and key of :data:`SCHEMA`, defaults filled in."""
+
+    def __init__(self, data: dict[str, dict[str, Any]], origin: str = "<defaults>"):
+        self._data = data
+        self.origin = origin
+
+    def __getattr__(self, name: str) -> Section:
+        if name.startswith("_") or name == "origin":
+            raise AttributeError(name)
+        try:
+            return Section(name, self._data[name])
+        except KeyError:
+            raise AttributeError(f"config has no section [{name}]") from None
+
+    def __getitem__(self, name: str) -> Section:
+        return Section(name, self._data[name])
+
+    def __iter__(self):
+        return iter(self._data)
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        return copy.deepcopy(self._data)
+
+
+def defaults() -> Config:
+    """The configuration with every default."""
+    return Config({s: {k: copy.deepcopy(f.default) for k, f in keys.items()} for s, keys in SCHEMA.items()})
+
+
+def _check_value(where: str, section: str, key: str, value: Any) -> Any:
+    fld = SCHEMA[section][key]
+    ok = any(
+        isinstance(value, t) and not (t in (int, float) and isinstance(value, bool)) for t in fld.types
+    )
+    # ints are accepted where floats are expected (TOML writes 1 for 1.0)
+    if not ok and float in fld.types and isinstance(value, int) and not isinstance(value, bool):
+        value, ok = float(value), True
+    if ok and fld.length is not None and len(value) != fld.length:
+        ok = False
+    if ok and list in fld.types and fld.length is not None:
+        ok = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+    if ok and fld.choices is not None and value not in fld.choices:
+        ok = False
+    if not ok:
+        raise ConfigError(
+            f"{where}: [{section}] {key}: expected {fld.type_name()}, got {type(value).__name__} {value!r}"
+        )
+    return value
+
+
+def validate(data: Mapping[str, Any], where: str = "<config>") -> Config:
+    """Validate a parsed TOML mapping against :data:`SCHEMA` and fill in defaults."""
+    cfg = defaults().to_dict()
+    for section, keys in data.items():
+        if section not in SCHEMA:
+            raise ConfigError(
+                f"{where}: unknown section [{section}]; known sections: {', '.join(SCHEMA)}"
+            )
+        if not isinstance(keys, Mapping):
+            raise ConfigError(f"{where}: [{section}] must be a table of keys, got {type(keys).__name__} {keys!r}")
+        for key, value in keys.items():
+            if key not in SCHEMA[section]:
+                raise ConfigError(
+                    f"{where}: [{section}] unknown key {key!r}; known keys: {', '.join(SCHEMA[section])}"
+                )
+            cfg[section][key] = _check_value(where, section, key, value)
+    return Config(cfg, where)
+
+
+def load(path: str | Path | None = None) -> Config:
+    """Load and validate a TOML file; ``None`` gives the defaults."""
+    if path is None:
+        return defaults()
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: config file not found") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: not valid TOML: {e}") from None
+    return validate(data, str(path))
+
+
+def parse_override(item: str) -> tuple[str, str, Any]:
+    """``"section.key=value"`` -> (section, key, value); value is parsed as TOML, else taken as a string."""
+    if "=" not in item or "." not in item.split("=", 1)[0]:
+        raise ConfigError(f"override {item!r}: expected section.key=value, e.g. planes.method=ransac")
+    lhs, rhs = item.split("=", 1)
+    section, key = lhs.strip().split(".", 1)
+    try:
+        value = tomllib.loads(f"v = {rhs.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = rhs.strip()
+    return section, key, value
+
+
+def apply_overrides(cfg: Config, overrides: Iterable[str | tuple[str, str, Any]]) -> Config:
+    """A new config with ``section.key=value`` overrides applied and validated."""
+    data = cfg.to_dict()
+    for item in overrides:
+        section, key, value = parse_override(item) if isinstance(item, str) else item
+        if section not in SCHEMA:
+            raise ConfigError(f"override: unknown section [{section}]; known sections: {', '.join(SCHEMA)}")
+        if key not in SCHEMA[section]:
+            raise ConfigError(f"override: [{section}] unknown key {key!r}; known keys: {', '.join(SCHEMA[section])}")
+        data[section][key] = _check_value("override", section, key, value)
+    return Config(data, cfg.origin)

@@ -1,0 +1,89 @@
+"""Physics conventions: the one place that defines colour encoding, exposure and illumination units.
+
+Everything that does lighting math imports from here, so that the synthetic camera, the plane
+measurement, training data, the models and the renderer all agree.
+
+Colour
+    All lighting math is in **linear RGB** (Rec.709/sRGB primaries). Camera pixels are sRGB-encoded
+    8-bit; :func:`srgb_to_linear` / :func:`linear_to_srgb` convert. A frame's *exposure scale*
+    k = exposure_s * ISO/100 relates scene radiance to linear pixel values; when the camera reports no
+    exposure, stages normalise by the plane's own statistics instead (see planes/plane light).
+
+Overall illumination (OI), after the paper
+    For a vertex v with unit normal n, OI is a 3-vector per colour channel, L_c(v), such that the
+    **irradiance** reaching v is E_c(v) = L_c(v) . n(v). Array layout: ``(V, 3, 3)`` =
+    (vertex, colour channel R/G/B, xyz). For point lights j at p_j with RGB radiant intensity e_j
+    (W/sr) and visibility V_j(v)::
+
+        L_c(v) = sum_j  e_jc V_j(v) w_j / r_j^2,   w_j = (p_j - v) / r_j,  over lights with n . w_j > 0
+
+    Note the "over lights with n . w_j > 0" makes L depend on n: OI is defined per vertex *with its
+    normal*, exactly as in the paper.
+
+Shading and radiance
+    *Shading* is the irradiance E = L . n (per channel). A Lambertian surface of albedo rho reflects
+    radiance B = rho * E / pi. The value a camera records (linear) is B * k * K_cam with the camera's
+    constant; we fold K_cam into the exposure so that ``linear_pixel = B * exposure_scale``.
+    Models predict shading E; the renderer draws albedo * E / pi * exposure_scale.
+
+Coordinates
+    Camera: OpenCV (x right, y down, z forward), metres. Object / anchor frame: origin on the anchor
+    plane under the object's centre, +Y up along the plane normal, right-handed, metres. OI vectors
+    exchanged between stages are expressed in the object frame.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: 1/pi, the Lambertian BRDF of a white surface.
+INV_PI = 1.0 / np.pi
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values -> linear. uint8 input is scaled from [0, 255]; floats are taken in [0, 1].
+
+    Returns float32.
+    """
+    if x.dtype == np.uint8:
+        return _SRGB_LUT[x]
+    x = np.asarray(x, dtype=np.float32)
+    return np.where(x <= 0.04045, x / 12.92, ((np.maximum(x, 0.04045) + 0.055) / 1.055) ** 2.4).astype(
+        np.float32
+    )
+
+
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    """Linear values in [0, 1] -> sRGB-encoded float32 in [0, 1] (clipped)."""
+    x = np.clip(np.asarray(x, dtype=np.float32), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055).astype(np.float32)
+
+
+def linear_to_srgb8(x: np.ndarray) -> np.ndarray:
+    """Linear values in [0, 1] -> sRGB uint8 (rounded)."""
+    return np.rint(linear_to_srgb(x) * 255.0).astype(np.uint8)
+
+
+_SRGB_LUT = srgb_to_linear(np.arange(256, dtype=np.float32) / 255.0)
+
+
+def irradiance_from_oi(oi: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Shading E = L . n per channel.
+
+    Parameters
+    ----------
+    oi : (V, 3, 3) array
+        OI per vertex, per colour channel, xyz.
+    normals : (V, 3) array
+        Unit normals in the same frame as ``oi``.
+
+    Returns
+    -------
+    (V, 3) array of per-channel irradiance.
+    """
+    return np.einsum("vcx,vx->vc", oi, normals)
+
+
+def lambert_radiance(irradiance: np.ndarray, albedo: np.ndarray | float = 1.0) -> np.ndarray:
+    """Radiance reflected by a Lambertian surface: rho * E / pi."""
+    return np.asarray(albedo) * irradiance * INV_PI

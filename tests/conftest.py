@@ -1,0 +1,42 @@
+"""Shared test fixtures: the one GL context, the path to ../shared/data, and markers' skips."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("DEPTHAI_TELEMETRY", "0")
+
+REPO = Path(__file__).resolve().parent.parent
+SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """../shared/data (real captured data); tests using it skip when it is absent."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"shared data not found at {SHARED_DATA} (tests on real captures need it)")
+    return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def gl_ctx():
+    """One standalone EGL OpenGL context for the whole run (created in one place, as moderngl's tests do)."""
+    moderngl = pytest.importorskip("moderngl")
+    try:
+        ctx = moderngl.create_standalone_context(backend="egl", require=330)
+    except Exception as e:  # no EGL / GL driver on this machine
+        pytest.skip(f"no OpenGL context via EGL: {e}")
+    yield ctx
+    ctx.release()
+
+
+@pytest.fixture
+def gl(gl_ctx):
+    """The GL context, checked for GL errors before and after the test."""
+    assert gl_ctx.error == "GL_NO_ERROR", f"GL error left by an earlier test: {gl_ctx.error}"
+    yield gl_ctx
+    err = gl_ctx.error
+    assert err == "GL_NO_ERROR", f"test left a GL error: {err}"

@@ -1,0 +1,73 @@
+"""Configuration: schema vs config.toml, validation messages, CLI overrides."""
+
+from __future__ import annotations
+
+import pytest
+
+from illuminet.runtime import config as C
+
+from .conftest import REPO
+
+
+def test_config_toml_documents_every_key_with_its_default():
+    cfg = C.load(REPO / "config.toml")
+    assert cfg.to_dict() == C.defaults().to_dict()
+    text = (REPO / "config.toml").read_text()
+    for section, keys in C.SCHEMA.items():
+        assert f"[{section}]" in text
+        for key in keys:
+            # every key is preceded by a comment line
+            lines = text.splitlines()
+            i = next(i for i, l in enumerate(lines) if l.startswith(f"{key} =") and f"[{section}]" in "\n".join(lines[:i]))
+            assert lines[i - 1].startswith("#"), f"[{section}] {key} has no comment"
+
+
+def test_unknown_key_is_refused_with_its_name(tmp_path):
+    p = tmp_path / "c.toml"
+    p.write_text("[planes]\nmethd = 'ransac'\n")
+    with pytest.raises(C.ConfigError) as e:
+        C.load(p)
+    msg = str(e.value)
+    assert str(p) in msg and "methd" in msg and "[planes]" in msg and "method" in msg
+
+
+def test_unknown_section_is_refused(tmp_path):
+    p = tmp_path / "c.toml"
+    p.write_text("[plane]\nmethod = 'ransac'\n")
+    with pytest.raises(C.ConfigError, match=r"unknown section \[plane\]"):
+        C.load(p)
+
+
+@pytest.mark.parametrize(
+    "toml, expect",
+    [
+        ("[planes]\nredetect_every = 'often'\n", r"\[planes\] redetect_every: expected int, got str 'often'"),
+        ("[render]\nshadow = 1\n", r"\[render\] shadow: expected bool, got int 1"),
+        ("[planes]\nmethod = 'hough'\n", r"one of 'ransac', 'region', 'opencv'.*got str 'hough'"),
+        ("[anchor]\npixel = [1, 2, 3]\n", r"\[anchor\] pixel: expected list of length 2"),
+        ("[output]\nport = 80.5\n", r"\[output\] port: expected int, got float 80.5"),
+    ],
+)
+def test_wrong_types_name_key_expected_and_value(tmp_path, toml, expect):
+    p = tmp_path / "c.toml"
+    p.write_text(toml)
+    with pytest.raises(C.ConfigError, match=expect):
+        C.load(p)
+
+
+def test_int_accepted_for_float_and_overrides_apply():
+    cfg = C.apply_overrides(C.defaults(), ["planes.smoothing=0", "source.url=replay://x", "anchor.pixel=[10, 20]"])
+    assert cfg.planes.smoothing == 0.0 and isinstance(cfg.planes.smoothing, float)
+    assert cfg.source.url == "replay://x"
+    assert cfg.anchor.pixel == [10, 20]
+    with pytest.raises(C.ConfigError, match="expected section.key=value"):
+        C.apply_overrides(C.defaults(), ["nonsense"])
+
+
+def test_missing_file_and_bad_toml(tmp_path):
+    with pytest.raises(C.ConfigError, match="not found"):
+        C.load(tmp_path / "nope.toml")
+    p = tmp_path / "bad.toml"
+    p.write_text("[planes\n")
+    with pytest.raises(C.ConfigError, match="not valid TOML"):
+        C.load(p)
