@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.util
 import logging
 import os
 import sys
@@ -21,7 +22,15 @@ os.environ.setdefault("DEPTHAI_TELEMETRY", "0")
 
 #: command modules of this package, in the order --help lists them
 COMMAND_MODULES: list[str] = [
-    "cmd_config",
+    "cmd_run",        # run, replay, record                      (runtime foundation)
+    "cmd_demo",       # the main job on the built-in default      (rendering)
+    "cmd_bench",      # benchmarks
+    "cmd_doctor",     # what hardware/drivers are found           (runtime foundation)
+    "cmd_calibrate",  # calibrate board|capture|intrinsics|stereo|photometric
+    "cmd_train",      # train an object bundle                    (learned transfer)
+    "cmd_eval",       # evaluation report                         (learned transfer)
+    "cmd_relight",    # one RGB-D image -> placed object + radiance (learned transfer)
+    "cmd_config",     # print the effective configuration
 ]
 
 log = logging.getLogger("illuminet")
@@ -45,7 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in COMMAND_MODULES:
-        importlib.import_module(f"illuminet.{name}").register(sub)
+        # a command whose module is not in this build (e.g. stripped down for a board) is not listed
+        if importlib.util.find_spec(f"illuminet.{name}") is not None:
+            importlib.import_module(f"illuminet.{name}").register(sub)
     return parser
 
 
