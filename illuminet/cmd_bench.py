@@ -18,6 +18,7 @@ import sys
 #: benchmark name -> one-line description (module illuminet.bench_<name>)
 BENCHES: dict[str, str] = {
     "replay": "replay throughput of a 640x400 RGB-D session through a null sink; MJPEG clients' cost",
+    "mjpeg": "loop throughput with two MJPEG clients attached vs none (ratio)",
     "synthetic": "synthetic camera: render time of a 640x400 RGB-D frame; visibility precomputation",
     "planes": "plane detection + tracking + plane illumination per 640x400 frame",
     "render": "render + composite at 1280x800 (moderngl)",

@@ -60,6 +60,7 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "max_frames": _f(int, 0, "stop after this many frames (0 = no limit)"),
         "calibration": _f(str, "", "calibration file for v4l2:// stereo cameras (see `illuminet calibrate`)"),
         "reconnect": _f(bool, True, "live sources: reconnect with backoff when the device is lost"),
+        "response_curve": _f(str, "", "camera response curve from `illuminet calibrate photometric` ('' = sRGB)"),
     },
     "planes": {
         "method": _f(str, "ransac", "plane segmentation", choices=("ransac", "region", "opencv")),

@@ -67,6 +67,20 @@ def linear_to_srgb8(x: np.ndarray) -> np.ndarray:
 _SRGB_LUT = srgb_to_linear(np.arange(256, dtype=np.float32) / 255.0)
 
 
+def linearize(color: np.ndarray, response_lut: np.ndarray | None = None) -> np.ndarray:
+    """Camera pixels (H x W x 3 uint8) -> linear float32 RGB in [0, 1].
+
+    Uses the camera's measured response curve when one is given (a (256, 3) float LUT from
+    photometric calibration, see ``illuminet calibrate photometric``), else the sRGB curve.
+    """
+    if response_lut is None:
+        return _SRGB_LUT[color]
+    lut = np.asarray(response_lut, dtype=np.float32)
+    if lut.shape != (256, 3):
+        raise ValueError(f"response LUT must have shape (256, 3), got {lut.shape}")
+    return np.stack([lut[color[..., c], c] for c in range(3)], axis=-1)
+
+
 def irradiance_from_oi(oi: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """Shading E = L . n per channel.
 
