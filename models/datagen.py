@@ -385,14 +385,27 @@ def median_cut_lights(env: np.ndarray, n: int = N_LIGHTS) -> tuple[np.ndarray, n
     return np.asarray(dirs, np.float32), np.asarray(rgbs, np.float32)
 
 
-def load_hdr_lights(folder: str | Path | None, n: int = N_LIGHTS, max_maps: int | None = None):
-    """Median-cut lights of every ``.hdr`` map in ``folder`` (empty list when absent)."""
+def hdr_maps(folder: str | Path | None, split: str = "all") -> list[Path]:
+    """The ``.hdr`` files of ``folder``, sorted; every 4th map (index % 4 == 3) is held out for testing.
+
+    split : "train" (the other maps), "test" (the held-out ones) or "all".
+    """
+    if folder is None or not str(folder) or not Path(folder).is_dir():
+        return []
+    maps = sorted(Path(folder).glob("*.hdr"))
+    if split == "train":
+        return [p for i, p in enumerate(maps) if i % 4 != 3]
+    if split == "test":
+        return [p for i, p in enumerate(maps) if i % 4 == 3]
+    return maps
+
+
+def load_hdr_lights(folder: str | Path | None, n: int = N_LIGHTS, split: str = "all"):
+    """Median-cut lights of the ``.hdr`` maps in ``folder`` (see :func:`hdr_maps`; empty when absent)."""
     import cv2
 
-    if folder is None or not Path(folder).is_dir():
-        return []
     out = []
-    for p in sorted(Path(folder).glob("*.hdr"))[:max_maps]:
+    for p in hdr_maps(folder, split):
         img = cv2.imread(str(p), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
         if img is None:
             log.warning("could not read HDR map %s; skipped", p)

@@ -103,7 +103,7 @@ def leaky(x):
 
 # --------------------------------------------------------------------------- plane GAE
 
-def init_plane_gae(key, n_vert: int, f_in: int = 4, hidden: int = 16, dec_feat: int = 8) -> dict:
+def init_plane_gae(key, n_vert: int, f_in: int = 4, hidden: int = 8, dec_feat: int = 8) -> dict:
     k = jax.random.split(key, 6)
     return {
         "enc": {"g1": init_dense(k[0], f_in, hidden), "g2": init_dense(k[1], hidden, hidden),
@@ -132,7 +132,7 @@ def plane_decode(p: dict, a_hat, z):
 
 # --------------------------------------------------------------------------- object GAE
 
-def init_object_gae(key, n_vert: int, hidden: int = 16, dec_feat: int = 8, dec_hidden: int = 32) -> dict:
+def init_object_gae(key, n_vert: int, hidden: int = 16, dec_feat: int = 4, dec_hidden: int = 32) -> dict:
     k = jax.random.split(key, 6)
     return {
         "enc": {"g1": init_dense(k[0], 12, hidden), "g2": init_dense(k[1], hidden, hidden),

@@ -1,6 +1,6 @@
 """The transfer GAN (paper section 3.3 and 3.5): generator, discriminator, losses, unrolled update.
 
-* Generator: 5 FC layers 256 -> 512 -> 512 -> 512 -> 512 -> 256; every layer but the last is
+* Generator: 5 FC layers 256 -> 256 -> ... -> 256 (width :data:`GEN_WIDTH`); every layer but the last is
   followed by BatchNorm and LeakyReLU(0.2). It maps the plane latent to the object latent.
 * Discriminator: 2 graph convolutions (BN + tanh) on the decoded object OI with its normals, then
   2 FC layers (BN + LeakyReLU on the first). It judges whether an OI field looks like the object's.
@@ -18,7 +18,7 @@ import jax.numpy as jnp
 
 from .gae import LATENT, batchnorm, dense, gconv, init_bn, init_dense, leaky
 
-GEN_WIDTH = 512
+GEN_WIDTH = 256  # the paper does not give the width; 256 keeps a bundle under 10 MB
 
 
 def init_generator(key, width: int = GEN_WIDTH) -> tuple[dict, dict]:

@@ -15,6 +15,9 @@ bundle's metadata:
 * batch 64 instead of 256 on the small presets (more updates per epoch on fewer samples);
 * the generator's learning rate is 1e-3 in the CPU presets (1e-4 does not converge in a few hundred
   updates); the ``gpu`` preset keeps the paper's 1e-4;
+* a final end-to-end fine-tuning stage (``finetune``; ``--epochs-finetune 0`` switches it off) on
+  the shading + OI L1 errors: with a CPU-sized schedule the frozen object GAE's reconstruction error
+  otherwise bounds the accuracy;
 * the object GAE's reconstruction loss also includes the L1 error of the shading L.n (the quantity
   that is finally evaluated), and the unroll depth (not given in the paper) is 3.
 """
@@ -33,7 +36,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-STAGES = ("plane_gae", "object_gae", "colour_gae", "gan")
+STAGES = ("plane_gae", "object_gae", "colour_gae", "gan", "finetune")
 
 
 @dataclass
@@ -65,6 +68,8 @@ class TrainConfig:
     beta_smooth: float = 2.5
     unroll: int = 3
     dropout: float = 0.2
+    epochs_finetune: int = 20
+    lr_finetune: float = 3e-4
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -78,14 +83,16 @@ class TrainConfig:
 PRESETS: dict[str, dict] = {
     # CI: seconds, checks the machinery only
     "tiny": dict(n_train=48, n_val=16, n_proxy=64, epochs_gae=1, epochs_colour=1, epochs_gan=1, batch=16,
-                 unroll=1, hdr_share=0.0),
+                 unroll=1, hdr_share=0.0, epochs_finetune=1),
     # what the shipped bundles use: ~15-25 min on a 2-core CPU
-    "small": dict(n_train=3000, n_val=300, n_proxy=400, epochs_gae=25, epochs_colour=4, epochs_gan=30, batch=64),
-    # the default for `illuminet train`: the same within 30 min on a quiet 2-core CPU
-    "default": dict(n_train=3000, n_val=300, n_proxy=400, epochs_gae=25, epochs_colour=4, epochs_gan=30, batch=64),
+    "small": dict(n_train=3000, n_val=300, n_proxy=400, epochs_gae=50, epochs_colour=4, epochs_gan=25, batch=64,
+                  epochs_finetune=25),
+    # the default for `illuminet train`: the same (within 30 min on a quiet 2-core CPU)
+    "default": dict(n_train=3000, n_val=300, n_proxy=400, epochs_gae=50, epochs_colour=4, epochs_gan=25, batch=64,
+                    epochs_finetune=25),
     # close to the paper's schedule; for a GPU (jax[cuda]) or a many-core machine
     "gpu": dict(n_train=10000, n_val=1000, n_proxy=800, epochs_gae=400, epochs_colour=100, epochs_gan=100,
-                batch=256, lr_g=1e-4, unroll=5),
+                batch=256, lr_g=1e-4, unroll=5, epochs_finetune=50),
 }
 
 
@@ -192,10 +199,10 @@ class Trainer:
         gp = c.grid // POOL
         self.a_plane = normalized_adjacency(gp * gp, grid_edges(gp))
         self.normals = g.proxy_normals.astype(np.float32)
-        hdr = datagen.load_hdr_lights(c.hdr_dir) if c.hdr_dir else []
+        hdr = datagen.load_hdr_lights(c.hdr_dir, split="train") if c.hdr_dir else []
         if c.hdr_dir and not hdr:
             log.warning("no HDR maps found in %s; training on synthetic lights only", c.hdr_dir)
-        self.hdr_names = sorted(p.name for p in Path(c.hdr_dir).glob("*.hdr")) if hdr else []
+        self.hdr_names = [p.name for p in datagen.hdr_maps(c.hdr_dir, "train")] if hdr else []
         self.scene = datagen.Scene(g, mesh, c.grid, c.extent_m)
         log.info("object %s: %d render vertices, %d proxy vertices, %d proxy edges; tables in %.1fs",
                  c.object, len(g.vertices), V, len(g.proxy_edges), time.time() - t0)
@@ -338,7 +345,66 @@ class Trainer:
 
         # ---- 4. transfer GAN on frozen encoders / decoders
         result.update(self.train_gan(result, keys[6], c.beta_shading, c.beta_smooth, "gan"))
-        return result
+        if stop_after == "gan" or c.epochs_finetune <= 0:
+            return result
+
+        # ---- 5. (deviation) end-to-end fine-tuning of the inference chain on the shading loss
+        return self.finetune(result, keys[7])
+
+    def finetune(self, result, key) -> dict:
+        """Fine-tune plane encoder + generator (BN statistics frozen) + decoder + colour end to end.
+
+        Not in the paper: its stages stay frozen after training. With a CPU-sized schedule the frozen
+        object GAE's reconstruction error bounds the accuracy; a short end-to-end pass on the shading
+        and OI errors removes most of that gap. ``epochs_finetune = 0`` gives the paper's pipeline.
+        """
+        import jax
+        import jax.numpy as jnp
+        import optax
+
+        from . import gae, gan
+
+        c = self.cfg
+        a_p, a_o = jnp.asarray(self.a_plane), jnp.asarray(self.a_obj)
+        nb_o = jnp.asarray(self.nb_obj)
+        normals = jnp.asarray(self.normals)
+        X, OI, SH = (jnp.asarray(self.data["train"][k]) for k in ("plane", "oi", "shading"))
+        Xv, SHv = jnp.asarray(self.data["val"]["plane"]), jnp.asarray(self.data["val"]["shading"])
+        gen_state = result["gen_state"]
+        params = {"penc": result["plane"]["enc"], "gen": result["gen"], "dec": result["object"]["dec"],
+                  "col": result["colour"]}
+
+        def chain(p, x, k, train):
+            z = gae.plane_encode(p["penc"], a_p, x, k, train, c.dropout)
+            z, _ = gan.generator(p["gen"], gen_state, z, False)
+            oi = gae.object_decode(p["dec"], a_o, normals, z)
+            return oi, gae.colour(p["col"], a_o, normals, oi)
+
+        def loss(p, x, oi_t, sh_t, k):
+            oi, sh = chain(p, x, k, True)
+            return (jnp.mean(jnp.abs(sh - sh_t)) + 0.5 * jnp.mean(jnp.abs(oi - oi_t))
+                    + 0.1 * c.beta_smooth * gan.smoothness(nb_o, oi))
+
+        opt = optax.adam(c.lr_finetune, b1=c.betas_gae[0], b2=c.betas_gae[1])
+
+        @jax.jit
+        def step(p, s, idx, k):
+            l, g = jax.value_and_grad(loss)(p, X[idx], OI[idx], SH[idx], k)
+            u, s = opt.update(g, s, p)
+            return optax.apply_updates(p, u), s, l
+
+        @jax.jit
+        def val(p):
+            return jnp.mean(jnp.abs(chain(p, Xv, None, False)[1] - SHv))
+
+        p = self._run_stage("finetune", params, opt, step, lambda p: {"val_shading_mae": float(val(p))},
+                            c.epochs_finetune, key)
+        out = dict(result)
+        out["plane"] = {"enc": p["penc"], "dec": result["plane"]["dec"]}
+        out["gen"] = p["gen"]
+        out["object"] = {"enc": result["object"]["enc"], "dec": p["dec"]}
+        out["colour"] = p["col"]
+        return out
 
     def latents(self, result):
         """Frozen encoders' latents of the training and validation sets."""

@@ -94,3 +94,127 @@ def dominant_light(oi: np.ndarray, normals: np.ndarray | None = None) -> tuple[n
     if norm <= 1e-12 or lens <= 1e-12:
         return np.array([0.0, 1.0, 0.0], dtype=np.float32), 0.0
     return (tot / norm).astype(np.float32), float(np.clip(norm / lens, 0.0, 1.0))
+
+
+def ambient_shading(plane_irr: np.ndarray, mask: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Ambient-only shading (what phone AR frameworks give): every vertex gets the plane's mean RGB
+    irradiance. (The full baselines, incl. SH from RGB-D, are in :mod:`illuminet.runtime.baselines`.)"""
+    m = np.asarray(mask, dtype=bool)
+    mean = np.asarray(plane_irr, dtype=np.float32)[m].mean(0) if m.any() else np.zeros(3, np.float32)
+    return np.tile(mean[None, :], (n_vertices, 1)).astype(np.float32)
+
+
+class ShadingStage(Stage):
+    """``results["plane_light"]`` -> ``results["shading"]`` (:class:`ObjectShading` of the proxy mesh).
+
+    ``[model] shading``:
+
+    * ``model``: the bundle's ONNX chain (``[model] precision`` int8 or fp32) on the anchor plane's
+      irradiance; ``auto`` does the same and falls back to ``ambient`` when the bundle cannot load;
+    * ``constant``: the bundle's prior (mean training shading) times the plane's scale;
+    * ``ambient``: the plane's mean irradiance everywhere;
+    * ``sh``: second-order SH fitted to the frame's RGB-D pixels (:mod:`illuminet.runtime.baselines`).
+
+    Temporal smoothing: an exponential moving average of the predicted shading and OI with weight
+    ``[model] temporal_smoothing`` on the previous value (0 = none), reset when the anchor plane or
+    the method changes.
+    """
+
+    name = "shading"
+
+    def __init__(self, cfg):
+        self.cfg = cfg
+        m = cfg.model
+        self.mode = m.shading
+        self.precision = m.precision
+        self.alpha = float(m.temporal_smoothing)
+        if not 0.0 <= self.alpha < 1.0:
+            raise ValueError(f"[model] temporal_smoothing must be in [0, 1), got {self.alpha}")
+        self.bundle = None
+        self.chain = None
+        self._prev: tuple | None = None
+        self._sh_baseline = None
+        self.frames = 0
+        self.fallbacks = 0
+
+    def open(self) -> None:
+        from .bundle import BundleError, TransferChain, load_bundle
+
+        try:
+            self.bundle = load_bundle(self.cfg.model.bundle)
+            if self.mode in ("auto", "model"):
+                self.chain = TransferChain(self.bundle, self.precision)
+        except BundleError as e:
+            if self.mode != "auto":
+                raise
+            log.error("%s; shading falls back to the ambient baseline", e)
+            self.mode = "ambient"
+        if self.mode == "auto":
+            self.mode = "model"
+        if self.mode == "sh":
+            try:
+                from . import baselines  # the light-transport helper's module
+            except ImportError:
+                raise RuntimeError("[model] shading = 'sh' needs illuminet.runtime.baselines, which this build lacks") from None
+            self._sh_baseline = baselines
+
+    def close(self) -> None:
+        self.chain = None
+
+    def stats(self) -> dict:
+        return {"mode": self.mode, "precision": self.precision if self.mode == "model" else None,
+                "frames": self.frames}
+
+    def _plane_input(self, pl):
+        sl = pl.plane_slices[0] if pl.plane_slices else slice(0, len(pl.irradiance))
+        irr, mask = pl.irradiance[sl], pl.mask[sl]
+        conf = pl.confidence[sl] if pl.confidence is not None else None
+        return irr, mask, conf
+
+    def predict(self, pl) -> ObjectShading:
+        """One prediction from a :class:`~illuminet.runtime.scene.PlaneLight` (no smoothing)."""
+        b = self.bundle
+        irr, mask, conf = self._plane_input(pl)
+        if self.mode in ("model", "constant"):
+            if pl.grid != b.grid:
+                raise FrameError(f"plane grid is {pl.grid}x{pl.grid} but bundle {b.name} was trained on "
+                                 f"{b.grid}x{b.grid}: set [plane_light] grid = {b.grid}")
+            try:
+                x, s = preprocess_plane(irr, mask, b.grid, b.pool, conf)
+            except ValueError as e:
+                raise FrameError(str(e)) from None
+            if self.mode == "constant":
+                return ObjectShading(irradiance=b.prior_shading * s, method="constant")
+            oi, sh = self.chain(x)
+            oi, sh = oi * s, np.maximum(sh, 0.0) * s
+            d, share = dominant_light(oi)
+            return ObjectShading(irradiance=sh, method=f"model:{self.precision}", oi=oi, dominant_dir=d,
+                                 dominant_share=share)
+        if self.mode == "ambient":
+            n = b.n_proxy if b is not None else 1
+            return ObjectShading(irradiance=ambient_shading(irr, mask, n), method="ambient")
+        raise FrameError(f"shading mode {self.mode!r} needs the whole frame (use process())")
+
+    def process(self, frame):
+        pl = frame.results.get("plane_light")
+        if pl is None and self.mode != "sh":
+            raise FrameError("no plane_light result in the frame: the plane-light stage must run before shading")
+        if self.mode == "sh":
+            shading = self._sh_baseline.sh_stage_shading(frame, self.bundle)
+        else:
+            shading = self.predict(pl)
+        shading = self._smooth(shading)
+        self.frames += 1
+        return frame.with_result(self.name, shading)
+
+    def _smooth(self, s: ObjectShading) -> ObjectShading:
+        a = self.alpha
+        prev = self._prev
+        if a > 0 and prev is not None and prev[0] == s.method and prev[1].shape == s.irradiance.shape:
+            irr = a * prev[1] + (1 - a) * s.irradiance
+            oi = s.oi if (s.oi is None or prev[2] is None) else a * prev[2] + (1 - a) * s.oi
+            d, share = (dominant_light(oi) if oi is not None else (s.dominant_dir, s.dominant_share))
+            s = ObjectShading(irradiance=irr.astype(np.float32), method=s.method,
+                              oi=None if oi is None else oi.astype(np.float32), dominant_dir=d, dominant_share=share)
+        self._prev = (s.method, s.irradiance, s.oi)
+        return s
