@@ -96,6 +96,50 @@ def dominant_light(oi: np.ndarray, normals: np.ndarray | None = None) -> tuple[n
     return (tot / norm).astype(np.float32), float(np.clip(norm / lens, 0.0, 1.0))
 
 
+# ------------------------------------------------------------- SH baseline (fit to RGB-D samples)
+
+
+def sh9(n: np.ndarray) -> np.ndarray:
+    """Real SH basis up to order 2 at unit directions n (N, 3) -> (N, 9)."""
+    x, y, z = n[:, 0], n[:, 1], n[:, 2]
+    return np.stack([np.full_like(x, 0.282095), 0.488603 * y, 0.488603 * z, 0.488603 * x,
+                     1.092548 * x * y, 1.092548 * y * z, 0.315392 * (3 * z * z - 1), 1.092548 * x * z,
+                     0.546274 * (x * x - y * y)], 1)
+
+
+SH_A_HAT = np.array([np.pi] + [2 * np.pi / 3] * 3 + [np.pi / 4] * 5)
+
+
+_BAND = np.array([0, 1, 1, 1, 2, 2, 2, 2, 2])
+
+
+def sh_fit(normals: np.ndarray, irradiance: np.ndarray, weights: np.ndarray | None = None,
+                lam: float = 0.0) -> np.ndarray:
+    """Regularised least-squares SH9 irradiance coefficients (9, 3) from samples with normals.
+
+    The classic physics baseline: every valid RGB-D sample, its normal and its irradiance. The
+    Laplacian (band l penalised by lam * (l (l + 1))^2, relative to the mean sample energy) keeps the
+    fit sensible when the normals span few directions (one plane: the unregularised minimum-norm
+    solution turns every side face black). ``lam = 0`` is plain minimum-norm least squares.
+    """
+    B = sh9(np.asarray(normals, np.float64))
+    E = np.asarray(irradiance, np.float64)
+    if weights is not None:
+        w = np.sqrt(np.asarray(weights, np.float64))[:, None]
+        B, E = B * w, E * w
+    if lam <= 0:
+        coef, *_ = np.linalg.lstsq(B, E, rcond=1e-6)
+        return coef
+    G = B.T @ B
+    reg = lam * np.trace(G) / 9 * np.diag((_BAND * (_BAND + 1.0)) ** 2)
+    return np.linalg.solve(G + reg + 1e-9 * np.eye(9), B.T @ E)
+
+
+def sh_eval(coef: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Irradiance (N, 3) of SH9 coefficients (9, 3) at unit normals (clamped at 0)."""
+    return np.maximum(sh9(np.asarray(normals, np.float64)) @ coef, 0.0).astype(np.float32)
+
+
 def ambient_shading(plane_irr: np.ndarray, mask: np.ndarray, n_vertices: int) -> np.ndarray:
     """Ambient-only shading (what phone AR frameworks give): every vertex gets the plane's mean RGB
     irradiance. (The full baselines, incl. SH from RGB-D, are in :mod:`illuminet.runtime.baselines`.)"""
@@ -113,7 +157,8 @@ class ShadingStage(Stage):
       irradiance; ``auto`` does the same and falls back to ``ambient`` when the bundle cannot load;
     * ``constant``: the bundle's prior (mean training shading) times the plane's scale;
     * ``ambient``: the plane's mean irradiance everywhere;
-    * ``sh``: second-order SH fitted to the frame's RGB-D pixels (:mod:`illuminet.runtime.baselines`).
+    * ``sh``: second-order SH fitted (minimum-norm least squares) to the plane-light samples with
+      their normals (all planes of the frame's ``plane_light``), evaluated at the proxy normals.
 
     Temporal smoothing: an exponential moving average of the predicted shading and OI with weight
     ``[model] temporal_smoothing`` on the previous value (0 = none), reset when the anchor plane or
@@ -133,7 +178,6 @@ class ShadingStage(Stage):
         self.bundle = None
         self.chain = None
         self._prev: tuple | None = None
-        self._sh_baseline = None
         self.frames = 0
         self.fallbacks = 0
 
@@ -151,12 +195,6 @@ class ShadingStage(Stage):
             self.mode = "ambient"
         if self.mode == "auto":
             self.mode = "model"
-        if self.mode == "sh":
-            try:
-                from . import baselines  # the light-transport helper's module
-            except ImportError:
-                raise RuntimeError("[model] shading = 'sh' needs illuminet.runtime.baselines, which this build lacks") from None
-            self._sh_baseline = baselines
 
     def close(self) -> None:
         self.chain = None
@@ -193,16 +231,24 @@ class ShadingStage(Stage):
         if self.mode == "ambient":
             n = b.n_proxy if b is not None else 1
             return ObjectShading(irradiance=ambient_shading(irr, mask, n), method="ambient")
-        raise FrameError(f"shading mode {self.mode!r} needs the whole frame (use process())")
+        if self.mode == "sh":
+            m = np.asarray(pl.mask, bool)  # every plane's samples, not only the anchor plane
+            if not m.any():
+                raise FrameError("no observed plane samples to fit SH lighting to")
+            coef = sh_fit(pl.normals[m], pl.irradiance[m])
+            lin = coef[1:4] @ LUMA
+            d = np.array([lin[2], lin[0], lin[1]], np.float32)
+            nd = float(np.linalg.norm(d))
+            return ObjectShading(irradiance=sh_eval(coef, b.proxy_normals), method="sh",
+                                 dominant_dir=d / nd if nd > 0 else None,
+                                 dominant_share=float(np.clip(nd / max(float(coef[0] @ LUMA), 1e-12), 0, 1)))
+        raise FrameError(f"unknown shading mode {self.mode!r}")
 
     def process(self, frame):
         pl = frame.results.get("plane_light")
-        if pl is None and self.mode != "sh":
+        if pl is None:
             raise FrameError("no plane_light result in the frame: the plane-light stage must run before shading")
-        if self.mode == "sh":
-            shading = self._sh_baseline.sh_stage_shading(frame, self.bundle)
-        else:
-            shading = self.predict(pl)
+        shading = self.predict(pl)
         shading = self._smooth(shading)
         self.frames += 1
         return frame.with_result(self.name, shading)
