@@ -210,7 +210,7 @@ class Evaluator:
 
     def flicker(self, suite: str, n: int, frames: int, smoothing: float, seed: int) -> dict:
         """Mean frame-to-frame change of the intensities on static scenes (fresh plane noise per frame)."""
-        rng = np.random.default_rng(SEED_BASE + 999 + seed + hash(suite) % 1000)
+        rng = np.random.default_rng(SEED_BASE + 999 + 10 * seed + (self.suites().index(suite) if suite in self.suites() else 9))
         out: dict[str, list] = {}
         for _ in range(n):
             pos, rgb, e_plane, _, _ = self._case(suite, rng)
