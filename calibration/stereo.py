@@ -21,10 +21,162 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
+from pathlib import Path
+from typing import Sequence
+
+from illuminet.calibration.board import BoardSpec
 from illuminet.calibration.calibfile import CalibrationError, Calibration, CameraCalib, StereoCalib
+from illuminet.calibration.charuco import Detection
 from illuminet.runtime.frame import Intrinsics
 
 log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------------------------------------------
+# stereo calibration
+
+_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+
+
+@dataclass
+class StereoResult:
+    """Outcome of :func:`calibrate_stereo`: the pair (with rectification when horizontal) and its fit."""
+
+    stereo: StereoCalib
+    rms_px: float
+    pairs: list[tuple[str, str]]
+    per_pair_rms: list[float]
+
+    def summary(self) -> str:
+        T = np.asarray(self.stereo.T).ravel()
+        ang = float(np.degrees(np.linalg.norm(cv2.Rodrigues(np.asarray(self.stereo.R))[0])))
+        return (f"stereo {self.stereo.left}->{self.stereo.right}: baseline {self.stereo.baseline_m * 1000:.2f} mm, "
+                f"T = [{T[0]:.5f}, {T[1]:.5f}, {T[2]:.5f}] m, rotation {ang:.3f} deg, rms {self.rms_px:.3f} px "
+                f"over {len(self.pairs)} pairs")
+
+
+def pair_views(left: Sequence[Detection], right: Sequence[Detection]) -> list[tuple[Detection, Detection]]:
+    """Pair left and right views of the same instant.
+
+    Files are paired by name once the words ``left``/``right`` (and ``l``/``r`` prefixes such as
+    ``left_0001``) are removed; when names do not pair up, by sorted order if the counts match.
+    """
+    def key(d: Detection) -> str:
+        n = Path(d.path).stem.lower()
+        for w in ("left", "right", "cam_b", "cam_c"):
+            n = n.replace(w, "")
+        return n.strip("_-. ")
+
+    lk = {key(d): d for d in left}
+    rk = {key(d): d for d in right}
+    common = sorted(set(lk) & set(rk))
+    if common and len(lk) == len(left) and len(rk) == len(right):
+        return [(lk[k], rk[k]) for k in common]
+    if len(left) != len(right):
+        raise CalibrationError(
+            f"cannot pair {len(left)} left with {len(right)} right views: name them alike (left_0001.png / "
+            "right_0001.png) or give the same number of images in the same order"
+        )
+    return list(zip(sorted(left, key=lambda d: d.path), sorted(right, key=lambda d: d.path)))
+
+
+def calibrate_stereo(left_dets: Sequence[Detection], right_dets: Sequence[Detection], spec: BoardSpec,
+                     left: CameraCalib, right: CameraCalib, names: tuple[str, str] = ("left", "right"),
+                     min_pairs: int = 3, min_common: int = 6) -> StereoResult:
+    """Pose of the right camera in the left one from simultaneous views, intrinsics held fixed.
+
+    Parameters
+    ----------
+    left_dets, right_dets : sequence of Detection
+        Board detections in the left and right images (paired by :func:`pair_views`).
+    left, right : CameraCalib
+        Intrinsics of both cameras (from :func:`~illuminet.calibration.intrinsics.calibrate_intrinsics`).
+    names : (str, str)
+        Camera names written into the result.
+    min_pairs, min_common : int
+        Fewest usable pairs, and fewest corners seen by both cameras in a pair.
+
+    Raises
+    ------
+    CalibrationError
+        Sizes that do not match the intrinsics, too few pairs with enough common corners, mixed
+        lens models, or an optimisation failure.
+    """
+    if left.model != right.model:
+        raise CalibrationError(f"stereo calibration needs one lens model, got {left.model} and {right.model}")
+    pairs = pair_views(left_dets, right_dets)
+    obj, pl, pr, used = [], [], [], []
+    for dl, dr in pairs:
+        for d, cam, side in ((dl, left, "left"), (dr, right, "right")):
+            if d.image_size != cam.size:
+                raise CalibrationError(
+                    f"{d.path}: {side} image is {d.image_size[0]}x{d.image_size[1]}, its intrinsics are for "
+                    f"{cam.width}x{cam.height}"
+                )
+        common, il, ir = np.intersect1d(dl.ids, dr.ids, return_indices=True)
+        if len(common) < min_common:
+            continue
+        obj.append(spec.corner_points()[common].astype(np.float64))
+        pl.append(dl.corners[il].astype(np.float64))
+        pr.append(dr.corners[ir].astype(np.float64))
+        used.append((dl.path, dr.path))
+    if len(used) < min_pairs:
+        raise CalibrationError(
+            f"too few stereo pairs: {len(used)} pair(s) where both cameras see >= {min_common} common corners "
+            f"(of {len(pairs)} pairs), need at least {min_pairs}"
+        )
+    size = left.size
+    if left.model == "fisheye":
+        # cv2.fisheye.stereoCalibrate (OpenCV 5.0) fails when views have different numbers of points,
+        # which partial ChArUco views always do. With the intrinsics fixed, the fisheye lens can be
+        # taken out exactly: undistort to normalised rays, then solve the pose with the pinhole
+        # stereoCalibrate on a distortion-free virtual camera of the same focal length.
+        D1 = left.dist.reshape(4, 1).astype(np.float64)
+        D2 = right.dist.reshape(4, 1).astype(np.float64)
+        f = float(left.K[0, 0])
+        Kv = np.array([[f, 0, 0], [0, f, 0], [0, 0, 1.0]])
+        nl = [cv2.fisheye.undistortPoints(p.reshape(-1, 1, 2), left.K, D1).reshape(-1, 2) * f for p in pl]
+        nr = [cv2.fisheye.undistortPoints(p.reshape(-1, 1, 2), right.K, D2).reshape(-1, 2) * f for p in pr]
+        try:
+            _, _, _, _, _, R, T, _, _, rvecs, tvecs, _ = cv2.stereoCalibrateExtended(
+                [o.astype(np.float32) for o in obj], [p.astype(np.float32) for p in nl],
+                [p.astype(np.float32) for p in nr], Kv, np.zeros(5), Kv, np.zeros(5), size,
+                np.eye(3), np.zeros((3, 1)), flags=cv2.CALIB_FIX_INTRINSIC, criteria=_CRITERIA,
+            )
+        except cv2.error as e:
+            raise CalibrationError(f"fisheye stereo calibration failed ({len(used)} pairs): {e.err or e}") from None
+        per, sq, n = [], 0.0, 0
+        for o, a, b, rv, tv in zip(obj, pl, pr, rvecs, tvecs):
+            Rl = cv2.Rodrigues(rv)[0]
+            rv2 = cv2.Rodrigues(R @ Rl)[0]
+            tv2 = R @ np.asarray(tv).reshape(3, 1) + np.asarray(T).reshape(3, 1)
+            p1, _ = cv2.fisheye.projectPoints(o.reshape(-1, 1, 3), rv, tv, left.K, D1)
+            p2, _ = cv2.fisheye.projectPoints(o.reshape(-1, 1, 3), rv2, tv2, right.K, D2)
+            e = np.concatenate([p1.reshape(-1, 2) - a, p2.reshape(-1, 2) - b])
+            per.append(float(np.sqrt(np.mean(np.sum(e ** 2, axis=1)))))
+            sq += float(np.sum(e ** 2))
+            n += len(e)
+        rms = float(np.sqrt(sq / n))  # in real pixels, through the fisheye model
+    else:
+        try:
+            rms, _, _, _, _, R, T, _, _, _, _, per_view = cv2.stereoCalibrateExtended(
+                [o.astype(np.float32) for o in obj], [p.astype(np.float32) for p in pl],
+                [p.astype(np.float32) for p in pr], left.K, left.dist, right.K, right.dist, size,
+                np.eye(3), np.zeros((3, 1)), flags=cv2.CALIB_FIX_INTRINSIC, criteria=_CRITERIA,
+            )
+        except cv2.error as e:
+            raise CalibrationError(f"stereo calibration failed ({len(used)} pairs): {e.err or e}") from None
+        per = [float(np.sqrt(np.mean(np.square(v)))) for v in np.asarray(per_view).reshape(len(used), -1)]
+    R = np.asarray(R, float)
+    T = np.asarray(T, float).ravel()
+    st = StereoCalib(names[0], names[1], R, T, rms_px=float(rms))
+    T_ok = abs(T[0]) >= abs(T[1]) and T[0] < 0
+    if T_ok:
+        rect = rectify(left, right, st)
+        st = replace(st, rectification=rect.as_dict())
+    else:
+        log.warning("stereo pair is not a horizontal left/right pair (T = %s m): no rectification stored", T.tolist())
+    return StereoResult(st, float(rms), used, per)
 
 
 # ---------------------------------------------------------------------------------------------------

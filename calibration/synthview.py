@@ -55,7 +55,7 @@ def pixel_rays(cam: CameraCalib) -> np.ndarray:
 
 
 def render(cam: CameraCalib, R: np.ndarray, t: np.ndarray, planes: list[TexturedPlane],
-           supersample: int = 2, background: int = 0) -> tuple[np.ndarray, np.ndarray]:
+           supersample: int = 2, background: int = 0, rays: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Render ``planes`` through ``cam`` at pose ``X_cam = R @ X_world + t``.
 
     Returns
@@ -64,10 +64,13 @@ def render(cam: CameraCalib, R: np.ndarray, t: np.ndarray, planes: list[Textured
         uint8, HxWx3 (BGR) when any texture has colour, else HxW.
     depth : ndarray
         float32 camera z in metres of the nearest plane, 0 where no plane is hit.
+
+    ``rays`` may pass :func:`pixel_rays` of the supersampled camera, computed once for many poses.
     """
     k = int(supersample)
     big = cam.scaled_to(cam.width * k, cam.height * k) if k > 1 else cam
-    rays = pixel_rays(big)  # camera frame
+    if rays is None:
+        rays = pixel_rays(big)  # camera frame
     h, w = rays.shape[:2]
     Rt = np.asarray(R, float).T
     C = -Rt @ np.asarray(t, float).reshape(3)
