@@ -135,8 +135,11 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
     rc = 0
     try:
         run_loop(source, stages, sinks, strict=cfg.logging.strict, max_frames=cfg.source.max_frames, stats=stats)
-    except (SourceError, SinkError, SessionError, OSError) as e:
-        if cfg.logging.strict:
+    except (SourceError, SinkError, SessionError) as e:  # these messages say it all; no traceback
+        print(f"illuminet: {e}", file=sys.stderr)
+        rc = 1
+    except OSError as e:
+        if cfg.logging.strict:  # strict: the traceback, as for any failure
             raise
         print(f"illuminet: {e}", file=sys.stderr)
         rc = 1
