@@ -149,3 +149,25 @@ def test_capture_without_board_fails_clearly(tmp_path):
 
     with pytest.raises(CalibrationError, match=r"no usable board view in 3 frame\(s\)"):
         capture_views(Blank(), tmp_path / "cap", SPEC)
+
+
+def test_capture_cli_from_replay_then_intrinsics(tmp_path, capsys):
+    """End to end: a recorded session of a board -> `calibrate capture replay://...` -> `calibrate intrinsics`."""
+    from illuminet.runtime.session import SessionWriter
+
+    session = tmp_path / "session"
+    src = _BoardSource(board_poses(SPEC, 10, seed=21))
+    with SessionWriter(session, source="test://board", fsync=False) as w:
+        while (f := src.read()) is not None:
+            w.append(f.replace(depth=np.zeros(f.color.shape[:2], np.float32)))
+    views = tmp_path / "views"
+    args = ["--squares", "9x6", "--square-mm", "30", "--marker-mm", "22", "--dictionary", "DICT_4X4_50"]
+    rc = main(["calibrate", "capture", f"replay://{session}?timing=asap", *args, "-o", str(views), "--views", "50"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    assert "coverage" in out.out and (views / "coverage.png").is_file()
+    kept = sorted(views.glob("view_*.png"))
+    assert 6 <= len(kept) <= 10
+    rc = main(["calibrate", "intrinsics", str(views), *args, "-o", str(tmp_path / "cam.json")])
+    assert rc == 0, capsys.readouterr().err
+    assert abs(load_calibration(tmp_path / "cam.json").camera("left").K[0, 0] / 450.0 - 1) < 0.01
