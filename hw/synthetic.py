@@ -2,6 +2,7 @@
 
 URL
     ``synthetic://SCENE?seed=N&size=WxH&frames=N&path=static|orbit[&hdr=PATH][&table=0|1][&lights=N]``
+    (``width=W&height=H`` is accepted for ``size``)
 
     SCENE
         ``indoor``  a room (floor, four walls, ceiling; a table unless ``table=0``) lit by the
@@ -825,7 +826,7 @@ def _parse_size(s: str) -> tuple[int, int]:
     return w, h
 
 
-_PARAMS = ("seed", "size", "frames", "path", "hdr", "table", "lights")
+_PARAMS = ("seed", "size", "width", "height", "frames", "path", "hdr", "table", "lights")
 
 
 def open_url(url: str, config=None) -> SyntheticSource:
@@ -865,6 +866,9 @@ def open_url(url: str, config=None) -> SyntheticSource:
         raise SyntheticError(f"{url!r}: hdr= applies to the outdoor scene only")
     if hdr is not None and not Path(hdr).is_file():
         raise SyntheticError(f"{url!r}: HDR map not found: {hdr}")
-    scene = build_scene(kind, seed, _parse_size(one("size", "640x400")), frames, one("path", "static"),
+    size = one("size", None)
+    if size is None and ("width" in q or "height" in q):  # width=640&height=400 spelling
+        size = f"{one('width', '640')}x{one('height', '400')}"
+    scene = build_scene(kind, seed, _parse_size(size or "640x400"), frames, one("path", "static"),
                         hdr or None, None if table is None else table == "1", n_lights)
     return SyntheticSource(scene, frames, url)

@@ -58,6 +58,7 @@ def test_frame_format(indoor):
     np.testing.assert_allclose(f.gravity, T[:3, :3] @ [0, -1.0, 0], atol=1e-9)
     valid = f.depth > 0
     assert 0.85 < valid.mean() < 1.0  # holes exist, most pixels valid
+    assert open_url("synthetic://lamp?width=320&height=200").scene.intrinsics.width == 320
     big = open_url("synthetic://indoor?seed=1&size=1280x800&frames=1").read()
     assert big.color.shape == (800, 1280, 3) and big.intrinsics.fx == pytest.approx(800.0)
 
