@@ -565,11 +565,36 @@ def _bake_irradiance(scene: SyntheticScene, p: SyntheticPlane, poses) -> None:
     pts = pts.reshape(-1, 3)
     vis = scene.occlusion(pts + 1e-4 * p.normal)
     e = L.irradiance(pts, np.tile(p.normal, (pts.shape[0], 1)), scene.lights, vis).reshape(cu, cv_, 3)
+    vis = vis.reshape(cu, cv_, -1).astype(bool)
     # cell j of the fine grid lies at lattice coordinate j / step (exact, unlike cv2.resize's centres)
     mu = np.broadcast_to((np.arange(nu, dtype=np.float32) / step)[:, None], (nu, nv))
     mv = np.broadcast_to((np.arange(nv, dtype=np.float32) / step)[None, :], (nu, nv))
     big = cv2.remap(e.astype(np.float32), np.ascontiguousarray(mv), np.ascontiguousarray(mu), cv2.INTER_LINEAR,
                     borderMode=cv2.BORDER_REPLICATE)
+    # shadow edges are not smooth: where the visibility of a light that matters (> 2 % of the
+    # plane's brightest irradiance) changes between lattice nodes, evaluate every fine cell exactly
+    # (only a band along those edges, so it stays cheap)
+    lp = scene.lights.positions
+    d = lp[None, :, :] - pts[:, None, :]
+    r2 = (d * d).sum(-1)
+    per_light = np.maximum((d @ p.normal) / r2**1.5, 0).max(0) * (scene.lights.intensities @ L._LUMA)
+    strong = per_light > 0.02 * max(float(e.reshape(-1, 3).max(0) @ L._LUMA), 1e-12)
+    vs = vis[..., strong]
+    edge = np.zeros((cu - 1, cv_ - 1), bool)
+    for a, b in ((0, 1), (1, 0), (1, 1)):
+        edge |= np.any(vs[:-1, :-1] != vs[a : cu - 1 + a, b : cv_ - 1 + b], axis=2)
+    ia = np.minimum(np.arange(nu) // step, cu - 2)
+    ib = np.minimum(np.arange(nv) // step, cv_ - 2)
+    fine = np.argwhere(edge[ia][:, ib])
+    normal = p.normal
+    for s in range(0, fine.shape[0], 20000):
+        f = fine[s : s + 20000]
+        q = np.zeros((f.shape[0], 3))
+        q[:, p.axis] = p.coord
+        q[:, p.axes[0]] = lo[0] + f[:, 0] * cell
+        q[:, p.axes[1]] = lo[1] + f[:, 1] * cell
+        ve = scene.occlusion(q + 1e-4 * normal)
+        big[f[:, 0], f[:, 1]] = L.irradiance(q, np.tile(normal, (q.shape[0], 1)), scene.lights, ve)
     p.irradiance_grid = big.astype(np.float32)
     p.grid_lo = lo
     p.grid_cell_m = cell
