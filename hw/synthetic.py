@@ -475,6 +475,7 @@ def build_scene(kind: str, seed: int, size: tuple[int, int] = (640, 400), frames
     room = None
     occluders: list[Occluder] = []
     sky = None
+    use_table = False
     info: dict = {}
     if kind in ("indoor", "lamp", "spatial"):
         if kind == "indoor":
@@ -486,19 +487,6 @@ def build_scene(kind: str, seed: int, size: tuple[int, int] = (640, 400), frames
         room = (lo, hi)
         planes = _room_planes(rng, lo, hi, rng.choice(["wood", "tiles", "carpet"]))
         use_table = (kind == "indoor") if table is None else bool(table)
-        if use_table:
-            # a table top 0.72 m high, beside the object, inside the room
-            tw, td = 1.2, 0.8
-            for _ in range(100):
-                c = rng.uniform(lo[[0, 2]] + 0.7, hi[[0, 2]] - 0.7)
-                # keep every object position at least 30 cm clear of the table's edge
-                gap = np.abs(c - positions[:, [0, 2]]) - [tw / 2 + 0.3, td / 2 + 0.3]
-                if np.all(gap.max(axis=1) > 0):
-                    break
-            tlo, thi = c - [tw / 2, td / 2], c + [tw / 2, td / 2]
-            planes.append(SyntheticPlane("table", "table", 1, 0.72, +1.0, (0, 2), tlo, thi, *make_albedo_tile("tabletop", rng)))
-            occluders.append(Occluder(1, 0.72, (0, 2), tlo, thi))
-            info["table_centre"] = c.tolist()
     else:
         if hdr:
             img = L.load_hdr(hdr)
@@ -520,6 +508,8 @@ def build_scene(kind: str, seed: int, size: tuple[int, int] = (640, 400), frames
         planes = [SyntheticPlane("ground", "ground", 1, 0.0, +1.0, (0, 2), -inf, inf, *make_albedo_tile(ground, rng))]
         occluders.append(Occluder(1, 0.0))  # light from below the horizon cannot pass the ground
     poses = _camera_poses(rng, kind, positions[0], frames, path, room)
+    if room is not None and use_table:
+        _add_table(rng, room, positions, poses, planes, occluders, info)
     if kind == "outdoor":
         # put the facade behind the object as seen from the camera, facing the camera
         cam = poses[0][:3, 3]
@@ -537,6 +527,28 @@ def build_scene(kind: str, seed: int, size: tuple[int, int] = (640, 400), frames
     for p in scene.planes:
         _bake_irradiance(scene, p, poses)
     return scene
+
+
+def _add_table(rng, room, positions, poses, planes, occluders, info) -> None:
+    """A 1.2 x 0.8 m table top, 0.72 m high, inside the room, at least 30 cm from every object
+    position and never hiding an object from the camera along the path."""
+    lo, hi = room
+    tw, td = 1.2, 0.8
+    eyes = np.array([T[:3, 3] for T in poses[:: max(1, len(poses) // 8)]])
+    targets = np.concatenate([positions + [0, 0.01, 0], positions + [0, 0.26, 0]])
+    for _ in range(200):
+        c = rng.uniform(lo[[0, 2]] + 0.7, hi[[0, 2]] - 0.7)
+        gap = np.abs(c - positions[:, [0, 2]]) - [tw / 2 + 0.3, td / 2 + 0.3]
+        occ = Occluder(1, 0.72, (0, 2), c - [tw / 2, td / 2], c + [tw / 2, td / 2])
+        hides = occ.blocks(eyes[:, None, :], targets[None, :, :]).any()
+        if np.all(gap.max(axis=1) > 0) and not hides:
+            break
+    else:
+        info["table_centre"] = None  # no place found: the room goes without a table
+        return
+    planes.append(SyntheticPlane("table", "table", 1, 0.72, +1.0, (0, 2), occ.lo, occ.hi, *make_albedo_tile("tabletop", rng)))
+    occluders.append(occ)
+    info["table_centre"] = c.tolist()
 
 
 def _bake_irradiance(scene: SyntheticScene, p: SyntheticPlane, poses) -> None:

@@ -180,3 +180,18 @@ def test_outdoor_with_a_real_hdr_map(shared_data):
     assert f.color.std() > 5
     e = L.irradiance(np.zeros((1, 3)), np.array([[0, 1.0, 0]]), src.scene.lights)[0] @ L._LUMA
     assert 250 < e < 3000
+
+
+def test_table_never_hides_the_object():
+    for seed in range(4):
+        src = open_url(f"synthetic://indoor?seed={seed}&path=orbit&frames=6&size=160x100")
+        sc = src.scene
+        assert sc.info["table_centre"] is not None
+        src.open()
+        K = sc.intrinsics
+        for i in range(0, 6, 2):
+            T = sc.default_anchor(i)
+            x = T[:3, 3]
+            u, v = int(K.fx * x[0] / x[2] + K.cx), int(K.fy * x[1] / x[2] + K.cy)
+            idx = src._renderer.geometry(sc.poses[i])[0].reshape(K.height, K.width)
+            assert sc.planes[idx[v, u]].label == "floor", (seed, i)
