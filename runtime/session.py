@@ -94,6 +94,10 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+# fdatasync skips the inode's timestamps (not needed to read the data back); Linux has it, macOS not
+_datasync = getattr(os, "fdatasync", os.fsync)
+
+
 def _write_file(path: Path, data: bytes, fsync: bool) -> None:
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
     try:
@@ -102,7 +106,7 @@ def _write_file(path: Path, data: bytes, fsync: bool) -> None:
             n = os.write(fd, view)
             view = view[n:]
         if fsync:
-            os.fsync(fd)
+            _datasync(fd)
     finally:
         os.close(fd)
 
@@ -317,7 +321,7 @@ class SessionWriter:
         if n != len(line):  # pragma: no cover - a full disk; the reader will see a torn line
             raise SessionError(f"{self.path}: short write to {INDEX} ({n} of {len(line)} bytes): disk full?")
         if self.fsync:
-            os.fsync(self._index_fd)
+            _datasync(self._index_fd)
         self.count += 1
         self._last_t = int(frame.t_device_ns)
         return i

@@ -143,3 +143,14 @@ def test_cli_record_killed_with_sigkill_replays_complete_frames(tmp_path):
     for f in r:
         assert np.array_equal(f.color, src[f.seq % 10].color) and np.array_equal(f.depth, src[f.seq % 10].depth)
     assert main(["replay", str(out), "--timing", "asap"]) == 0
+
+
+def test_bench_replay_quick_reports_its_figures(tmp_path, capsys):
+    rc = main(["bench", "replay", "--quick", "--json", str(tmp_path / "b.json")])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "median" in out and "frames/s" in out and "CPU time" in out
+    d = json.loads((tmp_path / "b.json").read_text())["replay"]
+    assert d["frames"] == 60 and (d["width"], d["height"]) == (640, 400)
+    assert len(d["replay_fps_runs"]) == 3 and d["replay_fps_median"] > 0 and d["cpu_ms_per_frame"] > 0
+    assert d["steps"]["source"]["n"] == 61  # 60 frames + the end-of-stream read
