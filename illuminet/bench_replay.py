@@ -62,8 +62,8 @@ def numpy_rgbd_frames(n: int, width: int = WIDTH, height: int = HEIGHT, seed: in
                     gravity=np.array([0.0, 1.0, 0.0]))
 
 
-def _frames(n: int, cfg: Config) -> tuple[str, Iterator[Frame]]:
-    """Source frames for the benchmark session: synthetic:// when present, else numpy ones."""
+def _frames(n: int, cfg: Config, width: int, height: int) -> tuple[str, Iterator[Frame]]:
+    """Source frames for the benchmark session: synthetic:// when present (and of the asked size), else numpy ones."""
     if importlib.util.find_spec("illuminet.hw.synthetic") is not None:
         from illuminet.hw import open_source
         url = f"synthetic://indoor?seed=0&frames={n}"
@@ -73,22 +73,29 @@ def _frames(n: int, cfg: Config) -> tuple[str, Iterator[Frame]]:
         except Exception as e:  # the synthetic source belongs to another part; fall back, say so
             print(f"  ({url} unavailable: {e}; using numpy frames)")
         else:
-            def gen():
-                try:
-                    for _ in range(n):
-                        f = src.read()
-                        if f is None:
-                            return
-                        yield f
-                finally:
-                    src.close()
-            return url, gen()
-    return "numpy_rgbd_frames(seed=0)", numpy_rgbd_frames(n)
+            first = src.read()
+            if first is not None and first.size == (width, height) and first.depth is not None:
+                def gen():
+                    try:
+                        yield first
+                        for _ in range(n - 1):
+                            f = src.read()
+                            if f is None:
+                                return
+                            yield f
+                    finally:
+                        src.close()
+                return url, gen()
+            src.close()
+            got = "nothing" if first is None else f"{first.size[0]}x{first.size[1]}"
+            print(f"  ({url} gives {got}, not {width}x{height} RGB-D; using numpy frames)")
+    return "numpy_rgbd_frames(seed=0)", numpy_rgbd_frames(n, width, height)
 
 
-def record_session(path: Path, n: int, cfg: Config, color: str = "png") -> dict:
+def record_session(path: Path, n: int, cfg: Config, color: str = "png", width: int = WIDTH,
+                   height: int = HEIGHT) -> dict:
     """Write a benchmark session of ``n`` frames at ``path``; returns what was recorded and how fast."""
-    origin, frames = _frames(n, cfg)
+    origin, frames = _frames(n, cfg, width, height)
     dt = 0.0  # time in the writer only, not in making the frames
     with SessionWriter(path, source=origin, color=color) as w:
         for f in frames:
@@ -100,15 +107,20 @@ def record_session(path: Path, n: int, cfg: Config, color: str = "png") -> dict:
 
 
 def run(args, cfg: Config) -> dict:
-    """Record, then replay asap through a null sink ``runs`` times; print and return the figures."""
-    from illuminet.hw.replay import ReplaySource
-
+    """``illuminet bench replay``: 300 frames, 5 runs (``--quick``: 60 frames, 3 runs)."""
     quick = bool(getattr(args, "quick", False))
     n, runs = (60, 3) if quick else (300, 5)
+    return measure(n, runs, cfg)
+
+
+def measure(n: int, runs: int, cfg: Config, width: int = WIDTH, height: int = HEIGHT) -> dict:
+    """Record ``n`` frames, then replay asap through a null sink ``runs`` times; print and return the figures."""
+    from illuminet.hw.replay import ReplaySource
+
     tmp = Path(tempfile.mkdtemp(prefix="illuminet-bench-replay-"))
     try:
-        rec = record_session(tmp / "session", n, cfg)
-        print(f"  session: {rec['frames']} frames {WIDTH}x{HEIGHT} RGB-D from {rec['origin']}, colour PNG, "
+        rec = record_session(tmp / "session", n, cfg, width=width, height=height)
+        print(f"  session: {rec['frames']} frames {width}x{height} RGB-D from {rec['origin']}, colour PNG, "
               f"depth 16-bit PNG; {rec['bytes_per_frame'] / 1e3:.0f} kB/frame; writer: {rec['write_fps']:.1f} frames/s "
               f"(one thread, with fsync)")
         fps, cpu = [], []
@@ -128,7 +140,7 @@ def run(args, cfg: Config) -> dict:
               f"~{1e3 / cpu_ms:.0f} frames/s on one core, ~{2e3 / cpu_ms:.0f} on two (decoding runs on 2 threads)")
         print("  last run, per step:")
         print("    " + last.format_stats().replace("\n", "\n    "))
-        return {"frames": rec["frames"], "width": WIDTH, "height": HEIGHT, "origin": rec["origin"],
+        return {"frames": rec["frames"], "width": width, "height": height, "origin": rec["origin"],
                 "replay_fps_runs": fps, "replay_fps_median": med, "target_fps": TARGET_FPS,
                 "cpu_ms_per_frame": cpu_ms,
                 "record_fps": rec["write_fps"], "bytes_per_frame": rec["bytes_per_frame"],
