@@ -112,6 +112,11 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "url": _f(str, "", "serial IMU URL for serial.serial_for_url, e.g. /dev/ttyUSB0 or loop:// ('' = none)"),
         "baudrate": _f(int, 115200, "serial baud rate"),
         "max_skew_ms": _f(float, 20.0, "largest IMU-to-frame timestamp gap accepted"),
+        "rotation": _f(list, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                       "IMU axes -> camera axes (x right, y down, z forward): 3x3 rotation, row-major", length=9),
+        "gravity_tau_s": _f(float, 0.3, "time constant of the accelerometer low-pass that gives gravity, seconds"),
+        "clock": _f(str, "device", "IMU timestamps: sender's own clock (offset estimated) or this host's monotonic clock",
+                    choices=("device", "host")),
     },
     "logging": {
         "level": _f(str, "info", "log level", choices=("debug", "info", "warning", "error")),
