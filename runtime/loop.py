@@ -372,17 +372,24 @@ def run_loop(
             on_stats(stats.snapshot())
 
     with contextlib.ExitStack() as stack, _signals_stop(stop, install_signals):
-        # close order is the reverse of this: sinks, stages, then the reader thread and source
+        # close order is the reverse of this: sinks, stages, reader stop, source, last reader join.
+        # The reader thread may be blocked inside read() (waiting for a camera, or replay sleeping
+        # until a timestamp): it gets a moment to notice the stop, then closing the source unblocks it.
+        @stack.callback
+        def _join_reader() -> None:
+            if reader is not None:
+                reader.join(timeout=2.0)
+                if reader.is_alive():
+                    log.warning("source %r did not return from read() within 2 s of being closed",
+                                _name(source, "source"))
+
         stack.enter_context(source)
 
         @stack.callback
         def _stop_reader() -> None:
             reader_stop.set()
             if reader is not None:
-                reader.join(timeout=2.0)
-                if reader.is_alive():
-                    log.warning("source %r did not return from read() within 2 s of stopping",
-                                _name(source, "source"))
+                reader.join(timeout=0.5)
 
         for st in stages:
             stack.enter_context(st)

@@ -176,6 +176,16 @@ def test_max_frames_and_stop_event(session):
     assert 3 <= st.frames <= 9  # 30 fps for ~0.2 s
 
 
+def test_stop_does_not_wait_for_a_slow_live_source(tmp_path):
+    make_session(tmp_path / "slow", 3, fps=0.5)  # the replay sleeps 2 s between frames
+    stop = threading.Event()
+    threading.Timer(0.3, stop.set).start()
+    t0 = time.monotonic()
+    st = run_loop(ReplaySource(tmp_path / "slow", timing="recorded"), [], [], stop_event=stop)
+    assert st.frames == 1 and st.end_reason == "stopped"
+    assert time.monotonic() - t0 < 1.5
+
+
 def test_snapshot_is_thread_safe_and_on_stats_is_called(session):
     stats = LoopStats()
     polled, reports = [], []
