@@ -371,7 +371,9 @@ def run_loop(
         if on_stats is not None:
             on_stats(stats.snapshot())
 
-    with contextlib.ExitStack() as stack, _signals_stop(stop, install_signals):
+    # signal handlers stay installed until everything is closed: a SIGTERM during finalisation must
+    # not kill the process with the default handler half-way through closing a recording
+    with _signals_stop(stop, install_signals), contextlib.ExitStack() as stack:
         # close order is the reverse of this: sinks, stages, reader stop, source, last reader join.
         # The reader thread may be blocked inside read() (waiting for a camera, or replay sleeping
         # until a timestamp): it gets a moment to notice the stop, then closing the source unblocks it.

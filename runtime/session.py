@@ -552,7 +552,7 @@ class SessionReader:
         exp = d.get("exposure")
         try:
             exposure = Exposure.from_dict(exp)
-        except (TypeError, ValueError, KeyError) as ex:
+        except (TypeError, ValueError, KeyError, AttributeError) as ex:
             raise SessionError(f"{where}: key 'exposure': {ex}") from None
         g = d.get("gravity")
         gravity = None if g is None else np.asarray(_vec(g, 3, f"{where}: key 'gravity'"), dtype=np.float64)
@@ -570,7 +570,7 @@ class SessionReader:
         if d.get("intrinsics") is not None:
             try:
                 intr = Intrinsics.from_dict(d["intrinsics"])
-            except (KeyError, TypeError, ValueError) as ex:
+            except (KeyError, TypeError, ValueError, AttributeError) as ex:
                 raise SessionError(f"{where}: key 'intrinsics': {ex!r}") from None
         return FrameEntry(i=i, line=no, seq=seq, t_device_ns=t_dev, t_host_ns=t_host, color=color,
                           color_bytes=cbytes, depth=depth, depth_bytes=dbytes, exposure=exposure,

@@ -296,6 +296,23 @@ def test_missing_key_in_index_line(tmp_path):
     _check_skips(tmp_path / "s", 1, "missing key 't_device_ns'")
 
 
+@pytest.mark.parametrize("key, value, expect", [
+    ("exposure", [1, 2], "key 'exposure'"),
+    ("exposure", {"iso": "high"}, "key 'exposure'"),
+    ("gravity", [0, 1], "key 'gravity': expected a list of 3 numbers"),
+    ("imu", [{"t_ns": 1, "accel": [0, 0]}], r"imu\[0\].accel: expected a list of 3 numbers"),
+    ("intrinsics", [1, 2], "key 'intrinsics'"),
+    ("color_bytes", "big", "key 'color_bytes': expected int, got str"),
+])
+def test_bad_metadata_in_an_index_line(tmp_path, key, value, expect):
+    import re
+    make_session(tmp_path / "s", 6)
+    _rewrite_line(tmp_path / "s", 4, **{key: value})
+    r = SessionReader(tmp_path / "s")
+    assert [f.seq for f in r] == [0, 1, 2, 3, 5]
+    assert any(re.search(expect, p) and "line 5" in p for p in r.problems), r.problems
+
+
 def test_timestamp_going_backwards(tmp_path):
     fs = make_session(tmp_path / "s", 6)
     _rewrite_line(tmp_path / "s", 3, t_device_ns=fs[1].t_device_ns)
