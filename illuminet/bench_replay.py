@@ -14,7 +14,7 @@ import shutil
 import tempfile
 import time
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -107,43 +107,58 @@ def record_session(path: Path, n: int, cfg: Config, color: str = "png", width: i
 
 
 def run(args, cfg: Config) -> dict:
-    """``illuminet bench replay``: 300 frames, 5 runs (``--quick``: 60 frames, 3 runs)."""
+    """``illuminet bench replay``: 300 frames, 5 runs, PNG then raw colour (``--quick``: 60 frames, 3 runs, PNG)."""
     quick = bool(getattr(args, "quick", False))
     n, runs = (60, 3) if quick else (300, 5)
-    return measure(n, runs, cfg)
+    return measure(n, runs, cfg, colors=("png",) if quick else ("png", "raw"))
 
 
-def measure(n: int, runs: int, cfg: Config, width: int = WIDTH, height: int = HEIGHT) -> dict:
-    """Record ``n`` frames, then replay asap through a null sink ``runs`` times; print and return the figures."""
+def _replay_runs(path: Path, runs: int) -> tuple[list[float], list[float], Any]:
     from illuminet.hw.replay import ReplaySource
 
+    fps, cpu, last = [], [], None
+    for _ in range(runs):
+        src = ReplaySource(path, timing="asap")
+        c0 = time.process_time()
+        last = run_loop(src, [], [NullSink()], install_signals=False)
+        cpu.append((time.process_time() - c0) / max(last.frames, 1))
+        fps.append(last.frames / last.elapsed_s)
+    return fps, cpu, last
+
+
+def measure(n: int, runs: int, cfg: Config, width: int = WIDTH, height: int = HEIGHT,
+            colors: tuple[str, ...] = ("png",)) -> dict:
+    """Record ``n`` frames per colour encoding, replay each asap through a null sink ``runs`` times.
+
+    Prints and returns the figures; the top-level keys are those of the first encoding (the default
+    PNG), ``by_color`` has every encoding's.
+    """
     tmp = Path(tempfile.mkdtemp(prefix="illuminet-bench-replay-"))
     try:
-        rec = record_session(tmp / "session", n, cfg, width=width, height=height)
-        print(f"  session: {rec['frames']} frames {width}x{height} RGB-D from {rec['origin']}, colour PNG, "
-              f"depth 16-bit PNG; {rec['bytes_per_frame'] / 1e3:.0f} kB/frame; writer: {rec['write_fps']:.1f} frames/s "
-              f"(one thread, with fsync)")
-        fps, cpu = [], []
-        last = None
-        for _ in range(runs):
-            src = ReplaySource(tmp / "session", timing="asap")
-            c0 = time.process_time()
-            last = run_loop(src, [], [NullSink()], install_signals=False)
-            cpu.append((time.process_time() - c0) / max(last.frames, 1))
-            fps.append(last.frames / last.elapsed_s)
-        med = float(np.median(fps))
-        cpu_ms = float(np.median(cpu)) * 1e3
-        print("  replay asap -> null sink, frames/s per run: " + ", ".join(f"{x:.1f}" for x in fps))
-        print(f"  median {med:.1f} frames/s (target >= {TARGET_FPS:.0f}): {'OK' if med >= TARGET_FPS else 'BELOW TARGET'}")
-        # wall-clock figures depend on what else runs on the machine; CPU time per frame does not
-        print(f"  CPU time {cpu_ms:.2f} ms/frame (all threads): with the machine to itself that is "
-              f"~{1e3 / cpu_ms:.0f} frames/s on one core, ~{2e3 / cpu_ms:.0f} on two (decoding runs on 2 threads)")
-        print("  last run, per step:")
-        print("    " + last.format_stats().replace("\n", "\n    "))
-        return {"frames": rec["frames"], "width": width, "height": height, "origin": rec["origin"],
-                "replay_fps_runs": fps, "replay_fps_median": med, "target_fps": TARGET_FPS,
-                "cpu_ms_per_frame": cpu_ms,
-                "record_fps": rec["write_fps"], "bytes_per_frame": rec["bytes_per_frame"],
-                "steps": last.to_dict()["steps"]}
+        out: dict[str, Any] = {}
+        for color in colors:
+            path = tmp / f"session-{color}"
+            rec = record_session(path, n, cfg, color=color, width=width, height=height)
+            print(f"  session: {rec['frames']} frames {width}x{height} RGB-D from {rec['origin']}, colour {color}, "
+                  f"depth 16-bit PNG; {rec['bytes_per_frame'] / 1e3:.0f} kB/frame; writer: {rec['write_fps']:.1f} "
+                  f"frames/s (one thread, with fsync)")
+            fps, cpu, last = _replay_runs(path, runs)
+            shutil.rmtree(path, ignore_errors=True)
+            med = float(np.median(fps))
+            cpu_ms = float(np.median(cpu)) * 1e3
+            print(f"  [{color}] replay asap -> null sink, frames/s per run: " + ", ".join(f"{x:.1f}" for x in fps))
+            print(f"  [{color}] median {med:.1f} frames/s (target >= {TARGET_FPS:.0f}): "
+                  f"{'OK' if med >= TARGET_FPS else 'BELOW TARGET'}")
+            # wall-clock figures depend on what else runs on the machine; CPU time per frame does not
+            print(f"  [{color}] CPU time {cpu_ms:.2f} ms/frame (all threads): with the machine to itself that is "
+                  f"~{1e3 / cpu_ms:.0f} frames/s on one core, ~{2e3 / cpu_ms:.0f} on two (decoding runs on 2 threads)")
+            if color == colors[0]:
+                print("  last run, per step:")
+                print("    " + last.format_stats().replace("\n", "\n    "))
+            out[color] = {"frames": rec["frames"], "width": width, "height": height, "origin": rec["origin"],
+                          "color": color, "replay_fps_runs": fps, "replay_fps_median": med, "target_fps": TARGET_FPS,
+                          "cpu_ms_per_frame": cpu_ms, "record_fps": rec["write_fps"],
+                          "bytes_per_frame": rec["bytes_per_frame"], "steps": last.to_dict()["steps"]}
+        return {**out[colors[0]], "by_color": out}
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

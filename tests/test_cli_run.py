@@ -147,12 +147,13 @@ def test_cli_record_killed_with_sigkill_replays_complete_frames(tmp_path):
 
 def test_bench_replay_reports_its_figures(capsys):
     from illuminet.bench_replay import measure
-    d = measure(12, 2, defaults(), width=64, height=48)  # the real benchmark path, small frames
+    d = measure(12, 2, defaults(), width=64, height=48, colors=("png", "raw"))  # the real path, small frames
     out = capsys.readouterr().out
     assert "median" in out and "frames/s" in out and "CPU time" in out and "source" in out
     assert d["frames"] == 12 and (d["width"], d["height"]) == (64, 48)
     assert len(d["replay_fps_runs"]) == 2 and d["replay_fps_median"] > 0 and d["cpu_ms_per_frame"] > 0
     assert d["steps"]["source"]["n"] == 13  # 12 frames + the end-of-stream read
+    assert set(d["by_color"]) == {"png", "raw"} and d["by_color"]["raw"]["bytes_per_frame"] > 64 * 48 * 3
     json.dumps(d)
 
 
