@@ -161,6 +161,15 @@ _IMREAD_RGB = getattr(cv2, "IMREAD_COLOR_RGB", None)
 # writer
 
 
+@dataclass(frozen=True)
+class EncodedFrame:
+    """A frame with its image files already compressed (:meth:`SessionWriter.encode`)."""
+
+    frame: Frame
+    color: bytes
+    depth: bytes | None
+
+
 class SessionWriter:
     """Append frames to a new session folder, crash-safely (see the module docstring).
 
@@ -264,6 +273,20 @@ class SessionWriter:
             raise SessionError(f"{self.path}: OpenCV could not encode a {rgb.shape} colour frame as {self.color}")
         return buf.tobytes()
 
+    def encode(self, frame: Frame) -> "EncodedFrame":
+        """Compress a frame's images (thread-safe: no writer state is touched).
+
+        Lets a recorder encode several frames in parallel and commit them in order with
+        :meth:`commit`; ``append(f)`` is ``commit(encode(f))``.
+        """
+        depth = None
+        if frame.depth is not None:
+            ok, buf = cv2.imencode(".png", depth_to_mm(frame.depth), _PNG_DEPTH_PARAMS)
+            if not ok:
+                raise SessionError(f"{self.path}: OpenCV could not encode depth of frame {frame.seq} as 16-bit PNG")
+            depth = buf.tobytes()
+        return EncodedFrame(frame=frame, color=self._encode_color(frame.color), depth=depth)
+
     def append(self, frame: Frame) -> int:
         """Write one frame; returns its index in the session. The frame is complete when this returns.
 
@@ -273,6 +296,11 @@ class SessionWriter:
             When the frame does not fit the session (different size, timestamp not increasing) or the
             writer is closed.
         """
+        return self.commit(self.encode(frame))
+
+    def commit(self, enc: "EncodedFrame") -> int:
+        """Write an encoded frame's files, then its index line (the commit point); returns its index."""
+        frame = enc.frame
         if self._closed:
             raise SessionError(f"{self.path}: session writer is closed")
         if self._manifest is None:
@@ -293,17 +321,13 @@ class SessionWriter:
         entry: dict[str, Any] = {"i": i, "seq": int(frame.seq), "t_device_ns": int(frame.t_device_ns),
                                  "t_host_ns": int(frame.t_host_ns)}
         # 1) the frame's files, complete (and durable) before the index mentions them
-        cbytes = self._encode_color(frame.color)
         crel = stem + _COLOR_EXT[self.color]
-        _write_file(self.path / crel, cbytes, self.fsync)
-        entry["color"], entry["color_bytes"] = crel, len(cbytes)
-        if frame.depth is not None:
-            ok, buf = cv2.imencode(".png", depth_to_mm(frame.depth), _PNG_DEPTH_PARAMS)
-            if not ok:
-                raise SessionError(f"{self.path}: OpenCV could not encode depth of frame {frame.seq} as 16-bit PNG")
+        _write_file(self.path / crel, enc.color, self.fsync)
+        entry["color"], entry["color_bytes"] = crel, len(enc.color)
+        if enc.depth is not None:
             drel = stem + ".depth.png"
-            _write_file(self.path / drel, buf.tobytes(), self.fsync)
-            entry["depth"], entry["depth_bytes"] = drel, int(buf.size)
+            _write_file(self.path / drel, enc.depth, self.fsync)
+            entry["depth"], entry["depth_bytes"] = drel, len(enc.depth)
         else:
             entry["depth"], entry["depth_bytes"] = None, 0
         entry["exposure"] = frame.exposure.to_dict()
