@@ -99,11 +99,12 @@ def test_bad_composite_is_refused():
 
 
 def test_recorder_records_input_frames_not_results(tmp_path):
-    fs = frames(6)
-    rec = SessionRecorderSink(tmp_path / "rec", source="test://x", fsync=False)
+    fs = frames(20)
+    # three encoders finish out of order; the writer must still commit in frame order
+    rec = SessionRecorderSink(tmp_path / "rec", source="test://x", fsync=False, encoders=3)
     run_loop(ReplaySource(_session(tmp_path, fs), timing="asap"), [Composite()], [rec])
     r = SessionReader(tmp_path / "rec", strict=True)
-    assert r.finalized and len(r) == 6 and rec.frames == 6
+    assert r.finalized and len(r) == 20 and rec.frames == 20
     for a, b in zip(fs, r):
         assert same_frame(a, b)  # the camera input, not the inverted composite
 
