@@ -254,10 +254,10 @@ class SessionWriter:
             "frame_count": None,
             "closed": None,
         }
-        _atomic_write_json(self.path / MANIFEST, self._manifest, self.fsync)
+        # the index exists before the manifest, so a session with a manifest always has an index
+        # (a kill in between leaves no manifest: reported as "killed before its first frame")
         self._index_fd = os.open(self.path / INDEX, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
-        if self.fsync:
-            _fsync_dir(self.path)
+        _atomic_write_json(self.path / MANIFEST, self._manifest, self.fsync)  # also syncs the folder
 
     # -- frames
 

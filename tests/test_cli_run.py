@@ -75,6 +75,13 @@ def test_record_then_replay_end_to_end(tmp_path, capsys):
     assert rc == 0 and "9 intact frames, finalised" in capsys.readouterr().out
 
 
+def test_run_records_its_input_while_processing(tmp_path):
+    src = make_session(tmp_path / "s", 6)
+    assert main(["run", f"replay://{tmp_path}/s?timing=asap", "--record", str(tmp_path / "rec"), "--no-mjpeg"]) == 0
+    r = SessionReader(tmp_path / "rec", strict=True)
+    assert len(r) == 6 and all(same_frame(a, b) for a, b in zip(src, r))
+
+
 def test_run_with_loop_and_max_frames(tmp_path, capsys):
     make_session(tmp_path / "s", 4)
     rc = main(["run", f"replay://{tmp_path}/s", "--timing", "asap", "--loop", "--max-frames", "10",

@@ -150,6 +150,29 @@ def test_kill_9_mid_recording_keeps_every_complete_frame(tmp_path, attempt):
         assert same_frame(expected[k], f), f"frame {k} differs after kill -9"
 
 
+@pytest.mark.slow
+def test_kill_9_at_many_random_moments(tmp_path):
+    """Stress: 25 SIGKILLs at random moments (with fsync on); every complete frame always replays."""
+    import random
+    import time
+    rnd = random.Random(1)
+    for k in range(25):
+        path = tmp_path / f"s{k}"
+        proc = spawn(["-c", _WRITER.replace("fsync=False", "fsync=True"), str(path)])
+        try:
+            wait_for_lines(_index(path), 1, proc)
+            time.sleep(rnd.uniform(0.0, 0.3))
+        finally:
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=10)
+        n_complete = complete_lines(_index(path))
+        r = SessionReader(path)
+        assert len(r) == n_complete
+        assert all("not finalised" in p or "torn" in p for p in r.problems), r.problems
+        expected = frames(n_complete)
+        assert all(same_frame(expected[i], f) for i, f in enumerate(r))
+
+
 def test_kill_before_first_frame_is_reported(tmp_path):
     (tmp_path / "s" / "frames").mkdir(parents=True)
     with pytest.raises(SessionError, match=r"manifest.json: missing.*killed before its first"):
