@@ -213,6 +213,16 @@ def test_snapshot_is_thread_safe_and_on_stats_is_called(session):
     json.loads(json.dumps(last))
 
 
+def test_failing_stats_callback_does_not_stop_the_stream(session, caplog):
+    def bad(snapshot):
+        raise RuntimeError("status page gone")
+    with caplog.at_level(logging.ERROR):
+        st = run_loop(_asap(session), [], [], on_stats=bad, stats_interval_s=0.0)
+    assert st.frames == 10 and "status page gone" in caplog.text
+    with pytest.raises(RuntimeError, match="status page gone"):
+        run_loop(_asap(session), [], [], on_stats=bad, stats_interval_s=0.0, strict=True)
+
+
 def test_to_json_and_table(session):
     st = run_loop(_asap(session), [SeqStage()], [NullSink()])
     d = json.loads(st.to_json())
