@@ -103,6 +103,10 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "listen": _f(str, "127.0.0.1", "MJPEG bind address; 0.0.0.0 serves the local network"),
         "port": _f(int, 8080, "MJPEG port"),
         "fps": _f(float, 30.0, "frame rate written into video files"),
+        "record_color": _f(str, "png", "colour encoding of recorded sessions: lossless PNG, JPEG, or raw bytes (fastest replay, largest)",
+                           choices=("png", "jpeg", "raw")),
+        "record_jpeg_quality": _f(int, 95, "JPEG quality 1..100 when record_color = 'jpeg'"),
+        "record_fsync": _f(bool, True, "fsync every recorded frame (survives power loss; kill -9 is safe either way)"),
     },
     "imu": {
         "url": _f(str, "", "serial IMU URL for serial.serial_for_url, e.g. /dev/ttyUSB0 or loop:// ('' = none)"),
