@@ -15,9 +15,10 @@ How a frame travels, and why the loop never waits for a client::
           └──▶ latest JPEG (bytes, sequence number) ──▶ client thread 1 ── socket
                                                     └─▶ client thread 2 ── socket ...
 
-* JPEG encoding happens at most once per frame whatever the number of clients, and not at all while
-  nobody watches. It runs in its own thread (``cv2.imencode`` releases the GIL), so the loop only
-  pays for storing a reference.
+* JPEG encoding happens at most once per frame whatever the number of clients, not at all while
+  nobody watches, and at most ``max_fps`` times a second (default 30: a viewer's display rate).
+  It runs in its own thread (``cv2.imencode`` releases the GIL), so the loop only pays for storing
+  a reference.
 * Each client thread sends the latest encoded frame it has not sent yet. A slow client simply skips
   frames: it never holds the encoder or the loop back.
 * The server binds 127.0.0.1 by default. ``listen="0.0.0.0"`` serves the local network (a headset);
@@ -99,8 +100,9 @@ poll(); setInterval(poll, 1000);
 class _Hub:
     """Shared state between the loop (``offer``), the encoder thread and the client threads."""
 
-    def __init__(self, quality: int):
+    def __init__(self, quality: int, max_fps: float = 0.0):
         self.quality = int(quality)
+        self.min_interval = 1.0 / max_fps if max_fps > 0 else 0.0
         self.cond = threading.Condition()
         self.pending: np.ndarray | None = None  # newest RGB image not yet encoded
         self.pending_seq = 0
@@ -135,7 +137,14 @@ class _Hub:
         """Encoder thread: encode the newest offered image once, while at least one client watches."""
         last = 0
         params = [int(cv2.IMWRITE_JPEG_QUALITY), self.quality]
+        next_time = 0.0
         while True:
+            # the preview rate cap: a viewer needs no more than its display rate, and the CPU saved
+            # stays with the loop (the newest frame at the next slot is encoded; the rest skipped)
+            wait = next_time - time.monotonic()
+            if wait > 0:
+                with self.cond:
+                    self.cond.wait_for(lambda: self.closed, timeout=wait)
             with self.cond:
                 while not self.closed and (self.pending_seq == last or self.clients == 0):
                     self.cond.wait(0.5)
@@ -145,6 +154,7 @@ class _Hub:
                 self.pending = None  # drop the reference: the loop's frame can be freed
             if img is None:
                 continue
+            next_time = time.monotonic() + self.min_interval
             try:
                 ok, buf = cv2.imencode(".jpg", cv2.cvtColor(img, cv2.COLOR_RGB2BGR), params)
             except cv2.error as e:  # a bad image must not kill the server
@@ -260,6 +270,9 @@ class MjpegSink(Sink):
         ``dropped``, ``failed_frames``, ``stages_ms``, ``source``; others are passed through).
     quality : int
         JPEG quality 1..100.
+    max_fps : float
+        Most frames per second encoded for the clients (0 = every frame the loop writes). The
+        stream shows the newest frame at each slot; frames between slots are skipped, not queued.
     client_timeout_s : float
         A client that accepts no data for this long is disconnected.
 
@@ -275,7 +288,7 @@ class MjpegSink(Sink):
 
     def __init__(self, listen: str = "127.0.0.1", port: int = 8080,
                  stats: Callable[[], dict[str, Any]] | None = None, quality: int = 80,
-                 client_timeout_s: float = 10.0):
+                 client_timeout_s: float = 10.0, max_fps: float = 30.0):
         if not (1 <= int(quality) <= 100):
             raise ValueError(f"MjpegSink quality must be within 1..100, got {quality!r}")
         if not (0 <= int(port) <= 65535):
@@ -284,8 +297,11 @@ class MjpegSink(Sink):
         self.port = int(port)
         self.stats_fn = stats
         self.client_timeout_s = float(client_timeout_s)
+        if max_fps < 0:
+            raise ValueError(f"MjpegSink max_fps must be >= 0 (0 = no cap), got {max_fps!r}")
         self._quality = int(quality)
-        self._hub = _Hub(self._quality)
+        self.max_fps = float(max_fps)
+        self._hub = _Hub(self._quality, self.max_fps)
         self._server: ThreadingHTTPServer | None = None
         self._threads: list[threading.Thread] = []
 
@@ -298,7 +314,7 @@ class MjpegSink(Sink):
         """Bind the port and start the server and encoder threads."""
         if self._server is not None:
             return
-        self._hub = _Hub(self._quality)
+        self._hub = _Hub(self._quality, self.max_fps)
         try:
             server = ThreadingHTTPServer((self.listen, self.port), _make_handler(self))
         except OSError as e:
