@@ -27,6 +27,7 @@ How a frame travels, and why the loop never waits for a client::
 
 from __future__ import annotations
 
+import collections
 import json
 import logging
 import threading
@@ -98,36 +99,44 @@ poll(); setInterval(poll, 1000);
 
 
 class _Hub:
-    """Shared state between the loop (``offer``), the encoder thread and the client threads."""
+    """Shared state between the loop (``offer``), the encoder thread and the client threads.
+
+    One lock, two conditions: ``frame_cond`` wakes the encoder (a new frame while someone watches),
+    ``cond`` wakes the client threads (a new JPEG). The loop notifies only when the encoder is
+    actually waiting for a frame, so a fast loop does not wake a thread (and fight it for the GIL)
+    on every frame.
+    """
 
     def __init__(self, quality: int, max_fps: float = 0.0):
         self.quality = int(quality)
         self.min_interval = 1.0 / max_fps if max_fps > 0 else 0.0
-        self.cond = threading.Condition()
+        self.lock = threading.Lock()
+        self.cond = threading.Condition(self.lock)        # new JPEG -> client threads
+        self.frame_cond = threading.Condition(self.lock)  # new frame / new client -> encoder
+        self.closed_event = threading.Event()
         self.pending: np.ndarray | None = None  # newest RGB image not yet encoded
         self.pending_seq = 0
         self.jpeg: bytes | None = None
         self.jpeg_seq = 0
         self.clients = 0
         self.closed = False
+        self.encoder_waiting = False
         self.offered = 0
         self.encoded = 0
         self.sent = 0
-        self._times: list[float] = []
+        self._times: collections.deque[float] = collections.deque(maxlen=60)
 
     def offer(self, rgb: np.ndarray) -> None:
-        with self.cond:
+        with self.lock:
             self.pending = rgb
             self.pending_seq += 1
             self.offered += 1
-            now = time.monotonic()
-            self._times.append(now)
-            if len(self._times) > 60:
-                del self._times[:30]
-            self.cond.notify_all()
+            self._times.append(time.monotonic())
+            if self.encoder_waiting and self.clients > 0:
+                self.frame_cond.notify()
 
     def fps(self) -> float:
-        with self.cond:
+        with self.lock:
             t = list(self._times)
         if len(t) < 2 or t[-1] <= t[0]:
             return 0.0
@@ -142,12 +151,13 @@ class _Hub:
             # the preview rate cap: a viewer needs no more than its display rate, and the CPU saved
             # stays with the loop (the newest frame at the next slot is encoded; the rest skipped)
             wait = next_time - time.monotonic()
-            if wait > 0:
-                with self.cond:
-                    self.cond.wait_for(lambda: self.closed, timeout=wait)
-            with self.cond:
+            if wait > 0 and self.closed_event.wait(wait):
+                return
+            with self.lock:
+                self.encoder_waiting = True
                 while not self.closed and (self.pending_seq == last or self.clients == 0):
-                    self.cond.wait(0.5)
+                    self.frame_cond.wait(0.5)
+                self.encoder_waiting = False
                 if self.closed:
                     return
                 img, last = self.pending, self.pending_seq
@@ -162,7 +172,7 @@ class _Hub:
                 continue
             if not ok:
                 continue
-            with self.cond:
+            with self.lock:
                 self.jpeg, self.jpeg_seq = buf.tobytes(), last
                 self.encoded += 1
                 self.cond.notify_all()
@@ -181,14 +191,16 @@ class _Hub:
             return self.jpeg, self.jpeg_seq
 
     def add_client(self, delta: int) -> None:
-        with self.cond:
+        with self.lock:
             self.clients += delta
-            self.cond.notify_all()
+            self.frame_cond.notify()
 
     def close(self) -> None:
-        with self.cond:
+        with self.lock:
             self.closed = True
             self.cond.notify_all()
+            self.frame_cond.notify_all()
+        self.closed_event.set()
 
 
 def _make_handler(sink: "MjpegSink"):

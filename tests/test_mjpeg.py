@@ -225,3 +225,14 @@ def test_encoding_rate_is_capped_and_uncapped_follows_the_loop():
         assert sink.status()["sink"]["encoded"] >= 10
     with pytest.raises(ValueError, match="max_fps"):
         MjpegSink(max_fps=-1)
+
+
+@pytest.mark.slow
+def test_bench_mjpeg_quick_runs_and_reports_a_ratio(capsys):
+    import argparse
+
+    from illuminet.bench_mjpeg import run
+    res = run(argparse.Namespace(quick=True), None)
+    assert res["2 clients"]["median_client_frames"] >= 1 and not res["2 clients"]["client_errors"]
+    assert 0 < res["ratio_2_clients_vs_none"] < 10
+    assert "ratio 2 clients / no sink" in capsys.readouterr().out
