@@ -209,6 +209,7 @@ def _make_handler(sink: "MjpegSink"):
     class Handler(BaseHTTPRequestHandler):
         server_version = "IllumiNet-MJPEG/1"
         protocol_version = "HTTP/1.1"
+        timeout = 30  # idle keep-alive connections (the page's stats polling) are closed after this
 
         def log_message(self, fmt: str, *args: Any) -> None:  # route to logging, not stderr
             log.debug("MJPEG %s: " + fmt, self.address_string(), *args)
@@ -344,7 +345,11 @@ class MjpegSink(Sink):
         ]
         for t in self._threads:
             t.start()
-        log.info("MJPEG stream at %sstream.mjpg (status page %s)", self.url, self.url)
+        if self.listen in ("0.0.0.0", "", "::"):
+            log.info("MJPEG server on all interfaces, port %d: open http://<this machine's address>:%d/ "
+                     "on the headset (locally %s)", self.port, self.port, self.url)
+        else:
+            log.info("MJPEG stream at %sstream.mjpg (status page %s)", self.url, self.url)
 
     def write(self, frame: Frame) -> None:
         """Offer ``frame.results["composite"]`` (or the camera colour) to the clients; O(1)."""
