@@ -109,7 +109,7 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "record_fsync": _f(bool, True, "fsync every recorded frame (survives power loss; kill -9 is safe either way)"),
     },
     "imu": {
-        "url": _f(str, "", "serial IMU URL for serial.serial_for_url, e.g. /dev/ttyUSB0 or loop:// ('' = none)"),
+        "url": _f(str, "", "serial IMU: serial://PORT?baud=N, or any serial.serial_for_url URL (/dev/ttyUSB0, loop://); '' = none"),
         "baudrate": _f(int, 115200, "serial baud rate"),
         "max_skew_ms": _f(float, 20.0, "largest IMU-to-frame timestamp gap accepted"),
         "rotation": _f(list, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
