@@ -67,7 +67,7 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "redetect_every": _f(int, 30, "full re-detection every N frames (tracking in between)"),
         "max_planes": _f(int, 4, "most planes kept per frame"),
         "min_area_m2": _f(float, 0.02, "smallest plane kept, square metres"),
-        "inlier_threshold_m": _f(float, 0.01, "distance of an inlier at 1 m; grows with z^2 like stereo noise"),
+        "inlier_threshold_m": _f(float, 0.03, "distance of an inlier at 1 m; grows with z^2 like stereo noise (0.045 for integer-disparity depth)"),
         "smoothing": _f(float, 0.8, "temporal smoothing of plane parameters, 0 = none, <1"),
     },
     "anchor": {
