@@ -295,6 +295,13 @@ def _load_obj(path: Path) -> RenderMesh:
     with open(path, "rb") as f:
         loaded = load_obj(f, resolver=trimesh.resolvers.FilePathResolver(str(path)), skip_materials=False)
     mats = _obj_textures(path)
+    if not any(t for t, _ in mats.values()):
+        # OBJs shipped without an MTL (e.g. Keenan Crane's spot) keep their texture beside them:
+        # take the folder's only image, and say so
+        imgs = sorted(p for p in path.parent.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+        if len(imgs) == 1:
+            log.info("%s: no material library names a texture; using %s beside it", path, imgs[0].name)
+            mats = {"": (imgs[0], None)}
     geoms = loaded.get("geometry", {}) if isinstance(loaded, dict) else {}
     if not geoms:
         raise ValueError(f"{path}: no faces found in the OBJ file")
@@ -309,6 +316,8 @@ def _load_obj(path: Path) -> RenderMesh:
             m.visual = trimesh.visual.ColorVisuals(m, vertex_colors=g["vertex_colors"])
         mat_name = getattr(getattr(vis, "material", None), "name", None)
         tex_path, kd = mats.get(mat_name, (None, None)) if mat_name else (None, None)
+        if uv is None:
+            tex_path = None
         if tex_path is None and len(mats) == 1:  # one material: its name may not survive the parser
             tex_path, kd = next(iter(mats.values()))
         textures.append((_read_image(tex_path) if tex_path is not None else None, kd))
@@ -316,8 +325,8 @@ def _load_obj(path: Path) -> RenderMesh:
     out = []
     for m, (tex, kd) in zip(meshes, textures):
         rm = RenderMesh.from_trimesh(m, source=str(path), texture=tex)
-        if kd is not None:
-            rm.parts[0].base_color = kd
+        # trimesh invents a grey (0.4) diffuse when the MTL gives none; OBJ's own Kd or white it is
+        rm.parts[0].base_color = kd if kd is not None else np.ones(3, dtype=np.float32)
         if tex is not None and rm.uv is not None:
             rm.parts[0].texture = tex
         out.append(rm)
