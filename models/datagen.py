@@ -1,0 +1,542 @@
+"""Training and test data for the learned transfer: lighting environments, ground-truth OI, and the
+plane measurement the runtime would see.
+
+One sample is a lighting environment (32 RGB point lights in the object frame: object at the
+origin standing on the plane y = 0, +Y up) and everything derived from it:
+
+* the **plane** grid (``grid x grid`` vertices over ``extent x extent`` metres, vertex ``i*G+j`` at
+  ``(x_j, 0, z_i)``, the layout of the plane-light stage) with its true irradiance, including the
+  object's shadow on it;
+* the same grid as the runtime *measures* it: textured albedo divided out with the wrong (mean)
+  albedo, sensor noise, 8-bit quantisation at an auto exposure, the object's footprint and random
+  holes / out-of-view regions masked;
+* the object's **proxy** vertices' true OI ``(V, 3, 3)`` (vertex, channel, xyz) and shading, with
+  self-visibility and the plane blocking light from below.
+
+Visibility uses per-vertex tables over a dense set of directions, computed once per object by ray
+casting (embree when available) and looked up by direction; a point light is treated as visible
+when the ray towards it leaves the object. This is exact for distant light and for lights outside
+the object's bounding volume, which is where the samplers put them.
+
+Lighting kinds (the evaluation suites): ``indoor`` (ceiling lamps and wall fill in a room),
+``outdoor`` (sun plus a sky dome, sometimes overcast), ``spatial`` (a few bright lamps close to the
+object, so light varies across the plane) and ``hdr`` (real HDR maps, median cut into 32 lights,
+randomly rotated and exposed) when HDR files are available.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from illuminet.runtime.transfer import preprocess_plane
+
+log = logging.getLogger(__name__)
+
+KINDS = ("indoor", "outdoor", "spatial")
+N_LIGHTS = 32
+DISTANT_R = 50.0  # metres at which "distant" lights (sun, sky, HDR) are placed
+
+
+# --------------------------------------------------------------------------- object geometry
+
+@dataclass
+class ObjectGeometry:
+    """An object's render mesh, its lighting proxy (a vertex subset with a graph), and the mapping.
+
+    Attributes
+    ----------
+    vertices, normals, faces : render mesh (R, 3), (R, 3), (F, 3)
+    proxy_index : (V,) int, render vertex index of each proxy vertex
+    proxy_edges : (E, 2) int, undirected proxy graph edges (k nearest neighbours, symmetrised)
+    carry_index, carry_weight : (R, k) int / float, how render vertices interpolate proxy values
+    name : str
+    """
+
+    vertices: np.ndarray
+    normals: np.ndarray
+    faces: np.ndarray
+    proxy_index: np.ndarray
+    proxy_edges: np.ndarray
+    carry_index: np.ndarray
+    carry_weight: np.ndarray
+    name: str = "object"
+
+    @property
+    def proxy_vertices(self) -> np.ndarray:
+        return self.vertices[self.proxy_index]
+
+    @property
+    def proxy_normals(self) -> np.ndarray:
+        return self.normals[self.proxy_index]
+
+
+def _builtin_mesh_fallback(name: str):
+    """Procedural vase/bowl (used only when ``illuminet.runtime.objects`` is not available)."""
+    import trimesh
+
+    if name == "vase":
+        # lathe profile (radius, height) in metres: foot, belly, waist, flared lip = overhangs
+        prof = np.array([[0.0, 0.0], [0.06, 0.0], [0.065, 0.01], [0.10, 0.08], [0.105, 0.12],
+                         [0.07, 0.2], [0.045, 0.25], [0.05, 0.28], [0.075, 0.31], [0.07, 0.315],
+                         [0.04, 0.29], [0.0, 0.29]])
+        m = trimesh.creation.revolve(prof, sections=48)
+    elif name == "bowl":
+        t = np.linspace(0, np.pi / 2, 12)
+        outer = np.stack([0.13 * np.sin(t), 0.11 * (1 - np.cos(t))], 1)
+        inner = np.stack([0.12 * np.sin(t[::-1]), 0.02 + 0.10 * (1 - np.cos(t[::-1]))], 1)
+        prof = np.concatenate([[[0.0, 0.0]], outer[1:], [[0.13, 0.115]], inner[:-1], [[0.0, 0.02]]])
+        m = trimesh.creation.revolve(prof, sections=48)
+    else:
+        raise ValueError(f"unknown builtin object {name!r}; known: vase, bowl")
+    # revolve turns around +Z; the object frame is +Y up
+    m.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))
+    m.merge_vertices()
+    m.fix_normals()
+    return m
+
+
+def load_mesh(spec: str):
+    """``builtin:NAME`` or a mesh file -> trimesh.Trimesh standing on y = 0 at the origin, +Y up."""
+    import trimesh
+
+    try:  # the project's object loader (light-transport helper), when present
+        from illuminet.runtime.objects import load_object  # type: ignore
+
+        obj = load_object(spec)
+        m = obj if isinstance(obj, trimesh.Trimesh) else getattr(obj, "mesh", obj)
+        if isinstance(m, trimesh.Trimesh):
+            return m
+        v, f = np.asarray(obj.vertices), np.asarray(obj.faces)
+        return trimesh.Trimesh(v, f, process=True)
+    except ImportError:
+        pass
+    if spec.startswith("builtin:"):
+        return _builtin_mesh_fallback(spec.split(":", 1)[1])
+    p = Path(spec)
+    if not p.is_file():
+        raise FileNotFoundError(f"object mesh {spec!r}: file not found (expected builtin:NAME or a GLB/OBJ/PLY path)")
+    m = trimesh.load(p, force="mesh")
+    if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
+        raise ValueError(f"object mesh {spec!r}: no triangles found")
+    # normalise: stand on y = 0, centred in x/z, height 0.3 m
+    v = m.vertices - [m.bounds[:, 0].mean(), m.bounds[0, 1], m.bounds[:, 2].mean()]
+    v *= 0.3 / max(np.ptp(v[:, 1]), 1e-9)
+    return trimesh.Trimesh(v, m.faces, process=True)
+
+
+def _farthest_points(x: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    n = min(n, len(x))
+    idx = np.empty(n, dtype=np.int64)
+    idx[0] = rng.integers(len(x))
+    d = np.linalg.norm(x - x[idx[0]], axis=1)
+    for i in range(1, n):
+        idx[i] = int(np.argmax(d))
+        d = np.minimum(d, np.linalg.norm(x - x[idx[i]], axis=1))
+    return np.sort(idx)
+
+
+def build_geometry(mesh, n_proxy: int = 400, k_graph: int = 6, seed: int = 0, name: str = "object") -> ObjectGeometry:
+    """Render mesh -> lighting proxy (farthest-point vertex subset + kNN graph) and carry mapping.
+
+    Proxy neighbours and carry weights use a distance that also penalises differing normals, so
+    light does not leak through thin walls (inside vs outside of a bowl).
+    """
+    from scipy.spatial import cKDTree
+
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    n = np.asarray(mesh.vertex_normals, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    scale = float(np.linalg.norm(np.ptp(v, axis=0)))
+    feat = np.concatenate([v, n * 0.1 * scale], axis=1)  # position + normal-weighted
+    pidx = _farthest_points(feat, n_proxy, rng)
+    tree = cKDTree(feat[pidx])
+    _, nb = tree.query(feat[pidx], k=k_graph + 1)
+    edges = set()
+    for i, row in enumerate(nb):
+        for j in row[1:]:
+            if i != j:
+                edges.add((min(i, int(j)), max(i, int(j))))
+    edges = np.array(sorted(edges), dtype=np.int64)
+    d, ci = tree.query(feat, k=3)
+    w = 1.0 / np.maximum(d, 1e-6) ** 2
+    w /= w.sum(1, keepdims=True)
+    return ObjectGeometry(
+        vertices=v.astype(np.float32), normals=n.astype(np.float32),
+        faces=np.asarray(mesh.faces, dtype=np.int32), proxy_index=pidx.astype(np.int32),
+        proxy_edges=edges.astype(np.int32), carry_index=ci.astype(np.int32),
+        carry_weight=w.astype(np.float32), name=name,
+    )
+
+
+# --------------------------------------------------------------------------- visibility
+
+def fibonacci_directions(n: int) -> np.ndarray:
+    """``n`` near-uniform unit directions on the sphere."""
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * i / n)
+    theta = np.pi * (1 + 5 ** 0.5) * i
+    return np.stack([np.cos(theta) * np.sin(phi), np.cos(phi), np.sin(theta) * np.sin(phi)], 1).astype(np.float32)
+
+
+class DirectionVisibility:
+    """Per-point visibility over a fixed direction set, looked up by direction (nearest direction).
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        Occluder (the object).
+    points, normals : (N, 3)
+        Where visibility is wanted; rays start slightly off the surface along the normal.
+    n_dirs : int
+        Size of the direction set (1024 gives ~6 degree spacing).
+    plane_blocks : bool
+        The plane y = 0 blocks directions pointing below the horizon.
+    """
+
+    def __init__(self, mesh, points, normals, n_dirs: int = 1024, plane_blocks: bool = True):
+        from scipy.spatial import cKDTree
+
+        self.dirs = fibonacci_directions(n_dirs)
+        self._tree = cKDTree(self.dirs)
+        pts = np.asarray(points, dtype=np.float64) + 1e-4 * np.asarray(normals, dtype=np.float64)
+        n_pts = len(pts)
+        origins = np.repeat(pts, n_dirs, axis=0)
+        dirs = np.tile(self.dirs.astype(np.float64), (n_pts, 1))
+        try:
+            from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+            rmi = RayMeshIntersector(mesh)
+        except Exception:  # no embree: trimesh's pure-python intersector (slow but exact)
+            rmi = mesh.ray
+        hit = np.zeros(len(origins), dtype=bool)
+        step = 1 << 20
+        for s in range(0, len(origins), step):
+            hit[s:s + step] = rmi.intersects_any(origins[s:s + step], dirs[s:s + step])
+        vis = ~hit.reshape(n_pts, n_dirs)
+        if plane_blocks:
+            vis &= (self.dirs[None, :, 1] >= -1e-3) | (pts[:, None, 1] < 1e-3)
+        self.table = vis
+
+    def lookup(self, points: np.ndarray, light_pos: np.ndarray) -> np.ndarray:
+        """(N, L) bool: is light l visible from point i (N must match the construction points)."""
+        d = light_pos[None, :, :] - points[:, None, :]
+        d /= np.linalg.norm(d, axis=-1, keepdims=True) + 1e-12
+        _, k = self._tree.query(d.reshape(-1, 3))
+        k = k.reshape(d.shape[:2])
+        return np.take_along_axis(self.table, k, axis=1)
+
+
+def oi_point_lights(points, normals, light_pos, light_rgb, vis=None) -> np.ndarray:
+    """OI (N, 3, 3) of point lights (see :mod:`illuminet.runtime.physics`): channel x xyz."""
+    d = light_pos[None, :, :] - points[:, None, :]  # N, L, 3
+    r2 = np.maximum((d * d).sum(-1), 1e-6)
+    w = d / np.sqrt(r2)[..., None]
+    cos = (w * normals[:, None, :]).sum(-1)
+    g = (cos > 0).astype(np.float32) / r2
+    if vis is not None:
+        g = g * vis
+    return np.einsum("nl,lc,nlx->ncx", g, light_rgb, w).astype(np.float32)
+
+
+# --------------------------------------------------------------------------- lighting samplers
+
+def _rand_color(rng, warmth: float) -> np.ndarray:
+    """A light colour between blue-ish (warmth -1) and warm tungsten (+1), unit luminance-ish."""
+    c = np.array([1.0 + 0.45 * warmth, 1.0, 1.0 - 0.5 * warmth]) * rng.uniform(0.9, 1.1, 3)
+    c = np.clip(c, 0.2, None)
+    return c / (0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2])
+
+
+def _distant(dirs: np.ndarray) -> np.ndarray:
+    return dirs * DISTANT_R
+
+
+def sample_lights(kind: str, rng: np.random.Generator, n: int = N_LIGHTS, hdr_lights=None):
+    """One lighting environment: (positions (n, 3), rgb intensities (n, 3)) in the object frame.
+
+    Intensities of distant lights are scaled by ``DISTANT_R**2`` so their irradiance does not depend
+    on the placement distance.
+    """
+    pos = np.zeros((n, 3))
+    rgb = np.zeros((n, 3))
+    if kind == "indoor":
+        k_main = rng.integers(1, 5)
+        h = rng.uniform(2.2, 3.2)
+        cx, cz = rng.uniform(-1.5, 1.5, 2)
+        for j in range(n):
+            if j < k_main:  # ceiling / lamps, bright, warm or cool
+                pos[j] = [cx + rng.uniform(-1.8, 1.8), rng.uniform(1.2, h), cz + rng.uniform(-1.8, 1.8)]
+                rgb[j] = _rand_color(rng, rng.uniform(-0.6, 1.0)) * rng.uniform(1.0, 4.0)
+            else:  # diffuse fill: walls and ceiling, dim, all around
+                a = rng.uniform(0, 2 * np.pi)
+                r = rng.uniform(1.5, 3.5)
+                pos[j] = [r * np.cos(a), rng.uniform(0.1, h), r * np.sin(a)]
+                rgb[j] = _rand_color(rng, rng.uniform(-0.3, 0.6)) * rng.uniform(0.02, 0.25)
+    elif kind == "outdoor":
+        overcast = rng.random() < 0.3
+        el = np.deg2rad(rng.uniform(8, 75))
+        az = rng.uniform(0, 2 * np.pi)
+        sun = np.array([np.cos(el) * np.cos(az), np.sin(el), np.cos(el) * np.sin(az)])
+        pos[0] = _distant(sun)
+        rgb[0] = _rand_color(rng, rng.uniform(0.1, 0.6)) * (rng.uniform(0.2, 1.0) if overcast else rng.uniform(3.0, 8.0))
+        sky = fibonacci_directions(2 * (n - 1))
+        sky = sky[sky[:, 1] > 0][: n - 1]
+        pos[1:] = _distant(sky)
+        sky_i = (rng.uniform(0.6, 1.2) if overcast else rng.uniform(0.15, 0.5)) / (n - 1)
+        # brighter sky towards the sun and the horizon
+        shape = 1.0 + 0.8 * np.clip(sky @ sun, 0, None) ** 2 + 0.3 * (1 - sky[:, 1])
+        rgb[1:] = _rand_color(rng, rng.uniform(-0.9, -0.2) if not overcast else 0.0)[None] * (sky_i * shape)[:, None] * 6
+        # ground bounce: a dim light from low directions (the plane stops anything below y = 0)
+        rgb[1:] *= rng.uniform(0.8, 1.2, (n - 1, 1))
+        rgb *= DISTANT_R ** 2 / 6
+    elif kind == "spatial":
+        k_near = rng.integers(2, 6)
+        for j in range(n):
+            if j < k_near:  # small lamps near the object: light varies across the plane
+                a = rng.uniform(0, 2 * np.pi)
+                r = rng.uniform(0.25, 0.8)
+                pos[j] = [r * np.cos(a), rng.uniform(0.05, 0.6), r * np.sin(a)]
+                rgb[j] = _rand_color(rng, rng.uniform(-0.8, 1.0)) * rng.uniform(0.05, 0.3)
+            else:
+                a = rng.uniform(0, 2 * np.pi)
+                r = rng.uniform(2.0, 4.0)
+                pos[j] = [r * np.cos(a), rng.uniform(0.3, 3.0), r * np.sin(a)]
+                rgb[j] = _rand_color(rng, rng.uniform(-0.3, 0.5)) * rng.uniform(0.01, 0.12)
+    elif kind == "hdr":
+        if not hdr_lights:
+            raise ValueError("kind 'hdr' needs hdr_lights (median-cut lights of HDR maps)")
+        dirs, rgb0 = hdr_lights[int(rng.integers(len(hdr_lights)))]
+        a = rng.uniform(0, 2 * np.pi)  # random rotation about +Y (yaw) and a small pitch
+        p = np.deg2rad(rng.uniform(-10, 10))
+        Ry = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+        Rx = np.array([[1, 0, 0], [0, np.cos(p), -np.sin(p)], [0, np.sin(p), np.cos(p)]])
+        d = dirs @ (Rx @ Ry).T
+        pos = _distant(d[:n])
+        rgb = rgb0[:n] * DISTANT_R ** 2 * np.exp(rng.uniform(-1.0, 1.0))
+    else:
+        raise ValueError(f"unknown lighting kind {kind!r}; expected one of {KINDS + ('hdr',)}")
+    return pos.astype(np.float32), rgb.astype(np.float32)
+
+
+def median_cut_lights(env: np.ndarray, n: int = N_LIGHTS) -> tuple[np.ndarray, np.ndarray]:
+    """Median cut (Debevec 2008) of an equirectangular linear-RGB map -> n (direction, rgb) lights.
+
+    Directions are in the object frame (+Y up; image top = up; u = 0 at -Z turning towards +X).
+    The rgb of a light is the total power of its region (solid-angle weighted), so that the
+    irradiance from a distant light of direction d is rgb * max(n.d, 0).
+    """
+    try:
+        from illuminet.runtime.lighting import median_cut  # type: ignore  # light helper's version
+
+        out = median_cut(env, n)
+        if isinstance(out, tuple) and len(out) == 2:
+            return np.asarray(out[0], np.float32), np.asarray(out[1], np.float32)
+    except Exception:
+        pass
+    h, w, _ = env.shape
+    theta = (np.arange(h) + 0.5) / h * np.pi  # polar angle from +Y
+    sa = (np.sin(theta) * (np.pi / h) * (2 * np.pi / w))[:, None]  # solid angle per pixel
+    power = env * sa[..., None]
+    lum = power @ np.array([0.2126, 0.7152, 0.0722])
+    sat = lum.cumsum(0).cumsum(1)
+
+    def s(y0, y1, x0, x1):  # inclusive-exclusive sum via summed-area table
+        t = sat[y1 - 1, x1 - 1]
+        if y0 > 0:
+            t -= sat[y0 - 1, x1 - 1]
+        if x0 > 0:
+            t -= sat[y1 - 1, x0 - 1]
+        if y0 > 0 and x0 > 0:
+            t += sat[y0 - 1, x0 - 1]
+        return t
+
+    regions = [(0, h, 0, w)]
+    while len(regions) < n:
+        # split the region with the most energy along its longer (cos-latitude weighted) side
+        i = max(range(len(regions)), key=lambda k: s(*regions[k]) if (regions[k][1] - regions[k][0] > 1 or regions[k][3] - regions[k][2] > 1) else -1)
+        y0, y1, x0, x1 = regions.pop(i)
+        lat_w = (x1 - x0) * np.sin(theta[(y0 + y1) // 2])
+        tot = s(y0, y1, x0, x1)
+        if (lat_w > (y1 - y0) and x1 - x0 > 1) or y1 - y0 <= 1:
+            cut = x0 + 1
+            while cut < x1 - 1 and s(y0, y1, x0, cut) < tot / 2:
+                cut += 1
+            regions += [(y0, y1, x0, cut), (y0, y1, cut, x1)]
+        else:
+            cut = y0 + 1
+            while cut < y1 - 1 and s(y0, cut, x0, x1) < tot / 2:
+                cut += 1
+            regions += [(y0, cut, x0, x1), (cut, y1, x0, x1)]
+    dirs, rgbs = [], []
+    for y0, y1, x0, x1 in regions:
+        p = power[y0:y1, x0:x1]
+        l = lum[y0:y1, x0:x1]
+        yy, xx = np.mgrid[y0:y1, x0:x1]
+        wsum = l.sum() + 1e-12
+        cy, cx = (yy * l).sum() / wsum + 0.5, (xx * l).sum() / wsum + 0.5
+        th, ph = cy / h * np.pi, cx / w * 2 * np.pi
+        dirs.append([np.sin(th) * np.sin(ph), np.cos(th), -np.sin(th) * np.cos(ph)])
+        rgbs.append(p.reshape(-1, 3).sum(0))
+    return np.asarray(dirs, np.float32), np.asarray(rgbs, np.float32)
+
+
+def hdr_maps(folder: str | Path | None, split: str = "all") -> list[Path]:
+    """The ``.hdr`` files of ``folder``, sorted; every 4th map (index % 4 == 3) is held out for testing.
+
+    split : "train" (the other maps), "test" (the held-out ones) or "all".
+    """
+    if folder is None or not str(folder) or not Path(folder).is_dir():
+        return []
+    maps = sorted(Path(folder).glob("*.hdr"))
+    if split == "train":
+        return [p for i, p in enumerate(maps) if i % 4 != 3]
+    if split == "test":
+        return [p for i, p in enumerate(maps) if i % 4 == 3]
+    return maps
+
+
+def load_hdr_lights(folder: str | Path | None, n: int = N_LIGHTS, split: str = "all"):
+    """Median-cut lights of the ``.hdr`` maps in ``folder`` (see :func:`hdr_maps`; empty when absent)."""
+    import cv2
+
+    out = []
+    for p in hdr_maps(folder, split):
+        img = cv2.imread(str(p), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
+        if img is None:
+            log.warning("could not read HDR map %s; skipped", p)
+            continue
+        env = cv2.resize(img[..., ::-1].astype(np.float32), (256, 128), interpolation=cv2.INTER_AREA)
+        d, c = median_cut_lights(np.nan_to_num(env), n)
+        c = c / max(float(c.sum(0).max()), 1e-9) * 3.0  # normalise total power; exposure is random later
+        out.append((d, c))
+    return out
+
+
+# --------------------------------------------------------------------------- plane + samples
+
+def plane_grid(grid: int, extent: float) -> np.ndarray:
+    """(G*G, 3) plane vertices, vertex i*G+j = (x_j, 0, z_i) (the plane-light stage's layout)."""
+    x = np.linspace(-extent / 2, extent / 2, grid)
+    zz, xx = np.meshgrid(x, x, indexing="ij")
+    return np.stack([xx.ravel(), np.zeros(grid * grid), zz.ravel()], 1).astype(np.float32)
+
+
+class Scene:
+    """Everything fixed for one object: geometry, plane grid and visibility tables."""
+
+    def __init__(self, geom: ObjectGeometry, mesh, grid: int = 32, extent: float = 1.0,
+                 n_dirs: int = 1024, render_vis: bool = False):
+        self.geom = geom
+        self.grid = grid
+        self.extent = extent
+        self.plane_v = plane_grid(grid, extent)
+        self.plane_n = np.tile(np.array([[0, 1, 0]], np.float32), (len(self.plane_v), 1))
+        self.plane_vis = DirectionVisibility(mesh, self.plane_v, self.plane_n, n_dirs)
+        self.obj_vis = DirectionVisibility(mesh, geom.proxy_vertices, geom.proxy_normals, n_dirs)
+        self.render_vis = (DirectionVisibility(mesh, geom.vertices, geom.normals, n_dirs)
+                           if render_vis else None)
+        # plane vertices under the object: hidden from any camera
+        r = np.linalg.norm(geom.vertices[:, [0, 2]], axis=1).max()
+        self.footprint = np.linalg.norm(self.plane_v[:, [0, 2]], axis=1) < r
+
+    def truth(self, pos, rgb):
+        """True plane irradiance (P, 3), proxy OI (V, 3, 3) and proxy shading (V, 3)."""
+        pv = self.plane_vis.lookup(self.plane_v, pos)
+        plane_oi = oi_point_lights(self.plane_v, self.plane_n, pos, rgb, pv)
+        e_plane = plane_oi[:, :, 1]  # normal is +Y: E = OI . n = y component
+        g = self.geom
+        ov = self.obj_vis.lookup(g.proxy_vertices, pos)
+        oi = oi_point_lights(g.proxy_vertices, g.proxy_normals, pos, rgb, ov)
+        return e_plane, oi, np.einsum("vcx,vx->vc", oi, g.proxy_normals)
+
+    def render_truth(self, pos, rgb):
+        """True shading (R, 3) of every render-mesh vertex (needs ``render_vis=True``)."""
+        g = self.geom
+        vis = self.render_vis.lookup(g.vertices, pos)
+        oi = oi_point_lights(g.vertices, g.normals, pos, rgb, vis)
+        return np.einsum("vcx,vx->vc", oi, g.normals)
+
+    def measure(self, e_plane: np.ndarray, rng: np.random.Generator, noise: float = 0.03):
+        """What the plane-light stage would report: (irradiance (P, 3), mask (P,)).
+
+        The plane has a textured albedo that the stage does not know (it divides by the mean);
+        auto exposure puts the plane's mean at mid grey; noise then 8-bit sRGB quantisation.
+        """
+        G = self.grid
+        # smooth random albedo texture around 1 (relative), plus fine grain
+        coarse = rng.normal(0, 1, (5, 5))
+        import cv2
+
+        tex = cv2.resize(coarse, (G, G), interpolation=cv2.INTER_CUBIC).ravel()
+        alb = np.exp(0.15 * tex + 0.05 * rng.normal(0, 1, G * G))
+        alb *= rng.uniform(0.92, 1.08, 3)[None, :].mean(1)  # wrong assumed albedo level: 1 channel
+        albc = alb[:, None] * rng.uniform(0.95, 1.05, (1, 3))  # slight plane tint
+        rad = e_plane * albc
+        k = 0.18 / max(float(rad.mean()), 1e-9) * np.exp(rng.uniform(-0.7, 0.7))  # auto exposure
+        pix = np.clip(rad * k * (1 + noise * rng.normal(0, 1, rad.shape)), 0, 1)
+        s = np.where(pix <= 0.0031308, 12.92 * pix, 1.055 * np.power(pix, 1 / 2.4) - 0.055)
+        s = np.round(s * 255) / 255
+        lin = np.where(s <= 0.04045, s / 12.92, ((s + 0.055) / 1.055) ** 2.4)
+        meas = lin / k
+        mask = ~self.footprint.copy()
+        # the object hides the plane behind it from the camera: a wedge behind the footprint
+        az = rng.uniform(0, 2 * np.pi)
+        rel = self.plane_v[:, [0, 2]]
+        ang = np.arctan2(rel[:, 1], rel[:, 0]) - az
+        behind = (np.cos(ang) > np.cos(np.deg2rad(15))) & (np.linalg.norm(rel, axis=1) < self.extent * rng.uniform(0.2, 0.45))
+        mask &= ~behind
+        if rng.random() < 0.5:  # part of the patch out of view / off the real plane
+            nrm = rng.normal(0, 1, 2)
+            nrm /= np.linalg.norm(nrm)
+            mask &= rel @ nrm < rng.uniform(0.15, 0.5) * self.extent
+        holes = rng.random(G * G) < rng.uniform(0, 0.1)  # depth holes
+        mask &= ~holes
+        meas[~mask] = 0
+        return meas.astype(np.float32), mask
+
+
+def _yaw(a: float) -> np.ndarray:
+    return np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]], np.float32)
+
+
+def generate(scene: Scene, n: int, seed: int, kinds=KINDS, hdr_lights=None, hdr_share: float = 0.25,
+             progress=None) -> dict[str, np.ndarray]:
+    """``n`` training samples as arrays.
+
+    Returns
+    -------
+    dict with ``plane`` (n, P', 4) preprocessed plane input, ``scale`` (n,), ``oi`` (n, V, 3, 3)
+    and ``shading`` (n, V, 3) both divided by ``scale``, ``kind`` (n,) int index into kinds (+hdr).
+    """
+    rng = np.random.default_rng(seed)
+    all_kinds = list(kinds) + (["hdr"] if hdr_lights else [])
+    planes, scales, ois, shs, ks = [], [], [], [], []
+    for i in range(n):
+        if hdr_lights and rng.random() < hdr_share:
+            kind = "hdr"
+        else:
+            kind = kinds[int(rng.integers(len(kinds)))]
+        pos, rgb = sample_lights(kind, rng, hdr_lights=hdr_lights)
+        pos = pos @ _yaw(rng.uniform(0, 2 * np.pi)).T  # pose perturbation: object yaw vs the room
+        e_plane, oi, sh = scene.truth(pos, rgb)
+        meas, mask = scene.measure(e_plane, rng)
+        x, s = preprocess_plane(meas, mask, scene.grid)
+        planes.append(x)
+        scales.append(s)
+        ois.append(oi / s)
+        shs.append(sh / s)
+        ks.append(all_kinds.index(kind))
+        if progress is not None:
+            progress(i + 1, n)
+    return {
+        "plane": np.stack(planes).astype(np.float32),
+        "scale": np.asarray(scales, np.float32),
+        "oi": np.stack(ois).astype(np.float32),
+        "shading": np.stack(shs).astype(np.float32),
+        "kind": np.asarray(ks, np.int32),
+    }

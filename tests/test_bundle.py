@@ -1,0 +1,84 @@
+"""Bundles: the shipped ones load and are small; damage is reported with the file and the problem."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from illuminet.runtime.bundle import FILES, BundleError, TransferChain, builtin_names, load_bundle
+
+MAX_BYTES = 10 * 1024 * 1024
+
+
+@pytest.mark.parametrize("name", ["vase", "bowl"])
+def test_shipped_bundle_loads_and_is_small(name):
+    b = load_bundle(f"builtin:{name}")
+    assert b.name == name
+    total = sum((b.path / f).stat().st_size for f in list(FILES.values()) + ["bundle.json"])
+    assert total <= MAX_BYTES
+    tr = b.meta["training"]
+    assert tr["seed"] == 0 and f"--object builtin:{name}" in tr["command"]
+    assert len(b.carry(np.ones((b.n_proxy, 3)))) == len(b.vertices)
+    for prec in ("int8", "fp32"):
+        TransferChain(b, prec)
+
+
+def test_builtin_names_lists_shipped():
+    assert {"vase", "bowl"} <= set(builtin_names())
+
+
+def _copy(tmp_path, name="vase"):
+    src = load_bundle(f"builtin:{name}").path
+    dst = tmp_path / name
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("work"))
+    return dst
+
+
+def test_unknown_builtin_lists_known():
+    with pytest.raises(BundleError, match="builtin:vase"):
+        load_bundle("builtin:teapot")
+
+
+def test_checksum_mismatch_names_file(tmp_path):
+    d = _copy(tmp_path)
+    p = d / FILES["int8"]
+    data = bytearray(p.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    p.write_bytes(bytes(data))
+    with pytest.raises(BundleError, match=r"transfer_int8\.onnx: sha256"):
+        load_bundle(d)
+
+
+def test_missing_file_and_bad_json(tmp_path):
+    d = _copy(tmp_path)
+    (d / FILES["fp32"]).unlink()
+    with pytest.raises(BundleError, match="missing file transfer_fp32.onnx"):
+        load_bundle(d)
+    (d / "bundle.json").write_text("{not json")
+    with pytest.raises(BundleError, match="not valid JSON"):
+        load_bundle(d)
+
+
+def test_shape_mismatch_is_reported(tmp_path):
+    from illuminet.models.export import finalize_bundle
+
+    d = _copy(tmp_path)
+    with np.load(d / FILES["mesh"]) as z:
+        arr = {k: z[k] for k in z.files}
+    arr["prior_shading"] = arr["prior_shading"][:-1]
+    np.savez_compressed(d / FILES["mesh"], **arr)
+    finalize_bundle(d, json.loads((d / "bundle.json").read_text()))  # checksums agree, shapes do not
+    with pytest.raises(BundleError, match="prior_shading must be"):
+        load_bundle(d)
+
+
+def test_wrong_format_version(tmp_path):
+    d = _copy(tmp_path)
+    meta = json.loads((d / "bundle.json").read_text())
+    meta["format"] = 99
+    (d / "bundle.json").write_text(json.dumps(meta))
+    with pytest.raises(BundleError, match="format 99 is not supported"):
+        load_bundle(d)

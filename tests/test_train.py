@@ -1,0 +1,49 @@
+"""Tiny end-to-end training: data, the four stages + fine-tuning, export, int8, bundle, relight."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("jax")
+pytest.importorskip("optax")
+pytest.importorskip("onnx")
+
+
+def test_tiny_training_to_bundle_and_relight(tmp_path):
+    from illuminet.models.export import write_bundle
+    from illuminet.models.train import Trainer, make_config
+    from illuminet.runtime.bundle import TransferChain, load_bundle
+    from illuminet.runtime.config import defaults
+    from illuminet.runtime.relight import relight
+    from illuminet.runtime.transfer import preprocess_plane
+
+    from ._learn_helpers import floor_rgbd, plane_light
+
+    cfg = make_config("tiny", object="builtin:bowl", seed=3)
+    out = tmp_path / "bundle"
+    tr = Trainer(cfg, out, show_progress=False)
+    result = tr.train()
+    assert set(result) >= {"plane", "object", "colour", "gen", "gen_state"}
+    for stage in ("plane_gae", "object_gae", "colour_gae", "gan", "finetune"):
+        assert (out / "work" / f"{stage}.npz").is_file()
+    path = write_bundle(out, result, tr, command="pytest tiny")
+    b = load_bundle(out)
+    assert b.meta["training"]["seed"] == 3 and b.meta["training"]["config"]["preset"] == "tiny"
+    # the exported chain computes what JAX computes; int8 stays close
+    diffs = b.meta["export_check_max_abs_vs_jax"]
+    assert diffs["fp32"] < 1e-4
+    pl = plane_light(grid=b.grid)
+    x, s = preprocess_plane(pl.irradiance, pl.mask, b.grid, b.pool)
+    sh8 = TransferChain(b, "int8")(x)[1]
+    sh32 = TransferChain(b, "fp32")(x)[1]
+    assert np.abs(sh8 - sh32).max() < 0.05 * max(np.abs(sh32).max(), 1e-3) + 0.02
+    # a second run resumes: every stage is found finished, parameters are identical
+    again = Trainer(cfg, out, show_progress=False).train()
+    a = np.asarray(result["gen"]["fc4"]["w"])
+    assert np.array_equal(a, np.asarray(again["gen"]["fc4"]["w"]))
+    # and the bundle relights an RGB-D image end to end
+    color, depth, K = floor_rgbd()
+    res = relight(color, depth, K, (160, 130), defaults(), bundle=str(out))
+    assert res.radiance.shape == (len(b.vertices), 3) and np.isfinite(res.radiance).all()
+    assert path.name == "bundle.json"
