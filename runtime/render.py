@@ -47,6 +47,10 @@ log = logging.getLogger(__name__)
 #: entries of the linear -> code value table used to encode (interpolated in the shader)
 ENCODE_LUT_SIZE = 4096
 
+#: albedo of a mesh that says nothing about its colour (white glazed ceramic is ~0.8, not 1: a
+#: perfect white would clip under light the plane itself does not clip under)
+DEFAULT_ALBEDO = 0.8
+
 
 # ------------------------------------------------------------------------------------------ meshes
 
@@ -113,7 +117,8 @@ class RenderMesh:
                 c = np.clip(np.rint(c * 255.0) if c.max() <= 1.0 else c, 0, 255).astype(np.uint8)
             self.colors = c[:, :3].reshape(len(v), 3)
         if not self.parts:
-            self.parts = [MeshPart(0, 3 * len(self.faces))]
+            base = np.full(3, 1.0 if self.colors is not None else DEFAULT_ALBEDO, dtype=np.float32)
+            self.parts = [MeshPart(0, 3 * len(self.faces), None, base)]
 
     @property
     def n_vertices(self) -> int:
@@ -165,6 +170,8 @@ class RenderMesh:
             c = _colors_of(g)
             cols.append(c if c is not None else np.full((len(v), 3), 255, np.uint8))
             tex, base = _material_of(g)
+            if c is None and tex is None and getattr(getattr(g, "visual", None), "material", None) is None:
+                base = np.full(3, DEFAULT_ALBEDO, dtype=np.float32)
             if texture is not None and len(geoms) == 1:
                 tex = texture
             parts.append(MeshPart(3 * f0, 3 * len(g.faces), tex if uv is not None else None, base))
@@ -1040,10 +1047,22 @@ class RenderStage(Stage):
         ctx = self._ctx if self._ctx is not None else get_context(r.gl_backend)
         mesh_src, carry = self._mesh_src, self._carry
         if mesh_src is None:
-            bundle = _load_bundle(self.cfg.model.bundle)
-            mesh_src = bundle.render_mesh
-            if carry is None:
-                carry = getattr(bundle, "carry", None)
+            spec = self.cfg.model.bundle
+            try:
+                bundle = _load_bundle(spec)
+            except (RuntimeError, ValueError) as e:
+                if not str(spec).startswith("builtin:"):
+                    raise
+                # the shading stage falls back to a baseline in this case; draw the same built-in
+                # object from its generator so the stream still shows it
+                from illuminet.runtime.objects import load_object
+
+                log.warning("%s; drawing %s from its generator, without the bundle", e, spec)
+                mesh_src = load_object(spec)
+            else:
+                mesh_src = mesh_from_bundle(bundle)
+                if carry is None:
+                    carry = bundle.carry
         mesh = load_render_mesh(mesh_src)
         if r.object_scale != 1.0:
             mesh = mesh.scaled(r.object_scale)
@@ -1070,7 +1089,9 @@ class RenderStage(Stage):
         n = self.comp.mesh.n_vertices
         if irr.ndim != 2 or irr.shape[1] != 3:
             raise FrameError(f"shading irradiance must be (V, 3), got {irr.shape} (method {shading.method})")
-        if self._carry is not None:
+        if irr.shape[0] == 1:  # one value for the whole object (e.g. the ambient baseline without a bundle)
+            out = np.repeat(irr, n, axis=0)
+        elif self._carry is not None:
             out = np.asarray(self._carry(irr), dtype=np.float32)
         elif irr.shape[0] == n:
             out = irr
@@ -1138,6 +1159,31 @@ def _exposure_scale(frame: Frame) -> float:
         return float(pl.exposure_scale)
     s = frame.exposure.scale
     return float(s) if s is not None else 1.0
+
+
+def mesh_from_bundle(bundle) -> RenderMesh:
+    """The render mesh of an object bundle (:class:`illuminet.runtime.bundle.Bundle`).
+
+    The bundle stores geometry only (vertices, normals, faces: the vertices the carry mapping
+    refers to). Colour comes from the object it was trained for (``bundle.json`` "object") when
+    that is a file whose mesh has the same vertices (texture/UV, vertex colours, base colour);
+    built-in objects are plain glazed white (:data:`DEFAULT_ALBEDO`).
+    """
+    mesh = RenderMesh(vertices=bundle.vertices, normals=bundle.normals, faces=bundle.faces,
+                      source=f"bundle {bundle.name}")
+    spec = str(bundle.meta.get("object", "") or "")
+    if spec and not spec.startswith("builtin:") and Path(spec).is_file():
+        try:
+            look = load_render_mesh(spec)
+        except ValueError as e:
+            log.warning("bundle %s: object %s not readable for its colours (%s); plain albedo", bundle.name, spec, e)
+            return mesh
+        if look.n_vertices == mesh.n_vertices and len(look.faces) == len(mesh.faces):
+            mesh.uv, mesh.colors, mesh.parts = look.uv, look.colors, look.parts
+        else:
+            log.warning("bundle %s: %s has %d vertices, the bundle %d; its colours cannot be matched, plain albedo",
+                        bundle.name, spec, look.n_vertices, mesh.n_vertices)
+    return mesh
 
 
 def _load_bundle(spec: str):
