@@ -29,6 +29,7 @@ from __future__ import annotations
 import logging
 import os
 import re
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -43,6 +44,10 @@ from illuminet.runtime.shadow import RECEIVER_FS, RECEIVER_VS, ShadowCaster, dom
 from illuminet.runtime.stage import FrameError, Stage
 
 log = logging.getLogger(__name__)
+
+#: anti-aliasing methods ([render] antialias): "edge" filters the object layer's silhouette (cheap),
+#: "msaa" draws it multisampled ([render] msaa samples; llvmpipe pays ~2x the object's cost), "off"
+ANTIALIAS = ("edge", "msaa", "off")
 
 #: entries of the linear -> code value table used to encode (interpolated in the shader)
 ENCODE_LUT_SIZE = 4096
@@ -94,6 +99,7 @@ class RenderMesh:
     colors: np.ndarray | None = None
     parts: list[MeshPart] = field(default_factory=list)
     source: str = "<arrays>"
+    closed: bool | None = None
 
     def __post_init__(self) -> None:
         v = np.asarray(self.vertices)
@@ -116,6 +122,8 @@ class RenderMesh:
             if c.dtype != np.uint8:
                 c = np.clip(np.rint(c * 255.0) if c.max() <= 1.0 else c, 0, 255).astype(np.uint8)
             self.colors = c[:, :3].reshape(len(v), 3)
+        if self.closed is None:
+            self.closed = _is_closed(self.vertices, self.faces)
         if not self.parts:
             base = np.full(3, 1.0 if self.colors is not None else DEFAULT_ALBEDO, dtype=np.float32)
             self.parts = [MeshPart(0, 3 * len(self.faces), None, base)]
@@ -129,7 +137,7 @@ class RenderMesh:
         if not (s > 0 and np.isfinite(s)):
             raise ValueError(f"[render] object_scale: expected a positive number, got {s!r}")
         return RenderMesh(self.vertices * np.float32(s), self.normals, self.faces, self.uv, self.colors,
-                          self.parts, self.source)
+                          self.parts, self.source, self.closed)
 
     @classmethod
     def from_trimesh(cls, mesh, source: str = "<trimesh>", texture: np.ndarray | None = None) -> "RenderMesh":
@@ -182,6 +190,21 @@ class RenderMesh:
             uv=np.concatenate(uvs) if any_uv else None, colors=np.concatenate(cols) if any_col else None,
             parts=parts, source=source,
         )
+
+
+def _is_closed(vertices: np.ndarray, faces: np.ndarray) -> bool:
+    """True for a watertight, consistently wound, outward-facing mesh: its back faces can be culled.
+
+    Culling halves the triangles llvmpipe rasterises; an open or inconsistently wound mesh (a
+    single-sided bowl, a broken scan) keeps every face, since its inside can be seen.
+    """
+    import trimesh
+
+    try:
+        m = trimesh.Trimesh(vertices, faces, process=True)  # merges seam duplicates for the check only
+        return bool(m.is_watertight and m.is_winding_consistent and m.volume > 0)
+    except Exception:
+        return False
 
 
 def _uv_of(g) -> np.ndarray | None:
@@ -585,6 +608,7 @@ uniform float u_radiance_scale;  // exposure_scale / pi
 uniform float u_occlusion;
 uniform float u_depth_tol;
 uniform ivec2 u_offset;          // this framebuffer's origin inside the crop (depth texture)
+uniform float u_mark_occluded;
 in vec2 v_uv;
 in vec3 v_albedo;
 in vec3 v_irr;
@@ -599,7 +623,12 @@ void main() {
     if (u_occlusion > 0.5) {
         // real geometry nearer than this fragment (beyond the depth noise) stays in front
         float d = texelFetch(u_real_depth, ivec2(gl_FragCoord.xy) + u_offset, 0).r;
-        if (d > 0.0 && d < v_zcam - u_depth_tol * max(v_zcam * v_zcam, 1.0)) discard;
+        if (d > 0.0 && d < v_zcam - u_depth_tol * max(v_zcam * v_zcam, 1.0)) {
+            // hidden: leave a mark (transparent, red channel set) so that the edge filter keeps
+            // the occluder's outline exact, or nothing at all
+            if (u_mark_occluded > 0.5) { f_color = vec4(1.0, 0.0, 0.0, 0.0); return; }
+            discard;
+        }
     }
     vec3 albedo = u_base * v_albedo;
     if (u_has_tex > 0.5) albedo *= srgb_decode(texture(u_tex, v_uv).rgb);
@@ -614,6 +643,38 @@ uniform sampler2D u_obj;
 uniform ivec2 u_offset;
 out vec4 f_color;
 void main() { f_color = texelFetch(u_obj, ivec2(gl_FragCoord.xy) - u_offset, 0); }
+"""
+
+# the same for a single-sampled layer, with edge anti-aliasing: where the 3x3 neighbourhood's
+# coverage is mixed (the silhouette, or the edge of a real occluder), the premultiplied layer is
+# tent-filtered, a one-pixel feather like a small resolve filter; elsewhere it is taken as is, so
+# texture detail inside the object stays sharp. Costs nine fetches per layer pixel, where true
+# MSAA costs llvmpipe about as much again as drawing the object.
+_OVER_EDGE_FS = """
+#version 330
+uniform sampler2D u_obj;
+uniform ivec2 u_offset;
+out vec4 f_color;
+void main() {
+    ivec2 p = ivec2(gl_FragCoord.xy) - u_offset;
+    ivec2 hi = textureSize(u_obj, 0) - 1;
+    vec4 c = texelFetch(u_obj, p, 0);
+    if (c.a < 0.5 && c.r > 0.5) discard;  // hidden behind real geometry: the picture stays exact
+    vec4 sum = vec4(0.0);
+    float amin = 1.0, amax = 0.0;
+    bool near_occluder = false;
+    for (int dy = -1; dy <= 1; ++dy)
+        for (int dx = -1; dx <= 1; ++dx) {
+            vec4 t = texelFetch(u_obj, clamp(p + ivec2(dx, dy), ivec2(0), hi), 0);
+            if (t.a < 0.5 && t.r > 0.5) { near_occluder = true; t = vec4(0.0); }
+            float w = float((2 - abs(dx)) * (2 - abs(dy)));
+            sum += w * t;
+            amin = min(amin, t.a);
+            amax = max(amax, t.a);
+        }
+    if (c.a < 0.5 && near_occluder) discard;  // do not feather the object onto an occluder
+    f_color = (amax - amin > 0.5) ? sum / 16.0 : c;
+}
 """
 
 
@@ -650,7 +711,7 @@ class Compositor:
     mesh : RenderMesh
         Object-frame geometry, already scaled.
     msaa : int
-        Samples per pixel (0 or 1 = off).
+        Samples per pixel with ``antialias="msaa"`` (0 or 1 = off).
     shadow : bool
         Draw the shadow and contact shadow on the anchor plane.
     shadow_map : int
@@ -666,22 +727,32 @@ class Compositor:
         Strength of the contact shadow in [0, 1].
     response_lut : (256, 3) array, optional
         The camera's measured response (code -> linear); sRGB when None.
+    antialias : {"edge", "msaa", "off"}
+        How the object's edges are smoothed (see :data:`ANTIALIAS`).
     """
 
     def __init__(self, ctx, mesh: RenderMesh, msaa: int = 4, shadow: bool = True, shadow_map: int = 1024,
                  occlusion: bool = True, depth_tolerance_m: float = 0.03, shadow_softness: float = 0.05,
-                 contact_shadow: float = 0.6, response_lut: np.ndarray | None = None):
+                 contact_shadow: float = 0.6, response_lut: np.ndarray | None = None, antialias: str = "msaa"):
         import moderngl
 
         self.ctx = ctx
         self.mesh = mesh
+        if antialias not in ANTIALIAS:
+            raise ValueError(f"[render] antialias: expected one of {', '.join(ANTIALIAS)}, got {antialias!r}")
         if msaa < 0 or msaa > 16:
             raise ValueError(f"[render] msaa: expected 0..16 samples, got {msaa}")
-        self.msaa = min(int(msaa), int(ctx.max_samples)) if msaa > 1 else 0
+        self.msaa = min(int(msaa), int(ctx.max_samples)) if (msaa > 1 and antialias == "msaa") else 0
+        self.antialias = antialias if (antialias != "msaa" or self.msaa) else "off"
         self.occlusion = bool(occlusion)
         self.depth_tol = float(depth_tolerance_m)
         self.contact = float(np.clip(contact_shadow, 0.0, 1.0))
         self.info = DrawInfo()
+        #: step -> seconds, when set to a dict (benchmarks): each pass then waits for the GPU, which
+        #: itself costs a little; None in normal use
+        self.profile: dict[str, float] | None = None
+        self.profile_clock = time.perf_counter  # time.process_time: CPU of all threads (llvmpipe's too)
+        self._t_mark = 0.0
         self._cap = (0, 0)
         self._ocap = (0, 0)
         self._fbos: dict[str, Any] = {}
@@ -726,9 +797,11 @@ class Compositor:
         self._quad = ctx.buffer(quad.tobytes())
         self._bg_prog = ctx.program(vertex_shader=_BG_VS, fragment_shader=_BG_FS)
         self._bg_vao = ctx.vertex_array(self._bg_prog, [(self._quad, "2f", "in_uv")])
-        self._over_prog = ctx.program(vertex_shader=_BG_VS, fragment_shader=_OVER_FS)
+        self._over_prog = ctx.program(vertex_shader=_BG_VS,
+                                      fragment_shader=_OVER_EDGE_FS if self.antialias == "edge" else _OVER_FS)
         self._over_vao = ctx.vertex_array(self._over_prog, [(self._quad, "2f", "in_uv")])
-        self.shadow = ShadowCaster(ctx, mesh.vertices, mesh.faces, shadow_map, shadow_softness) if shadow else None
+        self.shadow = (ShadowCaster(ctx, mesh.vertices, mesh.faces, shadow_map, shadow_softness, closed=bool(mesh.closed))
+                       if shadow else None)
         if self.shadow is not None:
             self._rcv_prog = ctx.program(vertex_shader=RECEIVER_VS,
                                          fragment_shader=_with_transfer(RECEIVER_FS, custom))
@@ -849,6 +922,7 @@ class Compositor:
             raise ValueError(f"exposure_scale must be a finite number >= 0, got {exposure_scale!r}")
         if depth is not None and depth.shape != (hgt, wid):
             raise ValueError(f"depth {depth.shape} must be aligned to colour {(hgt, wid)}")
+        self._t_mark = self.profile_clock()
         if out is None:
             out = color.copy()
         elif out is not color:
@@ -864,7 +938,7 @@ class Compositor:
         orect, oz = self._project_rect(K, cam_from_obj, corners, (wid, hgt))
         pts = corners
         if sp is not None:
-            pa = sp.patch
+            pa = sp.draw_rect
             pts = corners + [[pa[0], 0, pa[1]], [pa[2], 0, pa[1]], [pa[0], 0, pa[3]], [pa[2], 0, pa[3]]]
         rect, z = self._project_rect(K, cam_from_obj, pts, (wid, hgt))
         self.info = DrawInfo(drawn=rect is not None, shadow=bool(sp is not None and sp.use_shadow),
@@ -897,11 +971,14 @@ class Compositor:
         main.viewport = (0, 0, w, h)
         ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE | moderngl.BLEND)
 
+        mark = self._mark
+        mark("setup")
         # 1. the camera picture
         f["bg"].use(0)
         self._bg_prog["u_bg"].value = 0
         self._bg_vao.render(moderngl.TRIANGLE_STRIP)
 
+        mark("background")
         # 2. the shadow patch multiplies it (reads the same picture, writes the darkened one)
         if sp is not None:
             prog = self._rcv_prog
@@ -914,12 +991,14 @@ class Compositor:
             prog["u_clip_from_obj"].write(_mat(clip))
             prog["u_cam_from_obj"].write(_mat(cam_from_obj))
             prog["u_patch"].value = tuple(float(x) for x in sp.patch)
+            prog["u_draw"].value = tuple(float(x) for x in sp.draw_rect)
             prog["u_ao_rect"].value = tuple(float(x) for x in sp.ao_rect)
             prog["u_share"].value = sp.share
             prog["u_contact"].value = self.contact
             prog["u_depth_tol"].value = self.depth_tol if depth is not None else 1e9
             self._rcv_vao.render(moderngl.TRIANGLE_STRIP)
 
+        mark("shadow")
         # 3. the object, into its own (multisampled) layer over its bounding rectangle
         if orect is not None:
             self._irr.write(irr.tobytes())
@@ -929,6 +1008,11 @@ class Compositor:
             layer.clear(0.0, 0.0, 0.0, 0.0, depth=1.0, viewport=(0, 0, ow, oh))
             ctx.enable(moderngl.DEPTH_TEST)
             ctx.depth_func = "<"
+            if self.mesh.closed:
+                # image row 0 on framebuffer row 0 mirrors the winding: outward faces turn clockwise
+                ctx.front_face = "cw"
+                ctx.cull_face = "back"
+                ctx.enable(moderngl.CULL_FACE)
             prog = self._obj_prog
             f["depth_in"].use(1)
             self._enc_lut.use(3)
@@ -942,16 +1026,19 @@ class Compositor:
             prog["u_cam_from_obj"].write(_mat(cam_from_obj))
             prog["u_radiance_scale"].value = float(exposure_scale) / np.pi
             prog["u_occlusion"].value = 1.0 if (self.occlusion and depth is not None) else 0.0
+            prog["u_mark_occluded"].value = 1.0 if self.antialias == "edge" else 0.0
             prog["u_depth_tol"].value = self.depth_tol
             for part, tex in zip(self.mesh.parts, self._part_tex):
                 (tex or self._white).use(0)
                 prog["u_has_tex"].value = 1.0 if tex is not None else 0.0
                 prog["u_base"].value = tuple(float(x) for x in part.base_color[:3])
                 self._obj_vao.render(moderngl.TRIANGLES, vertices=part.count, first=part.first)
-            ctx.disable(moderngl.DEPTH_TEST)
+            ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
+            ctx.front_face = "ccw"
             if self.msaa:
                 ctx.copy_framebuffer(o["resolve"], layer)
 
+            mark("object")
             # 4. the layer over the picture, weighted by its coverage (premultiplied alpha)
             main.use()
             main.viewport = (ox0 - x0, oy0 - y0, ow, oh)
@@ -963,12 +1050,23 @@ class Compositor:
             self._over_vao.render(moderngl.TRIANGLE_STRIP)
             ctx.disable(moderngl.BLEND)
 
+        mark("over")
         # 5. read the crop back (already in image row order) and paste it
         n = w * h * 3
         main.read_into(self._readbuf, viewport=(0, 0, w, h), components=3, alignment=1)
         out[y0:y1, x0:x1] = self._readbuf[:n].reshape(h, w, 3)
+        mark("readback")
         check_gl(ctx, "drawing a frame")
         return out
+
+    def _mark(self, step: str) -> None:
+        """With ``profile`` on: wait for the GPU and charge the time since the last mark to ``step``."""
+        if self.profile is None:
+            return
+        self.ctx.finish()
+        now = self.profile_clock()
+        self.profile[step] = self.profile.get(step, 0.0) + now - self._t_mark
+        self._t_mark = now
 
     def release(self) -> None:
         """Free every GPU object; safe to call twice."""
@@ -1070,12 +1168,13 @@ class RenderStage(Stage):
         self.comp = Compositor(
             ctx, mesh, msaa=r.msaa, shadow=r.shadow, shadow_map=r.shadow_map, occlusion=r.occlusion,
             depth_tolerance_m=r.depth_tolerance_m, shadow_softness=r.shadow_softness,
-            contact_shadow=r.contact_shadow, response_lut=self._response_lut,
+            contact_shadow=r.contact_shadow, response_lut=self._response_lut, antialias=r.antialias,
         )
         from illuminet.runtime.gl import renderer_name
 
-        log.info("render: %s, %d vertices, %d faces, msaa %d, GL %s", mesh.source, mesh.n_vertices,
-                 len(mesh.faces), self.comp.msaa, renderer_name(ctx))
+        log.info("render: %s, %d vertices, %d faces, antialias %s%s, GL %s", mesh.source, mesh.n_vertices,
+                 len(mesh.faces), self.comp.antialias, f" x{self.comp.msaa}" if self.comp.msaa else "",
+                 renderer_name(ctx))
 
     def close(self) -> None:
         """Free the GPU objects (the shared context stays); safe to call twice."""
@@ -1145,7 +1244,7 @@ class RenderStage(Stage):
     def stats(self) -> dict[str, Any]:
         s: dict[str, Any] = dict(self._counts)
         if self.comp is not None:
-            s["msaa"] = self.comp.msaa
+            s["antialias"] = self.comp.antialias + (f"x{self.comp.msaa}" if self.comp.msaa else "")
             s["shadow_redraws"] = self.comp.shadow.redraws if self.comp.shadow is not None else 0
         if self._crop_px:
             s["crop_px_median"] = int(np.median(self._crop_px))

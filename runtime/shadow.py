@@ -183,12 +183,12 @@ RECEIVER_VS = """
 #version 330
 uniform mat4 u_clip_from_obj;  // object frame -> crop clip space
 uniform mat4 u_cam_from_obj;   // object frame -> camera (metres)
-uniform vec4 u_patch;          // xmin, zmin, xmax, zmax on the plane y = 0
+uniform vec4 u_draw;           // xmin, zmin, xmax, zmax on the plane y = 0 to draw
 in vec2 in_uv;                 // unit quad
 out vec3 v_obj;
 out float v_zcam;
 void main() {
-    vec3 p = vec3(mix(u_patch.x, u_patch.z, in_uv.x), 0.0, mix(u_patch.y, u_patch.w, in_uv.y));
+    vec3 p = vec3(mix(u_draw.x, u_draw.z, in_uv.x), 0.0, mix(u_draw.y, u_draw.w, in_uv.y));
     v_obj = p;
     v_zcam = (u_cam_from_obj * vec4(p, 1.0)).z;
     gl_Position = u_clip_from_obj * vec4(p, 1.0);
@@ -278,8 +278,9 @@ class ShadowParams:
 
     share: float
     use_shadow: bool
-    patch: np.ndarray     # xmin, zmin, xmax, zmax on the plane
-    ao_rect: np.ndarray   # the contact map's rectangle on the plane
+    patch: np.ndarray      # xmin, zmin, xmax, zmax on the plane: where the visibility texture lies
+    ao_rect: np.ndarray    # the contact map's rectangle on the plane
+    draw_rect: np.ndarray  # the part of the plane the receiver must draw (darkened at all)
 
 
 class ShadowCaster:
@@ -298,13 +299,17 @@ class ShadowCaster:
         Penumbra radius as a fraction of the object's bounding radius.
     vis_size : int
         Resolution of the precomputed visibility texture over the shadow patch.
+    closed : bool
+        The mesh is watertight and outward-facing: the shadow pass draws only its back faces
+        (half the triangles, and no self-shadow acne on the lit side).
     """
 
-    #: the shadow is redrawn when the light direction moves more than this (degrees)
-    REDRAW_DEG = 0.5
+    #: the shadow is redrawn when the light direction moves more than this (degrees); the stage
+    #: smooths the direction, so a still light redraws nothing and a turning one every few frames
+    REDRAW_DEG = 1.0
 
     def __init__(self, ctx, vertices: np.ndarray, faces: np.ndarray, size: int = 1024, softness: float = 0.05,
-                 vis_size: int = 256):
+                 vis_size: int = 160, closed: bool = False):
         import moderngl
 
         if size < 16 or size > 8192:
@@ -316,6 +321,7 @@ class ShadowCaster:
         self.center = 0.5 * (self.bbox_min + self.bbox_max)
         self.radius = float(max(np.linalg.norm(v - self.center, axis=1).max(), 1e-4))
         self.softness = float(softness)
+        self.closed = bool(closed)
         self.size = int(size)
         self.redraws = 0
         self._dir: np.ndarray | None = None
@@ -343,6 +349,7 @@ class ShadowCaster:
         self._vis_fbo.clear(red=1.0)  # fully lit until a light direction is known
         self.ao_tex, self.ao_rect = self._contact_map(v, f)
         self.patch = self._patch(None)
+        self.cast_rect: np.ndarray | None = None
 
     # -- contact shadow ---------------------------------------------------------------------------
     def _contact_map(self, v: np.ndarray, f: np.ndarray, res: int = 128):
@@ -427,9 +434,14 @@ class ShadowCaster:
         ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.depth_func = "<"
+        if self.closed:
+            ctx.front_face = "ccw"
+            ctx.cull_face = "front"
+            ctx.enable(moderngl.CULL_FACE)
         self._depth_prog["u_mvp"].write(self._light_from_obj.T.astype(np.float32).tobytes())
         self._depth_vao.render(moderngl.TRIANGLES)
-        ctx.disable(moderngl.DEPTH_TEST)
+        ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
+        ctx.cull_face = "back"
 
         self._vis_fbo.use()
         self._vis_fbo.viewport = (0, 0) + self.vis_tex.size
@@ -439,6 +451,18 @@ class ShadowCaster:
         self._vis_prog["u_softness"].value = self.softness / 2.0  # the light's box spans 2 radii
         self._vis_prog["u_patch"].value = tuple(float(x) for x in self.patch)
         self._vis_vao.render(moderngl.TRIANGLE_STRIP)
+        # the receiver is drawn only over the part of the patch that is darkened at all: the
+        # visibility is read back (a few kB) and the patch shrunk to its shadowed texels
+        vs = self.vis_tex.size
+        vis = np.frombuffer(self._vis_fbo.read(components=1), np.uint8).reshape(vs[1], vs[0])
+        rows, cols = np.nonzero(vis < 254)
+        if len(rows):
+            p = self.patch
+            sx, sz = (p[2] - p[0]) / vs[0], (p[3] - p[1]) / vs[1]
+            self.cast_rect = np.array([p[0] + (cols.min() - 1) * sx, p[1] + (rows.min() - 1) * sz,
+                                       p[0] + (cols.max() + 2) * sx, p[1] + (rows.max() + 2) * sz])
+        else:
+            self.cast_rect = None
         self.redraws += 1
         return True
 
@@ -447,11 +471,16 @@ class ShadowCaster:
         use = direction is not None and direction[1] > MIN_ELEVATION_SIN and share > 0.0 and self._dir is not None
         # long shadows of a low light fade in over the last few degrees instead of popping
         fade = 0.0 if direction is None else float(np.clip((direction[1] - MIN_ELEVATION_SIN) / 0.1, 0.0, 1.0))
+        draw = self.ao_rect.copy()
+        if use and self.cast_rect is not None:
+            c = self.cast_rect
+            draw = np.array([min(draw[0], c[0]), min(draw[1], c[1]), max(draw[2], c[2]), max(draw[3], c[3])])
         return ShadowParams(
             share=float(np.clip(share, 0.0, 1.0)) * fade if use else 0.0,
             use_shadow=bool(use),
             patch=self.patch if use else self._patch(None),
             ao_rect=self.ao_rect,
+            draw_rect=draw,
         )
 
     def release(self) -> None:

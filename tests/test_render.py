@@ -391,3 +391,24 @@ def test_encode_lut_inverts_decode():
     resp = np.repeat(((codes / 255.0) ** 2.0)[:, None], 3, axis=1)
     enc2 = encode_lut(resp)
     assert np.interp(0.25, np.linspace(0, 1, len(enc2)), enc2[:, 1]) == pytest.approx(0.5, abs=0.01)
+
+
+@pytest.mark.parametrize("antialias", ["edge", "msaa"])
+def test_edges_are_antialiased(gl, antialias):
+    mesh = sphere_mesh()
+    T = camera_pose()
+    sh = ObjectShading(irradiance=np.full((mesh.n_vertices, 3), 1.0, np.float32), method="test")
+    outs = {}
+    for aa in ("off", antialias):
+        st = stage(gl, mesh, shadow=False, antialias=aa)
+        try:
+            outs[aa] = st.process(make_frame(T, sh, depth=None, color=np.full((H, W, 3), 30, np.uint8)))
+        finally:
+            st.close()
+    off = outs["off"].results["composite"][..., 1].astype(int)
+    on = outs[antialias].results["composite"][..., 1].astype(int)
+    obj = int(np.median(off[off != 30]))
+    # without anti-aliasing every pixel is background or object; with it the silhouette
+    # (~2 pi r = 230 px around) gets in-between values
+    assert ((off > 32) & (off < obj - 2)).sum() == 0
+    assert ((on > 32) & (on < obj - 2)).sum() > 100
