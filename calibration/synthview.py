@@ -41,6 +41,7 @@ class TexturedPlane:
 
     @property
     def normal(self) -> np.ndarray:
+        """Unit normal u x v."""
         n = np.cross(self.u, self.v)
         return n / np.linalg.norm(n)
 

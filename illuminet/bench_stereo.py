@@ -17,6 +17,7 @@ from illuminet.runtime.timing import measure
 
 
 def run(args, cfg) -> dict:
+    """Time HostStereo at matching scales 0.5 and 1 on the synthetic pair; print and return figures."""
     scene = stereo_scene(640, 400)
     out: dict = {}
     repeat = 10 if getattr(args, "quick", False) else 60
