@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import zlib
 
 import cv2
 import numpy as np
@@ -53,6 +54,17 @@ def test_board_png_and_pdf(tmp_path, capsys):
     m = re.search(rb"q ([\d.]+) 0 0 ([\d.]+) [\d.]+ [\d.]+ cm /Im0 Do Q", data)
     assert m and float(m.group(1)) == pytest.approx(220 / 25.4 * 72, abs=1e-3)
     assert float(m.group(2)) == pytest.approx(160 / 25.4 * 72, abs=1e-3)
+    # a well-formed file: every xref offset points at its object, and the embedded image is the board
+    xref_at = int(data[data.rindex(b"startxref") + 9:].split()[0])
+    rows = data[xref_at:].split(b"\n")[3:3 + 6]
+    for k, row in enumerate(rows, start=1):
+        off = int(row.split()[0])
+        assert data[off:].startswith(f"{k} 0 obj".encode())
+    im = re.search(rb"/Width (\d+) /Height (\d+) .*?/Length (\d+) >>\nstream\n", data, re.S)
+    w, h, n = (int(g) for g in im.groups())
+    pixels = np.frombuffer(zlib.decompress(data[im.end():im.end() + n]), np.uint8).reshape(h, w)
+    assert len(detect(cv2.copyMakeBorder(pixels, 40, 40, 40, 40, cv2.BORDER_CONSTANT, value=255),
+                      BoardSpec())) == BoardSpec().n_corners
     assert main(["calibrate", "board", "--square-mm", "40", "--marker-mm", "30", "-o", str(pdf)]) == 2
     assert "does not fit on a4" in capsys.readouterr().err
 
