@@ -6,10 +6,84 @@ that they process frames identically.
 
 from __future__ import annotations
 
-from illuminet.runtime.config import Config
-from illuminet.runtime.stage import Stage
+import importlib.util
+from typing import Any, Callable
+
+from illuminet.runtime.config import Config, ConfigError
+from illuminet.runtime.sinks import PngSequenceSink, SessionRecorderSink, VideoSink
+from illuminet.runtime.stage import Sink, Stage
 
 
-def build_stages(cfg: Config) -> list[Stage]:
-    """Planes -> anchor -> plane light -> shading -> render, as configured."""
-    return []
+def build_stages(cfg: Config, *, render: bool = True) -> list[Stage]:
+    """Planes -> anchor -> plane light -> shading -> render, as configured (unopened).
+
+    Parameters
+    ----------
+    cfg : Config
+        All sections; ``[source] response_curve`` (when set) is loaded once and given to both the
+        plane measurement (to linearise) and the renderer (to encode the object the same way).
+    render : bool
+        Include the :class:`~illuminet.runtime.render.RenderStage` (False: lighting only, e.g.
+        for evaluation or benchmarks of the lighting stages alone).
+    """
+    from illuminet.runtime.anchor import AnchorStage
+    from illuminet.runtime.plane_light import PlaneLightStage, load_response_lut
+    from illuminet.runtime.planes import PlaneStage
+    from illuminet.runtime.transfer import ShadingStage
+
+    lut = load_response_lut(cfg.source.response_curve) if cfg.source.response_curve else None
+    stages: list[Stage] = [PlaneStage(cfg), AnchorStage(cfg), PlaneLightStage(cfg, response_lut=lut),
+                           ShadingStage(cfg)]
+    if render:
+        from illuminet.runtime.render import RenderStage
+
+        stages.append(RenderStage(cfg, response_lut=lut))
+    return stages
+
+
+def build_sinks(
+    cfg: Config,
+    *,
+    stats: Callable[[], dict[str, Any]] | None = None,
+    source_url: str | None = None,
+) -> list[Sink]:
+    """The outputs the ``[output]`` section asks for (unopened), in a fixed order.
+
+    Parameters
+    ----------
+    cfg : Config
+        ``output.video`` -> :class:`~illuminet.runtime.sinks.VideoSink` (at ``output.fps``),
+        ``output.png_dir`` -> :class:`~illuminet.runtime.sinks.PngSequenceSink`,
+        ``output.record`` -> :class:`~illuminet.runtime.sinks.SessionRecorderSink`
+        (``record_color``, ``record_jpeg_quality``, ``record_fsync``),
+        ``output.mjpeg`` -> ``illuminet.runtime.mjpeg.MjpegSink`` on ``listen``:``port``.
+    stats : callable, optional
+        Returns live loop figures (``LoopStats.snapshot``) for the MJPEG status page.
+    source_url : str, optional
+        Stored in recorded sessions' manifests (default ``cfg.source.url``).
+
+    Returns
+    -------
+    list of Sink
+        Possibly empty (then frames are processed and only the statistics are printed).
+    """
+    out = cfg.output
+    sinks: list[Sink] = []
+    if out.record:
+        if not 1 <= out.record_jpeg_quality <= 100:
+            raise ConfigError(f"[output] record_jpeg_quality: expected an int in 1..100, got {out.record_jpeg_quality!r}")
+        sinks.append(SessionRecorderSink(
+            out.record, source=source_url if source_url is not None else cfg.source.url,
+            color=out.record_color, jpeg_quality=out.record_jpeg_quality, fsync=out.record_fsync,
+        ))
+    if out.video:
+        sinks.append(VideoSink(out.video, fps=out.fps))
+    if out.png_dir:
+        sinks.append(PngSequenceSink(out.png_dir))
+    if out.mjpeg:
+        if importlib.util.find_spec("illuminet.runtime.mjpeg") is None:
+            raise ConfigError("[output] mjpeg = true, but this build has no MJPEG server (illuminet.runtime.mjpeg)")
+        from illuminet.runtime.mjpeg import MjpegSink
+
+        sinks.append(MjpegSink(out.listen, out.port, stats=stats))
+    return sinks

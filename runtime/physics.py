@@ -101,3 +101,36 @@ def irradiance_from_oi(oi: np.ndarray, normals: np.ndarray) -> np.ndarray:
 def lambert_radiance(irradiance: np.ndarray, albedo: np.ndarray | float = 1.0) -> np.ndarray:
     """Radiance reflected by a Lambertian surface: rho * E / pi."""
     return np.asarray(albedo) * irradiance * INV_PI
+
+
+def load_response_lut(path) -> np.ndarray:
+    """Read a camera response LUT written by ``illuminet calibrate photometric``.
+
+    The file is a NumPy ``.npy`` array (or a text table readable by ``numpy.loadtxt``) of shape
+    (256, 3): linear value in [0, 1] per 8-bit code, per channel R, G, B, non-decreasing. Used by
+    :func:`linearize` when ``[source] response_curve`` names a file. Lives here (not in
+    calibration/) so the runtime can use a LUT without importing the calibration tools.
+
+    Raises
+    ------
+    ValueError
+        Missing or unreadable file, wrong shape, non-finite or decreasing values; the message names
+        the file and what was expected.
+    """
+    from pathlib import Path
+
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"{p}: response curve file not found (set [source] response_curve = '' for sRGB)")
+    try:
+        lut = np.load(p, allow_pickle=False) if p.suffix == ".npy" else np.loadtxt(p, ndmin=2)
+    except Exception as e:  # numpy raises several types for a corrupt file
+        raise ValueError(f"{p}: cannot read response curve: {e}") from None
+    lut = np.asarray(lut, dtype=np.float32)
+    if lut.shape != (256, 3):
+        raise ValueError(f"{p}: response curve must have shape (256, 3) (code x R,G,B), got {lut.shape}")
+    if not np.all(np.isfinite(lut)):
+        raise ValueError(f"{p}: response curve contains non-finite values")
+    if np.any(np.diff(lut, axis=0) < -1e-6):
+        raise ValueError(f"{p}: response curve must be non-decreasing in every channel")
+    return lut

@@ -39,7 +39,23 @@ class Plane:
     area_m2: float
     label: str = "other"
     inlier_mask: np.ndarray | None = None  # HxW bool in the depth image, when available
-    n_inliers: int = 0
+    n_inliers: int = 0  # inliers in the downsampled cloud (see cloud_mask)
+    extent_m: tuple[float, float] = (0.0, 0.0)  # size along ``axes`` (principal in-plane directions)
+    axes: np.ndarray | None = None  # (2, 3) unit in-plane directions, largest extent first
+    cloud_mask: np.ndarray | None = None  # inliers in the downsampled cloud (every cloud_stride-th pixel)
+    cloud_stride: int = 1
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """Signed distance of camera-frame points (..., 3) to the plane (positive on the camera side)."""
+        return np.asarray(points) @ self.normal + self.offset
+
+    def intersect(self, ray: np.ndarray) -> np.ndarray | None:
+        """Where the camera ray ``t * ray`` (t > 0) meets the plane, or ``None`` when it does not."""
+        den = float(np.dot(self.normal, ray))
+        if abs(den) < 1e-9:
+            return None
+        t = -self.offset / den
+        return None if t <= 0 else t * np.asarray(ray, np.float64)
 
 
 @dataclass(frozen=True)
@@ -83,6 +99,11 @@ class PlaneLight:
     exposure_scale : float
         Linear pixel = radiance * exposure_scale for this frame (absolute from metadata, or relative
         from the plane's statistics when the camera reports no exposure).
+    observed : (P,) bool or None
+        Cells measured in *this* frame (``mask`` also covers cells fused from earlier frames).
+    exposure_source : str
+        ``"metadata"`` (absolute, from :class:`~illuminet.runtime.frame.Exposure`) or ``"plane"``
+        (relative, from the plane's own statistics).
     """
 
     vertices: np.ndarray
@@ -94,6 +115,8 @@ class PlaneLight:
     exposure_scale: float
     plane_slices: tuple[slice, ...] = field(default_factory=tuple)
     labels: tuple[str, ...] = ()
+    observed: np.ndarray | None = None
+    exposure_source: str = "metadata"
 
 
 @dataclass(frozen=True)

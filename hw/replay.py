@@ -1,0 +1,218 @@
+"""``replay://PATH?timing=recorded|asap&loop=1&max_frames=N``: play a recorded session as a source.
+
+This module owns replay timing. ``timing=recorded`` sleeps so frames come out at the pace their
+timestamps say, and the source reports itself as *live*: the loop's flow limiter then behaves exactly as
+with a camera (drops counted when the pipeline is slower). ``timing=asap`` delivers every frame as fast
+as it can be decoded and drops nothing (tests, benchmarks). Decoding runs ahead on a small thread pool
+(OpenCV's PNG decoder releases the GIL), which is what makes asap replay of 640x400 RGB-D fast on two
+cores. With ``loop=1`` the session starts again at the end; sequence numbers and device timestamps keep
+increasing across restarts (a stage never sees time go backwards).
+
+Defaults come from the ``[source]`` section (``timing``, ``loop``, ``max_frames``); the URL query
+overrides them. ``PATH`` is relative to the working directory (``replay://runs/s1``) or absolute
+(``replay:///data/s1``).
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from concurrent.futures import CancelledError, ThreadPoolExecutor
+from pathlib import Path
+from urllib.parse import parse_qsl, unquote, urlsplit
+
+import numpy as np
+
+from illuminet.hw import SourceError
+from illuminet.runtime.config import Config
+from illuminet.runtime.frame import Frame
+from illuminet.runtime.session import CorruptFrame, SessionError, SessionReader
+from illuminet.runtime.stage import EndOfStream, Source
+
+log = logging.getLogger(__name__)
+
+TIMINGS = ("recorded", "asap")
+_TRUE = ("1", "true", "yes", "on")
+_FALSE = ("0", "false", "no", "off")
+
+
+class ReplaySource(Source):
+    """Frames of a recorded session.
+
+    Parameters
+    ----------
+    path : str or Path
+        Session folder (see :mod:`illuminet.runtime.session`).
+    timing : {"recorded", "asap"}
+        Follow the recorded timestamps (live-like) or go as fast as possible (drops nothing).
+    loop : bool
+        Start again at the end, with increasing sequence numbers and timestamps.
+    max_frames : int
+        End after this many frames (0 = no limit; with ``loop`` the stream is endless otherwise).
+    workers : int
+        Decoder threads running ahead of the loop.
+    strict : bool
+        Refuse a session with any problem instead of replaying its intact part.
+    """
+
+    name = "replay"
+
+    def __init__(self, path: str | Path, *, timing: str = "recorded", loop: bool = False, max_frames: int = 0,
+                 workers: int = 2, strict: bool = False):
+        if timing not in TIMINGS:
+            raise SourceError(f"replay {path}: timing must be one of {', '.join(TIMINGS)}, got {timing!r}")
+        if max_frames < 0:
+            raise SourceError(f"replay {path}: max_frames must be >= 0, got {max_frames!r}")
+        self.path = Path(path)
+        self.timing = timing
+        self.loop = bool(loop)
+        self.max_frames = int(max_frames)
+        self.workers = max(1, int(workers))
+        self.strict = strict
+        self.session: SessionReader | None = None
+        self._pool: ThreadPoolExecutor | None = None
+        self._pending: collections.deque = collections.deque()
+        self._next_pos = 0      # next session position to schedule for decoding
+        self._next_round = 0    # loop round of that position
+        self._emitted = 0
+        self._corrupt = 0
+        self._bad_in_row = 0
+        self._t0_wall: int | None = None
+        self._closed = False
+        self._closing = threading.Event()
+
+    @property
+    def live(self) -> bool:  # type: ignore[override]
+        """Recorded timing behaves like a camera (flow-limited); asap never drops."""
+        return self.timing == "recorded"
+
+    def open(self) -> None:
+        try:
+            self.session = SessionReader(self.path, strict=self.strict)
+        except SessionError as e:
+            raise SourceError(f"replay: {e}") from None
+        n = len(self.session)
+        if n == 0:
+            detail = "; ".join(self.session.problems) or "the index lists no frames"
+            raise SourceError(f"replay {self.path}: no intact frame to replay ({detail})")
+        e = self.session.entries
+        self._first_t = e[0].t_device_ns
+        self._first_seq = e[0].seq
+        gaps = np.diff([x.t_device_ns for x in e])
+        self._period = int(np.median(gaps)) if gaps.size else 33_333_333
+        # a loop round lasts the recording plus one frame period, so the restart keeps the frame rate
+        self._round_ns = e[-1].t_device_ns - e[0].t_device_ns + self._period
+        self._round_seq = e[-1].seq - e[0].seq + 1
+        self._pool = ThreadPoolExecutor(max_workers=self.workers, thread_name_prefix="illuminet-replay")
+        self._closing.clear()
+        self._closed = False
+        self._pending.clear()
+        self._next_pos = self._next_round = self._emitted = self._corrupt = self._bad_in_row = 0
+        self._t0_wall = None
+        self._fill()
+
+    def _fill(self) -> None:
+        # keep a few frames decoding ahead; order is preserved by the deque
+        n = len(self.session)
+        pool = self._pool
+        while pool is not None and len(self._pending) < 2 * self.workers:
+            if self._next_pos >= n:
+                if not self.loop:
+                    return
+                self._next_pos, self._next_round = 0, self._next_round + 1
+            pos, rnd = self._next_pos, self._next_round
+            try:
+                fut = pool.submit(self.session.read, pos)
+            except RuntimeError:  # the pool was shut down by close() meanwhile
+                return
+            self._pending.append((pos, rnd, fut))
+            self._next_pos += 1
+
+    def read(self) -> Frame | None:
+        if self._closed or self.session is None:
+            return None
+        if self.max_frames and self._emitted >= self.max_frames:
+            return None
+        while True:
+            if self._closed:  # close() from another thread (the loop stopping)
+                return None
+            self._fill()
+            if not self._pending:
+                return None
+            try:
+                pos, rnd, fut = self._pending.popleft()
+            except IndexError:  # emptied by close() from another thread
+                return None
+            try:
+                frame: Frame = fut.result()
+            except CancelledError:  # close() cancelled the decode we were waiting for
+                return None
+            except CorruptFrame as e:
+                self._corrupt += 1
+                self._bad_in_row += 1
+                log.warning("replay %s: skipping frame: %s", self.path, e)
+                if self._bad_in_row >= len(self.session):
+                    raise EndOfStream(f"replay {self.path}: every frame of the session is unreadable") from None
+                continue
+            self._bad_in_row = 0
+            break
+        t_dev = frame.t_device_ns + rnd * self._round_ns
+        if self.timing == "recorded":
+            now = time.monotonic_ns()
+            if self._t0_wall is None:
+                self._t0_wall = now
+            delay = self._t0_wall + (t_dev - self._first_t) - now
+            if delay > 0 and self._closing.wait(delay * 1e-9):
+                return None  # closed while waiting
+        self._emitted += 1
+        return frame.replace(seq=frame.seq + rnd * self._round_seq, t_device_ns=t_dev, t_host_ns=time.monotonic_ns())
+
+    def close(self) -> None:
+        self._closed = True
+        self._closing.set()
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+        self._pending.clear()
+
+    def stats(self) -> dict:
+        return {"frames": self._emitted, "corrupt": self._corrupt,
+                "session_problems": len(self.session.problems) if self.session is not None else 0}
+
+
+def _parse_bool(key: str, value: str, url: str) -> bool:
+    v = value.strip().lower()
+    if v in _TRUE:
+        return True
+    if v in _FALSE:
+        return False
+    raise SourceError(f"{url}: query {key}={value!r}: expected one of {', '.join(_TRUE + _FALSE)}")
+
+
+def open_url(url: str, config: Config) -> ReplaySource:
+    """``replay://PATH[?timing=recorded|asap][&loop=1][&max_frames=N]`` -> unopened :class:`ReplaySource`."""
+    parts = urlsplit(url)
+    path = unquote(parts.netloc + parts.path)
+    if not path:
+        raise SourceError(f"{url}: no session path; expected replay://PATH (relative) or replay:///ABS/PATH")
+    src = config.source
+    timing, loop, max_frames = src.timing, src.loop, src.max_frames
+    for key, value in parse_qsl(parts.query, keep_blank_values=True):
+        if key == "timing":
+            if value not in TIMINGS:
+                raise SourceError(f"{url}: query timing={value!r}: expected one of {', '.join(TIMINGS)}")
+            timing = value
+        elif key == "loop":
+            loop = _parse_bool(key, value, url)
+        elif key == "max_frames":
+            try:
+                max_frames = int(value)
+                if max_frames < 0:
+                    raise ValueError
+            except ValueError:
+                raise SourceError(f"{url}: query max_frames={value!r}: expected an int >= 0") from None
+        else:
+            raise SourceError(f"{url}: unknown query key {key!r}; expected timing, loop, max_frames")
+    return ReplaySource(path, timing=timing, loop=loop, max_frames=max_frames, strict=config.logging.strict)

@@ -1,0 +1,352 @@
+"""Illumination measured on the anchor plane: the ``PlaneLightStage`` (per-vertex plane OI input).
+
+What this module owns
+    * The grid: ``G x G`` vertices on the anchor plane in the object frame, row-major,
+      ``vertex[i*G + j] = (x_j, 0, z_i)``, ``x_j = z_j = linspace(-extent/2, extent/2, G)``
+      (:func:`grid_vertices`; the transfer model is trained on exactly this layout). Vertex
+      (i, j) owns the square cell of side ``h = extent/(G-1)`` centred on it.
+    * Measuring one frame (:func:`measure_cells`): every cell is sampled by ``K x K`` points; one
+      ``cv2.warpPerspective`` through the plane-to-image homography fetches their colour and
+      measured depth (nearest neighbour, so depth is never blended across edges and colour is
+      linearised exactly per sample). A sample counts when it is in front of the camera, inside
+      the image, has valid depth that agrees with the plane (within 3 inlier thresholds: nearer
+      means occluded, e.g. a person; farther means the plane is not there), and is not saturated.
+      A cell is observed when at least half its samples count; its value is the mean of their
+      linear colour (area averaging suppresses albedo texture and noise).
+    * Units: linear (``physics.linearize`` with the camera's response LUT when given), divided by
+      the exposure scale (from ``Frame.exposure`` when known; otherwise estimated from the plane
+      itself, see :class:`PlaneLightStage`), converted to irradiance ``E = pi * radiance / albedo``
+      with ``[plane_light] assumed_albedo``.
+    * Fusion over frames (:class:`CellFusion`): per-cell exponential fusion with weight
+      ``[plane_light] fusion`` for the previous estimate; an observation more than 35 % away from
+      the running estimate (luminance) is rejected as an outlier (specular highlight, a passing
+      shadow); a cell that stays an outlier for 5 frames, or more than half the cells at once
+      (the light changed), resets to the new value. The state resets when the anchor moves by more
+      than half a cell or turns by more than 2 degrees.
+
+The representation (:class:`~illuminet.runtime.scene.PlaneLight`) concatenates planes via
+``plane_slices``; this stage measures the anchor plane (the first and only slice for now).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from illuminet.runtime.config import Config
+from illuminet.runtime.frame import Frame
+from illuminet.runtime.physics import linearize
+from illuminet.runtime.planes import LogOnce, inlier_threshold
+from illuminet.runtime.scene import Anchor, PlaneLight
+from illuminet.runtime.stage import Stage
+
+log = logging.getLogger(__name__)
+
+#: Samples per cell side (K x K samples per cell).
+SAMPLES_PER_CELL = 6
+#: Fraction of a cell's samples that must count for the cell to be observed.
+MIN_CELL_COVERAGE = 0.5
+#: uint8 value from which a channel is taken as saturated (clipped highlights carry no radiance).
+SATURATED = 250
+#: Outlier test and reset rules of the fusion.
+OUTLIER_REL = 0.35
+OUTLIER_FRAMES = 5
+#: Relative luminance the plane's median is mapped to when the exposure is unknown.
+REFERENCE_RADIANCE = 0.18
+_LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
+
+
+def grid_coords(grid: int, extent_m: float) -> np.ndarray:
+    """``linspace(-extent/2, extent/2, grid)``: the x (= z) coordinates of the vertices."""
+    return np.linspace(-extent_m / 2.0, extent_m / 2.0, grid)
+
+
+def grid_vertices(grid: int, extent_m: float) -> np.ndarray:
+    """(G*G, 3) object-frame vertices, row-major: ``vertex[i*G + j] = (x_j, 0, z_i)``."""
+    c = grid_coords(grid, extent_m)
+    zz, xx = np.meshgrid(c, c, indexing="ij")
+    return np.stack([xx.ravel(), np.zeros(grid * grid), zz.ravel()], axis=1)
+
+
+def load_response_lut(path: str) -> np.ndarray:
+    """A (256, 3) camera response LUT from ``.npy`` or text (256 rows of 3 numbers)."""
+    p = Path(path)
+    try:
+        lut = np.load(p) if p.suffix == ".npy" else np.loadtxt(p, delimiter=None if p.suffix != ".csv" else ",")
+    except FileNotFoundError:
+        raise FileNotFoundError(f"[source] response_curve = {path!r}: file not found") from None
+    lut = np.asarray(lut, np.float32)
+    if lut.shape != (256, 3):
+        raise ValueError(f"[source] response_curve = {path!r}: expected a (256, 3) LUT, got shape {lut.shape}")
+    return lut
+
+
+def measure_cells(frame: Frame, T_cam_obj: np.ndarray, grid: int, extent_m: float, inlier_threshold_m: float,
+                  response_lut: np.ndarray | None = None, samples: int = SAMPLES_PER_CELL
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Area-averaged linear colour per cell in one frame (module docstring).
+
+    Returns
+    -------
+    linear : (G*G, 3) float32
+        Mean linear RGB of the counted samples (0 where not observed).
+    observed : (G*G,) bool
+    coverage : (G*G,) float32
+        Fraction of the cell's samples that counted.
+    """
+    G, K = int(grid), int(samples)
+    S = G * K
+    h = extent_m / (G - 1) if G > 1 else extent_m
+    hs = h / K
+    x0 = -extent_m / 2.0 - h / 2.0 + hs / 2.0  # centre of the first sample
+    R, t = T_cam_obj[:3, :3], T_cam_obj[:3, 3]
+    W, H = frame.size
+    intr = frame.intrinsics
+    if (intr.width, intr.height) != (W, H):
+        intr = intr.scaled(W, H)
+    # sample (col a, row b) -> plane (x, z) = (x0 + a*hs, x0 + b*hs) -> camera R[:,0] x + R[:,2] z + t
+    A = np.array([[hs, 0.0, x0], [0.0, hs, x0], [0.0, 0.0, 1.0]])
+    M_cam = np.stack([R[:, 0], R[:, 2], t], axis=1) @ A  # (3x3): sample -> camera point
+    Hm = intr.K @ M_cam  # sample -> homogeneous pixel
+    flags = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
+    # warpPerspective samples src at the pixel centre convention (x = col index); ours matches.
+    col = cv2.warpPerspective(frame.color, Hm, (S, S), flags=flags, borderMode=cv2.BORDER_CONSTANT,
+                              borderValue=(0, 0, 0))
+    # depth the plane predicts at each sample (camera z of the sample point), and whether in front
+    a = np.arange(S, dtype=np.float32)
+    z_pred = (np.float32(M_cam[2, 0]) * a[None, :] + np.float32(M_cam[2, 1]) * a[:, None]
+              + np.float32(M_cam[2, 2]))
+    ok = z_pred > 0.05
+    if frame.depth is not None:
+        # outside the image the border value 0 reads as invalid depth
+        dm = cv2.warpPerspective(frame.depth, Hm, (S, S), flags=flags, borderMode=cv2.BORDER_CONSTANT,
+                                 borderValue=0.0)
+        tol = 3.0 * inlier_threshold(z_pred, inlier_threshold_m)
+        with np.errstate(invalid="ignore"):
+            ok &= np.abs(dm - z_pred) < tol  # NaN compares False; 0 (invalid) is far from z_pred
+    else:
+        inside = cv2.warpPerspective(np.ones((H, W), np.uint8), Hm, (S, S), flags=flags,
+                                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        ok &= inside > 0
+    # (np.max over a length-3 last axis is ~20x slower than two element-wise maxima)
+    ok &= np.maximum(np.maximum(col[..., 0], col[..., 1]), col[..., 2]) < SATURATED
+    lin = cv2.LUT(col, _lut_table(response_lut))  # = physics.linearize, applied by OpenCV
+    okf = ok.astype(np.float32)
+    lin *= okf[..., None]
+    # block means over the K x K samples of each cell (INTER_AREA with an integer factor is exact)
+    sums = cv2.resize(lin, (G, G), interpolation=cv2.INTER_AREA).reshape(-1, 3)
+    coverage = cv2.resize(okf, (G, G), interpolation=cv2.INTER_AREA).reshape(-1)
+    observed = coverage >= MIN_CELL_COVERAGE
+    linear = np.where(observed[:, None], sums / np.maximum(coverage[:, None], 1e-6), 0.0)
+    return linear.astype(np.float32), observed, coverage.astype(np.float32)
+
+
+_LUT_CACHE: dict[int, tuple[Any, np.ndarray]] = {}
+
+
+def _lut_table(response_lut: np.ndarray | None) -> np.ndarray:
+    """(256, 1, 3) float32 table of :func:`~illuminet.runtime.physics.linearize` for ``cv2.LUT``."""
+    key = id(response_lut)
+    hit = _LUT_CACHE.get(key)
+    if hit is not None and hit[0] is response_lut:
+        return hit[1]
+    ramp = np.repeat(np.arange(256, dtype=np.uint8).reshape(256, 1, 1), 3, axis=2)
+    table = np.ascontiguousarray(linearize(ramp, response_lut), dtype=np.float32)
+    if len(_LUT_CACHE) > 8:
+        _LUT_CACHE.clear()
+    _LUT_CACHE[key] = (response_lut, table)
+    return table
+
+
+class CellFusion:
+    """Robust per-cell temporal fusion of irradiance (module docstring).
+
+    Parameters
+    ----------
+    n_cells : int
+    fusion : float
+        Weight of the previous estimate in [0, 1); 0 = no fusion (each frame stands alone).
+    """
+
+    def __init__(self, n_cells: int, fusion: float):
+        if not 0.0 <= fusion < 1.0:
+            raise ValueError(f"[plane_light] fusion: expected a number in [0, 1), got {fusion!r}")
+        self.f = float(fusion)
+        self.n = n_cells
+        self.reset()
+        self.outliers_rejected = 0
+        self.resets = 0
+
+    def reset(self) -> None:
+        self.est = np.zeros((self.n, 3), np.float32)
+        self.nobs = np.zeros(self.n, np.int32)
+        self.run = np.zeros(self.n, np.int32)  # consecutive outlier frames
+        self.conf = np.zeros(self.n, np.float32)
+
+    def update(self, value: np.ndarray, observed: np.ndarray, coverage: np.ndarray) -> None:
+        f = self.f
+        fresh = observed & (self.nobs == 0)
+        old = observed & (self.nobs > 0)
+        lum_v = value @ _LUMA
+        lum_e = self.est @ _LUMA
+        rel = np.abs(lum_v - lum_e) / np.maximum(lum_e, 1e-6)
+        out = old & (rel > OUTLIER_REL)
+        if f > 0 and old.sum() >= 8 and out.sum() > 0.5 * old.sum():
+            # more than half the plane changed at once: the light changed, start again
+            self.resets += 1
+            self.reset()
+            fresh, old, out = observed.copy(), np.zeros_like(observed), np.zeros_like(observed)
+        if f == 0:
+            out[:] = False
+        self.run = np.where(out, self.run + 1, np.where(observed, 0, self.run))
+        persistent = out & (self.run >= OUTLIER_FRAMES)
+        take = fresh | persistent
+        blend = old & ~out
+        self.outliers_rejected += int((out & ~persistent).sum())
+        self.est[take] = value[take]
+        self.est[blend] = f * self.est[blend] + (1.0 - f) * value[blend]
+        self.nobs[take] = 1
+        self.nobs[blend] += 1
+        self.run[take] = 0
+        # confidence: how many observations the estimate rests on (saturating at the fusion window),
+        # times this frame's coverage; decays while the cell is not seen.
+        window = 1.0 / (1.0 - f) if f > 0 else 1.0
+        c_obs = np.minimum(self.nobs / window, 1.0) * np.clip(coverage / MIN_CELL_COVERAGE, 0, 1) ** 0.5
+        self.conf = np.where(take | blend, np.maximum(c_obs, 0.5 * self.conf), self.conf * max(f, 0.5)).astype(np.float32)
+        self.conf[out & ~persistent] *= 0.9
+
+    @property
+    def has_value(self) -> np.ndarray:
+        return self.nobs > 0
+
+
+class PlaneLightStage(Stage):
+    """Measures the anchor plane's illumination; writes ``results["plane_light"]`` (:class:`PlaneLight`).
+
+    Reads ``results["anchor"]`` (and ``results["planes"]`` for the plane's label). On a synthetic
+    anchor nothing real lies under the object: no cell is observed, the fused estimate (if any) is
+    dropped, and ``PlaneLight.mask`` is all False.
+
+    Exposure: with ``Frame.exposure.scale`` known, radiance = linear / scale (absolute). Otherwise
+    the scale is estimated from the plane: the median ratio of this frame's linear values to the
+    fused radiance over cells seen in both (so a changing auto exposure is followed without the
+    light level drifting), or on the first frame the scale that maps the plane's median luminance
+    to 0.18. ``PlaneLight.exposure_scale`` records the scale used and ``exposure_source`` where it
+    came from.
+
+    Parameters
+    ----------
+    cfg : Config
+    response_lut : (256, 3) array, optional
+        The camera's response curve; default: loaded from ``[source] response_curve`` when set,
+        else the sRGB curve.
+    """
+
+    name = "plane_light"
+
+    def __init__(self, cfg: Config, response_lut: np.ndarray | None = None):
+        pl = cfg.plane_light
+        if pl.grid < 2:
+            raise ValueError(f"[plane_light] grid: expected an int >= 2, got {pl.grid!r}")
+        if not pl.extent_m > 0:
+            raise ValueError(f"[plane_light] extent_m: expected a positive length in metres, got {pl.extent_m!r}")
+        if not pl.assumed_albedo > 0:
+            raise ValueError(f"[plane_light] assumed_albedo: expected a number in (0, 1], got {pl.assumed_albedo!r}")
+        self.grid = int(pl.grid)
+        self.extent = float(pl.extent_m)
+        self.albedo = float(pl.assumed_albedo)
+        self.thr = float(cfg.planes.inlier_threshold_m)
+        if response_lut is None and cfg.source.response_curve:
+            response_lut = load_response_lut(cfg.source.response_curve)
+        self.lut = response_lut
+        self.vertices = grid_vertices(self.grid, self.extent)
+        self.normals = np.tile(np.array([0.0, 1.0, 0.0]), (self.grid * self.grid, 1))
+        self.fusion = CellFusion(self.grid * self.grid, float(pl.fusion))
+        self._T_prev: np.ndarray | None = None
+        self._scale_rel: float | None = None
+        self._warn = LogOnce(log, "plane_light")
+        self._last: PlaneLight | None = None
+        self.frames = 0
+        self.anchor_resets = 0
+        self.observed_cells = 0
+
+    def _moved(self, T: np.ndarray) -> bool:
+        if self._T_prev is None:
+            return True
+        h = self.extent / (self.grid - 1)
+        dt = np.linalg.norm(T[:3, 3] - self._T_prev[:3, 3])
+        cosang = (np.trace(self._T_prev[:3, :3].T @ T[:3, :3]) - 1.0) / 2.0
+        ang = np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
+        return dt > h / 2.0 or ang > 2.0
+
+    def process(self, frame: Frame) -> Frame:
+        self.frames += 1
+        anchor: Anchor | None = frame.results.get("anchor")
+        if anchor is None:
+            self._warn("no_anchor", "frame has no results['anchor']; put AnchorStage before PlaneLightStage")
+            return frame.with_result(self.name, self._last) if self._last is not None else frame
+        label = "synthetic"
+        for p in frame.results.get("planes", ()):
+            if p.id == anchor.plane_id:
+                label = p.label
+        P = self.grid * self.grid
+        if anchor.synthetic:
+            self.fusion.reset()
+            self._T_prev = None
+            self._scale_rel = None
+            lin = np.zeros((P, 3), np.float32)
+            observed = np.zeros(P, bool)
+            coverage = np.zeros(P, np.float32)
+        else:
+            if self._moved(anchor.T_cam_obj):
+                if self._T_prev is not None:
+                    self.anchor_resets += 1
+                self.fusion.reset()
+                self._scale_rel = None
+            self._T_prev = anchor.T_cam_obj.copy()
+            lin, observed, coverage = measure_cells(frame, anchor.T_cam_obj, self.grid, self.extent, self.thr,
+                                                    self.lut)
+        self.observed_cells = int(observed.sum())
+        scale, source = self._exposure(frame, lin, observed)
+        E = (np.pi / self.albedo) * lin / np.float32(scale)
+        self.fusion.update(E.astype(np.float32), observed, coverage)
+        has = self.fusion.has_value
+        irr = np.where(has[:, None], self.fusion.est, 0.0).astype(np.float32)
+        self._last = PlaneLight(
+            vertices=self.vertices, normals=self.normals, irradiance=irr, mask=has.copy(),
+            confidence=np.where(has, self.fusion.conf, 0.0).astype(np.float32), grid=self.grid,
+            exposure_scale=float(scale), plane_slices=(slice(0, P),), labels=(label,),
+            observed=observed, exposure_source=source,
+        )
+        return frame.with_result(self.name, self._last)
+
+    def _exposure(self, frame: Frame, lin: np.ndarray, observed: np.ndarray) -> tuple[float, str]:
+        s = frame.exposure.scale
+        if s is not None and s > 0:
+            return float(s), "metadata"
+        lum = lin @ _LUMA
+        both = observed & self.fusion.has_value
+        if self._scale_rel is not None and both.sum() >= 8:
+            rad = (self.fusion.est[both] @ _LUMA) * (self.albedo / np.pi)
+            ratio = lum[both] / np.maximum(rad, 1e-9)
+            self._scale_rel = float(np.median(ratio))
+        elif observed.any():
+            self._scale_rel = float(np.median(lum[observed])) / REFERENCE_RADIANCE
+        if not self._scale_rel or not np.isfinite(self._scale_rel) or self._scale_rel <= 0:
+            self._scale_rel = 1.0
+        return self._scale_rel, "plane"
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "frames": self.frames,
+            "observed_cells": self.observed_cells,
+            "fused_cells": int(self.fusion.has_value.sum()),
+            "outliers_rejected": self.fusion.outliers_rejected,
+            "light_change_resets": self.fusion.resets,
+            "anchor_moved_resets": self.anchor_resets,
+            "warnings": dict(self._warn.counts),
+        }

@@ -1,0 +1,170 @@
+"""The run / replay / record commands end to end, through the real CLI entry point."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import signal
+
+import cv2
+import numpy as np
+import pytest
+
+from illuminet.cli import build_parser, main
+from illuminet.cmd_run import config_with_flags
+from illuminet.runtime.config import defaults
+from illuminet.runtime.session import SessionReader
+
+from ._sessions import make_session, same_frame, spawn, wait_for_lines
+
+
+@pytest.mark.parametrize("cmd, flags", [
+    ("run", ["--timing", "--loop", "--max-frames", "--video", "--png-dir", "--record", "--mjpeg", "--listen",
+             "--port", "--strict", "--stats-json"]),
+    ("replay", ["--check", "--timing", "--loop", "--max-frames", "--video", "--png-dir", "--record", "--stats-json"]),
+    ("record", ["SOURCE_URL", "OUT", "--color", "--jpeg-quality", "--no-fsync", "--max-frames", "--timing"]),
+])
+def test_help(capsys, cmd, flags):
+    with pytest.raises(SystemExit) as e:
+        main([cmd, "--help"])
+    assert e.value.code == 0
+    out = capsys.readouterr().out
+    for f in flags:
+        assert f in out, f"{cmd} --help does not mention {f}"
+
+
+def test_flags_override_the_config():
+    args = build_parser().parse_args(["run", "replay://x", "--timing", "asap", "--no-loop", "--max-frames", "5",
+                                      "--png-dir", "p", "--port", "9000", "--strict", "--stats-json", "s.json"])
+    cfg = config_with_flags(args, defaults())
+    assert cfg.source.timing == "asap" and cfg.source.loop is False and cfg.source.max_frames == 5
+    assert cfg.output.png_dir == "p" and cfg.output.port == 9000 and cfg.output.video == ""
+    assert cfg.logging.strict is True and cfg.logging.stats_json == "s.json"
+    args = build_parser().parse_args(["run"])
+    assert config_with_flags(args, defaults()).to_dict() == defaults().to_dict()
+
+
+def test_record_then_replay_end_to_end(tmp_path, capsys):
+    src = make_session(tmp_path / "src", 9)
+    rec = tmp_path / "rec"
+    rc = main(["record", f"replay://{tmp_path}/src?timing=asap", str(rec), "--no-fsync",
+               "--stats-json", str(tmp_path / "rec.json")])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "sink:record" in out and "9 frames in" in out
+    r = SessionReader(rec, strict=True)
+    assert r.finalized and len(r) == 9 and r.manifest["source"].startswith("replay://")
+    for a, b in zip(src, r):
+        assert same_frame(a, b)
+    st = json.loads((tmp_path / "rec.json").read_text())
+    assert st["frames"] == 9 and "sink:record" in st["steps"]
+
+    rc = main(["replay", str(rec), "--timing", "asap", "--png-dir", str(tmp_path / "png"),
+               "--video", str(tmp_path / "out.avi"), "--stats-json", str(tmp_path / "replay.json")])
+    assert rc == 0
+    pngs = sorted((tmp_path / "png").glob("*.png"))
+    assert len(pngs) == 9
+    assert np.array_equal(cv2.imread(str(pngs[4]))[..., ::-1], src[4].color)
+    st = json.loads((tmp_path / "replay.json").read_text())
+    assert st["frames"] == 9 and st["dropped"] == 0 and st["end_reason"] == "end of stream"
+    assert {"source", "sink:png", "sink:video", "total"} <= set(st["steps"])
+    assert (tmp_path / "out.avi").stat().st_size > 0
+
+    rc = main(["replay", str(rec), "--check"])
+    assert rc == 0 and "9 intact frames, finalised" in capsys.readouterr().out
+
+
+def test_run_records_its_input_while_processing(tmp_path):
+    src = make_session(tmp_path / "s", 6)
+    assert main(["run", f"replay://{tmp_path}/s?timing=asap", "--record", str(tmp_path / "rec"), "--no-mjpeg"]) == 0
+    r = SessionReader(tmp_path / "rec", strict=True)
+    assert len(r) == 6 and all(same_frame(a, b) for a, b in zip(src, r))
+
+
+def test_run_with_loop_and_max_frames(tmp_path, capsys):
+    make_session(tmp_path / "s", 4)
+    rc = main(["run", f"replay://{tmp_path}/s", "--timing", "asap", "--loop", "--max-frames", "10",
+               "--stats-json", str(tmp_path / "st.json")])
+    assert rc == 0
+    st = json.loads((tmp_path / "st.json").read_text())
+    assert st["frames"] == 10
+
+
+@pytest.mark.skipif(importlib.util.find_spec("illuminet.hw.synthetic") is None,
+                    reason="synthetic:// source not in this build yet")
+def test_record_from_synthetic(tmp_path):
+    rc = main(["record", "synthetic://indoor?seed=0", str(tmp_path / "rec"), "--max-frames", "3", "--timing", "asap",
+               "--no-fsync"])
+    assert rc == 0
+    r = SessionReader(tmp_path / "rec", strict=True)
+    assert len(r) == 3 and r.has_depth
+
+
+def test_replay_check_lists_problems(tmp_path, capsys):
+    make_session(tmp_path / "s", 5)
+    (tmp_path / "s" / "frames" / "000002.depth.png").unlink()
+    rc = main(["replay", str(tmp_path / "s"), "--check"])
+    out = capsys.readouterr().out
+    assert rc == 1 and "problem:" in out and "000002.depth.png" in out and "4 intact frames" in out
+
+
+def test_replay_of_a_damaged_session_plays_the_intact_part(tmp_path, capsys):
+    make_session(tmp_path / "s", 5)
+    (tmp_path / "s" / "frames" / "000002.depth.png").unlink()
+    rc = main(["replay", str(tmp_path / "s"), "--timing", "asap"])
+    assert rc == 0 and "4 frames in" in capsys.readouterr().out
+    rc = main(["replay", str(tmp_path / "s"), "--timing", "asap", "--strict"])
+    assert rc == 1 and "invalid session" in capsys.readouterr().err
+
+
+def test_clear_errors(tmp_path, capsys):
+    assert main(["replay", str(tmp_path / "nope")]) == 1
+    assert "is not a folder" in capsys.readouterr().err
+    assert main(["run", "webcam://0"]) == 1
+    assert "unknown source scheme 'webcam'" in capsys.readouterr().err
+    assert main(["--set", "output.port=80.5", "run", "replay://x"]) == 2
+    assert "[output] port: expected int" in capsys.readouterr().err
+    make_session(tmp_path / "s", 2)
+    make_session(tmp_path / "exists", 2)
+    assert main(["record", f"replay://{tmp_path}/s?timing=asap", str(tmp_path / "exists")]) == 1
+    assert "already contains a session" in capsys.readouterr().err
+    assert main(["run", f"replay://{tmp_path}/s", "--video", str(tmp_path / "v.gif")]) == 1
+    assert "unknown extension '.gif'" in capsys.readouterr().err
+
+
+def test_cli_record_killed_with_sigkill_replays_complete_frames(tmp_path):
+    """kill -9 of the real `illuminet record` process: the session replays every complete frame."""
+    make_session(tmp_path / "src", 10, fps=120.0)
+    out = tmp_path / "rec"
+    proc = spawn(["-m", "illuminet", "record", f"replay://{tmp_path}/src?timing=recorded&loop=1", str(out)])
+    try:
+        wait_for_lines(out / "frames.jsonl", 10, proc)
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=10)
+    n = (out / "frames.jsonl").read_bytes().count(b"\n")
+    r = SessionReader(out)
+    assert not r.finalized and len(r) == n >= 10
+    src = list(SessionReader(tmp_path / "src"))
+    for f in r:
+        assert np.array_equal(f.color, src[f.seq % 10].color) and np.array_equal(f.depth, src[f.seq % 10].depth)
+    assert main(["replay", str(out), "--timing", "asap"]) == 0
+
+
+def test_bench_replay_reports_its_figures(capsys):
+    from illuminet.bench_replay import measure
+    d = measure(12, 2, defaults(), width=64, height=48, colors=("png", "raw"))  # the real path, small frames
+    out = capsys.readouterr().out
+    assert "median" in out and "frames/s" in out and "CPU time" in out and "source" in out
+    assert d["frames"] == 12 and (d["width"], d["height"]) == (64, 48)
+    assert len(d["replay_fps_runs"]) == 2 and d["replay_fps_median"] > 0 and d["cpu_ms_per_frame"] > 0
+    assert d["steps"]["source"]["n"] == 13  # 12 frames + the end-of-stream read
+    assert set(d["by_color"]) == {"png", "raw"} and d["by_color"]["raw"]["bytes_per_frame"] > 64 * 48 * 3
+    json.dumps(d)
+
+
+def test_bench_command_lists_replay(capsys):
+    with pytest.raises(SystemExit):
+        main(["bench", "--help"])
+    assert "replay" in capsys.readouterr().out

@@ -1,0 +1,195 @@
+"""Output sinks: real video files, PNG sequences, the session recorder, build_sinks from the config."""
+
+from __future__ import annotations
+
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from illuminet.hw.replay import ReplaySource
+from illuminet.pipeline import build_sinks
+from illuminet.runtime.config import ConfigError, apply_overrides, defaults
+from illuminet.runtime.loop import run_loop
+from illuminet.runtime.session import SessionReader
+from illuminet.runtime.sinks import (
+    NullSink, PngSequenceSink, SessionRecorderSink, SinkError, VideoSink, output_picture,
+)
+from illuminet.runtime.stage import Stage
+
+from ._sessions import H, W, frames, same_frame
+
+
+class Composite(Stage):
+    """Writes an inverted picture as results['composite'] (what a renderer does)."""
+
+    name = "composite"
+
+    def process(self, frame):
+        return frame.with_result("composite", 255 - frame.color)
+
+
+def _count_video(path):
+    cap = cv2.VideoCapture(str(path))
+    n, first = 0, None
+    while True:
+        ok, img = cap.read()
+        if not ok:
+            break
+        first = img if first is None else first
+        n += 1
+    cap.release()
+    return n, first
+
+
+@pytest.mark.parametrize("ext", [".mp4", ".avi"])
+def test_video_file_is_playable_with_all_frames(tmp_path, ext):
+    fs = frames(12, w=160, h=120)
+    sink = VideoSink(tmp_path / f"out{ext}", fps=30)
+    with sink:
+        for f in fs:
+            sink.write(f)
+    assert sink.codec in ("mp4v", "avc1", "MJPG", "XVID")
+    n, first = _count_video(tmp_path / f"out{ext}")
+    assert n == 12
+    # lossy, but the picture is the frame's (RGB written as BGR correctly: mean colour per channel close)
+    assert np.allclose(first[..., ::-1].reshape(-1, 3).mean(0), fs[0].color.reshape(-1, 3).mean(0), atol=6)
+    assert not list(tmp_path.glob(".*probe*")), "the open() probe file is removed"
+
+
+def test_video_errors_are_clear(tmp_path):
+    with pytest.raises(SinkError, match=r"unknown extension '.gif'"):
+        VideoSink(tmp_path / "x.gif")
+    with pytest.raises(SinkError, match="does not exist"):
+        VideoSink(tmp_path / "no" / "x.mp4").open()
+    with pytest.raises(SinkError, match=r"could not open a writer with codec\(s\) NOPE"):
+        VideoSink(tmp_path / "x.mp4", codecs=("NOPE",)).open()
+    sink = VideoSink(tmp_path / "x.mp4")
+    with sink:
+        sink.write(frames(1, w=160, h=120)[0])
+        with pytest.raises(SinkError, match="frame 0 is 64x48, the video is 160x120"):
+            sink.write(frames(1)[0])
+
+
+def test_png_sequence_writes_the_composite_exactly(tmp_path):
+    fs = frames(3)
+    sink = PngSequenceSink(tmp_path / "png")
+    stage = Composite()
+    with sink:
+        for f in fs:
+            sink.write(stage.process(f))
+    files = sorted((tmp_path / "png").glob("*.png"))
+    assert [p.name for p in files] == ["frame_000000.png", "frame_000001.png", "frame_000002.png"]
+    img = cv2.imread(str(files[1]), cv2.IMREAD_COLOR)[..., ::-1]
+    assert np.array_equal(img, 255 - fs[1].color)
+
+
+def test_png_sequence_without_composite_writes_the_camera_picture(tmp_path):
+    f = frames(1)[0]
+    with PngSequenceSink(tmp_path / "png") as sink:
+        sink.write(f)
+    assert np.array_equal(cv2.imread(str(tmp_path / "png" / "frame_000000.png"))[..., ::-1], f.color)
+
+
+def test_bad_composite_is_refused():
+    f = frames(1)[0].with_result("composite", np.zeros((4, 4), np.float32))
+    with pytest.raises(SinkError, match=r"results\['composite'\] must be an HxWx3 uint8 RGB image"):
+        output_picture(f)
+
+
+def test_recorder_records_input_frames_not_results(tmp_path):
+    fs = frames(20)
+    # three encoders finish out of order; the writer must still commit in frame order
+    rec = SessionRecorderSink(tmp_path / "rec", source="test://x", fsync=False, encoders=3)
+    run_loop(ReplaySource(_session(tmp_path, fs), timing="asap"), [Composite()], [rec])
+    r = SessionReader(tmp_path / "rec", strict=True)
+    assert r.finalized and len(r) == 20 and rec.frames == 20
+    for a, b in zip(fs, r):
+        assert same_frame(a, b)  # the camera input, not the inverted composite
+
+
+def _session(tmp_path, fs):
+    from illuminet.runtime.session import SessionWriter
+    with SessionWriter(tmp_path / "src") as w:
+        for f in fs:
+            w.append(f)
+    return tmp_path / "src"
+
+
+def test_recorder_errors_reach_the_loop(tmp_path):
+    fs = frames(3)
+    rec = SessionRecorderSink(tmp_path / "rec")
+    rec.open()
+    rec.write(fs[1])
+    rec.write(fs[0])  # timestamp goes back: the writer thread fails on it
+    deadline = time.monotonic() + 5
+    while rec._error is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    with pytest.raises(SinkError, match="does not increase"):
+        rec.write(fs[2])
+    rec.close()
+    assert len(SessionReader(tmp_path / "rec", strict=True)) == 1
+    with pytest.raises(Exception, match="already contains a session"):
+        SessionRecorderSink(tmp_path / "rec").open()
+
+
+def test_null_sink_counts():
+    s = NullSink()
+    for f in frames(3):
+        s.write(f)
+    assert s.stats() == {"frames": 3}
+
+
+def test_build_sinks_from_config(tmp_path):
+    assert build_sinks(defaults()) == []
+    cfg = apply_overrides(defaults(), [
+        ("output", "video", str(tmp_path / "a.mp4")), ("output", "png_dir", str(tmp_path / "p")),
+        ("output", "record", str(tmp_path / "r")), ("output", "record_color", "raw"),
+        ("output", "fps", 12.0),
+    ])
+    sinks = build_sinks(cfg, source_url="replay://x")
+    kinds = {type(s) for s in sinks}
+    assert kinds == {VideoSink, PngSequenceSink, SessionRecorderSink}
+    video = next(s for s in sinks if isinstance(s, VideoSink))
+    rec = next(s for s in sinks if isinstance(s, SessionRecorderSink))
+    assert video.fps == 12.0 and rec._writer_args["color"] == "raw" and rec._writer_args["source"] == "replay://x"
+    bad = apply_overrides(cfg, [("output", "record_jpeg_quality", 0)])
+    with pytest.raises(ConfigError, match=r"record_jpeg_quality: expected an int in 1..100, got 0"):
+        build_sinks(bad)
+
+
+def test_mjpeg_status_page_shows_the_loop_snapshot(tmp_path):
+    """build_sinks wires LoopStats.snapshot into the MJPEG server; a real HTTP client reads both."""
+    import json as _json
+    import threading
+    import urllib.request
+
+    from illuminet.runtime.loop import LoopStats
+
+    src_path = _session(tmp_path, frames(5))
+    cfg = apply_overrides(defaults(), [("output", "mjpeg", True), ("output", "port", 0)])
+    stats = LoopStats()
+    (sink,) = build_sinks(cfg, stats=stats.snapshot)
+    stop = threading.Event()
+    src = ReplaySource(src_path, timing="recorded", loop=True)
+    t = threading.Thread(target=run_loop, args=(src, [Composite()], [sink]),
+                         kwargs={"stats": stats, "stop_event": stop})
+    t.start()
+    try:
+        deadline = time.monotonic() + 10
+        while (sink._server is None or stats.frames < 5) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        with urllib.request.urlopen(f"http://127.0.0.1:{sink.port}/stats.json", timeout=5) as r:
+            page = _json.loads(r.read())
+        with urllib.request.urlopen(f"http://127.0.0.1:{sink.port}/stream.mjpg", timeout=5) as r:
+            head = r.read(20000)
+    finally:
+        stop.set()
+        t.join(timeout=10)
+    loop = page["loop"]
+    assert loop["running"] is True and loop["frames"] >= 5 and "stage:composite" in loop["stages_ms"]
+    assert loop["dropped"] >= 0 and "fps_recent" in loop
+    start = head.index(b"\xff\xd8")
+    jpg = cv2.imdecode(np.frombuffer(head[start:head.index(b"\xff\xd9", start) + 2], np.uint8), cv2.IMREAD_COLOR)
+    assert jpg.shape == (H, W, 3)
