@@ -168,6 +168,9 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
     """
     from .transfer import ShadingStage
 
+    h, w = np.shape(depth)[:2]
+    if not (0 <= anchor_px[0] < w and 0 <= anchor_px[1] < h):
+        raise ValueError(f"anchor pixel ({anchor_px[0]}, {anchor_px[1]}) is outside the {w}x{h} image")
     over = [("anchor", "mode", "pixel"), ("anchor", "pixel", [float(anchor_px[0]), float(anchor_px[1])])]
     if bundle is not None:
         over.append(("model", "bundle", bundle))
