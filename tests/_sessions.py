@@ -76,3 +76,13 @@ def wait_for_lines(index: Path, n: int, proc: subprocess.Popen, timeout: float =
         time.sleep(0.01)
     proc.kill()
     raise AssertionError(f"recording did not reach {n} frames in {timeout} s")
+
+
+def cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    """Run ``python -m illuminet ARGS`` in a fresh process (as a user would), capturing its output.
+
+    Commands that run the full pipeline open the renderer's own GL context; running them in a child
+    process keeps that context out of the test process (whose GL tests share one context).
+    """
+    return subprocess.run([sys.executable, "-m", "illuminet", *args], cwd=REPO, env=env(),
+                          capture_output=True, text=True, timeout=timeout)

@@ -17,7 +17,7 @@ from illuminet.pipeline import build_stages
 from illuminet.runtime.config import defaults
 from illuminet.runtime.session import SessionReader
 
-from ._sessions import make_session, same_frame, spawn, wait_for_lines
+from ._sessions import cli, make_session, same_frame, spawn, wait_for_lines
 
 
 @pytest.mark.parametrize("cmd, flags", [
@@ -61,9 +61,9 @@ def test_record_then_replay_end_to_end(tmp_path, capsys):
     st = json.loads((tmp_path / "rec.json").read_text())
     assert st["frames"] == 9 and "sink:record" in st["steps"]
 
-    rc = main(["replay", str(rec), "--timing", "asap", "--png-dir", str(tmp_path / "png"),
-               "--video", str(tmp_path / "out.avi"), "--stats-json", str(tmp_path / "replay.json")])
-    assert rc == 0
+    p = cli("replay", str(rec), "--timing", "asap", "--png-dir", str(tmp_path / "png"),
+            "--video", str(tmp_path / "out.avi"), "--stats-json", str(tmp_path / "replay.json"))
+    assert p.returncode == 0, p.stderr
     # replay runs the configured pipeline: the PNGs are its output pictures, one per frame
     pngs = sorted((tmp_path / "png").glob("*.png"))
     assert [p.name for p in pngs] == [f"frame_{k:06d}.png" for k in range(9)]
@@ -80,16 +80,17 @@ def test_record_then_replay_end_to_end(tmp_path, capsys):
 
 def test_run_records_its_input_while_processing(tmp_path):
     src = make_session(tmp_path / "s", 6)
-    assert main(["run", f"replay://{tmp_path}/s?timing=asap", "--record", str(tmp_path / "rec"), "--no-mjpeg"]) == 0
+    p = cli("run", f"replay://{tmp_path}/s?timing=asap", "--record", str(tmp_path / "rec"), "--no-mjpeg")
+    assert p.returncode == 0, p.stderr
     r = SessionReader(tmp_path / "rec", strict=True)
     assert len(r) == 6 and all(same_frame(a, b) for a, b in zip(src, r))
 
 
 def test_run_with_loop_and_max_frames(tmp_path, capsys):
     make_session(tmp_path / "s", 4)
-    rc = main(["run", f"replay://{tmp_path}/s", "--timing", "asap", "--loop", "--max-frames", "10",
-               "--stats-json", str(tmp_path / "st.json")])
-    assert rc == 0
+    p = cli("run", f"replay://{tmp_path}/s", "--timing", "asap", "--loop", "--max-frames", "10",
+            "--stats-json", str(tmp_path / "st.json"))
+    assert p.returncode == 0, p.stderr
     st = json.loads((tmp_path / "st.json").read_text())
     assert st["frames"] == 10
 
@@ -115,8 +116,9 @@ def test_replay_check_lists_problems(tmp_path, capsys):
 def test_replay_of_a_damaged_session_plays_the_intact_part(tmp_path, capsys):
     make_session(tmp_path / "s", 5)
     (tmp_path / "s" / "frames" / "000002.depth.png").unlink()
-    rc = main(["replay", str(tmp_path / "s"), "--timing", "asap"])
-    assert rc == 0 and "4 frames in" in capsys.readouterr().out
+    p = cli("replay", str(tmp_path / "s"), "--timing", "asap")
+    assert p.returncode == 0 and "4 frames in" in p.stdout, p.stderr
+    assert "000002.depth.png" in p.stderr  # the warning names the damage
     rc = main(["replay", str(tmp_path / "s"), "--timing", "asap", "--strict"])
     assert rc == 1 and "invalid session" in capsys.readouterr().err
 
@@ -152,7 +154,9 @@ def test_cli_record_killed_with_sigkill_replays_complete_frames(tmp_path):
     src = list(SessionReader(tmp_path / "src"))
     for f in r:
         assert np.array_equal(f.color, src[f.seq % 10].color) and np.array_equal(f.depth, src[f.seq % 10].depth)
-    assert main(["replay", str(out), "--timing", "asap"]) == 0
+    p = cli("replay", str(out), "--timing", "asap", "--stats-json", str(tmp_path / "st.json"))
+    assert p.returncode == 0, p.stderr
+    assert json.loads((tmp_path / "st.json").read_text())["frames"] == n
 
 
 def test_bench_replay_reports_its_figures(capsys):
