@@ -63,7 +63,7 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "response_curve": _f(str, "", "camera response curve from `illuminet calibrate photometric` ('' = sRGB)"),
     },
     "planes": {
-        "method": _f(str, "ransac", "plane segmentation", choices=("ransac", "region", "opencv")),
+        "method": _f(str, "region", "plane segmentation (docs/planes.md compares them)", choices=("ransac", "region", "opencv")),
         "redetect_every": _f(int, 30, "full re-detection every N frames (tracking in between)"),
         "max_planes": _f(int, 4, "most planes kept per frame"),
         "min_area_m2": _f(float, 0.02, "smallest plane kept, square metres"),

@@ -686,7 +686,7 @@ def detect_opencv(cloud: Cloud, params: DetectParams, rng: np.random.Generator |
 DETECTORS = {"ransac": detect_ransac, "region": detect_region, "opencv": detect_opencv}
 
 
-def detect_planes(cloud: Cloud, params: DetectParams, method: str = "ransac",
+def detect_planes(cloud: Cloud, params: DetectParams, method: str = "region",
                   rng: np.random.Generator | None = None) -> list[PlaneFit]:
     """Segment ``cloud`` into up to ``params.max_planes`` planes, largest first."""
     try:
@@ -791,7 +791,7 @@ class PlaneTracker:
     MATCH_DEG = 10.0
     MATCH_OFFSET_M = 0.05
 
-    def __init__(self, params: DetectParams, method: str = "ransac", redetect_every: int = 30,
+    def __init__(self, params: DetectParams, method: str = "region", redetect_every: int = 30,
                  smoothing: float = 0.8, seed: int = 0):
         if method not in DETECTORS:
             raise ValueError(f"[planes] method: expected one of {', '.join(DETECTORS)}, got {method!r}")
