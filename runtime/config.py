@@ -80,6 +80,7 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "extent_m": _f(float, 1.0, "side of the square plane patch around the anchor, metres"),
         "fusion": _f(float, 0.9, "temporal fusion weight of the previous estimate, 0 = none"),
         "assumed_albedo": _f(float, 0.5, "mean albedo assumed for the plane (radiance -> irradiance)"),
+        "smoothing_cells": _f(float, 1.5, "masked Gaussian over the grid against coarse albedo texture, sigma in cells (0 = off)"),
     },
     "model": {
         "bundle": _f(str, "builtin:vase", "object bundle: builtin:NAME or a bundle folder"),

@@ -12,7 +12,9 @@ What this module owns
       the image, has valid depth that agrees with the plane (within 3 inlier thresholds: nearer
       means occluded, e.g. a person; farther means the plane is not there), and is not saturated.
       A cell is observed when at least half its samples count; its value is the mean of their
-      linear colour (area averaging suppresses albedo texture and noise).
+      linear colour (area averaging suppresses albedo texture and noise). Texture coarser than a
+      cell is further reduced by a masked Gaussian over the grid (:func:`smooth_cells`,
+      ``[plane_light] smoothing_cells``).
     * Units: linear (``physics.linearize`` with the camera's response LUT when given), divided by
       the exposure scale (from ``Frame.exposure`` when known; otherwise estimated from the plane
       itself, see :class:`PlaneLightStage`), converted to irradiance ``E = pi * radiance / albedo``
@@ -162,6 +164,24 @@ def _lut_table(response_lut: np.ndarray | None) -> np.ndarray:
     return table
 
 
+def smooth_cells(values: np.ndarray, observed: np.ndarray, grid: int, sigma_cells: float) -> np.ndarray:
+    """Masked Gaussian smoothing of per-cell values over the grid (observed cells only).
+
+    Light varies smoothly over a floor except at shadow edges, while albedo texture coarser than
+    a cell (tiles, grout, planks) does not average out inside one cell; a small kernel trades a
+    little shadow-edge sharpness for less texture. Unobserved cells neither contribute nor get a
+    value. ``sigma_cells <= 0`` returns ``values`` unchanged.
+    """
+    if sigma_cells <= 0 or not observed.any():
+        return values
+    w = observed.reshape(grid, grid).astype(np.float32)
+    x = values.reshape(grid, grid, 3).astype(np.float32) * w[..., None]
+    num = cv2.GaussianBlur(x, (0, 0), sigma_cells, borderType=cv2.BORDER_CONSTANT)
+    den = cv2.GaussianBlur(w, (0, 0), sigma_cells, borderType=cv2.BORDER_CONSTANT)
+    out = num / np.maximum(den, 1e-6)[..., None]
+    return np.where(observed[:, None], out.reshape(-1, 3), 0.0).astype(np.float32)
+
+
 class CellFusion:
     """Robust per-cell temporal fusion of irradiance (module docstring).
 
@@ -259,6 +279,9 @@ class PlaneLightStage(Stage):
         self.grid = int(pl.grid)
         self.extent = float(pl.extent_m)
         self.albedo = float(pl.assumed_albedo)
+        self.sigma = float(pl.smoothing_cells)
+        if self.sigma < 0:
+            raise ValueError(f"[plane_light] smoothing_cells: expected a number >= 0, got {pl.smoothing_cells!r}")
         self.thr = float(cfg.planes.inlier_threshold_m)
         if response_lut is None and cfg.source.response_curve:
             response_lut = load_response_lut(cfg.source.response_curve)
@@ -310,6 +333,7 @@ class PlaneLightStage(Stage):
             self._T_prev = anchor.T_cam_obj.copy()
             lin, observed, coverage = measure_cells(frame, anchor.T_cam_obj, self.grid, self.extent, self.thr,
                                                     self.lut)
+            lin = smooth_cells(lin, observed, self.grid, self.sigma)
         self.observed_cells = int(observed.sum())
         scale, source = self._exposure(frame, lin, observed)
         E = (np.pi / self.albedo) * lin / np.float32(scale)
