@@ -628,7 +628,14 @@ def detect_region(cloud: Cloud, params: DetectParams, rng: np.random.Generator |
         region = (labels == lab) & remaining
         if region.sum() < params.min_points:
             continue
-        n, d, *_ = fit_plane(P[region])
+        # seed plane: orthogonal regression (PCA) of the region's points, from the moments
+        S = (region.reshape(-1).view(np.uint8).astype(np.float32) @ cloud.moments()).astype(np.float64)
+        c = S[9:12] / S[0]
+        M2 = np.array([[S[12], S[13], S[14]], [S[13], S[15], S[16]], [S[14], S[16], S[17]]]) / S[0]
+        n = np.linalg.eigh(M2 - np.outer(c, c))[1][:, 0]
+        d = -float(n @ c)
+        if d < 0:
+            n, d = -n, -d
         fit = refine(cloud, n, d, params.inlier_threshold_m, remaining)
         if not _accept(fits, fit, params):
             continue
