@@ -81,6 +81,7 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "fusion": _f(float, 0.9, "temporal fusion weight of the previous estimate, 0 = none"),
         "assumed_albedo": _f(float, 0.5, "mean albedo assumed for the plane (radiance -> irradiance)"),
         "smoothing_cells": _f(float, 1.5, "masked Gaussian over the grid against coarse albedo texture, sigma in cells (0 = off)"),
+        "extra_planes": _f(int, 0, "also measure up to N more planes (walls first) as further PlaneLight slices"),
     },
     "model": {
         "bundle": _f(str, "builtin:vase", "object bundle: builtin:NAME or a bundle folder"),

@@ -27,7 +27,9 @@ What this module owns
       than half a cell or turns by more than 2 degrees.
 
 The representation (:class:`~illuminet.runtime.scene.PlaneLight`) concatenates planes via
-``plane_slices``; this stage measures the anchor plane (the first and only slice for now).
+``plane_slices``; the anchor plane is the first slice. With ``[plane_light] extra_planes = N``
+the stage also measures up to N other tracked planes (walls first: they see light the floor
+cannot), each on a grid of the same size, as further slices in the same object frame.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from illuminet.runtime.anchor import object_frame
 from illuminet.runtime.config import Config
 from illuminet.runtime.frame import Frame
 from illuminet.runtime.physics import linearize
@@ -244,6 +247,13 @@ class CellFusion:
         return self.nobs > 0
 
 
+def _moved(T_prev: np.ndarray, T: np.ndarray, cell_m: float) -> bool:
+    """Whether a grid frame moved by more than half a cell or turned by more than 2 degrees."""
+    dt = np.linalg.norm(T[:3, 3] - T_prev[:3, 3])
+    cosang = (np.trace(T_prev[:3, :3].T @ T[:3, :3]) - 1.0) / 2.0
+    return dt > cell_m / 2.0 or np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0))) > 2.0
+
+
 class PlaneLightStage(Stage):
     """Measures the anchor plane's illumination; writes ``results["plane_light"]`` (:class:`PlaneLight`).
 
@@ -280,6 +290,10 @@ class PlaneLightStage(Stage):
         self.extent = float(pl.extent_m)
         self.albedo = float(pl.assumed_albedo)
         self.sigma = float(pl.smoothing_cells)
+        self.n_extra = int(pl.extra_planes)
+        if self.n_extra < 0:
+            raise ValueError(f"[plane_light] extra_planes: expected an int >= 0, got {pl.extra_planes!r}")
+        self._extra_state: dict[int, tuple[CellFusion, np.ndarray]] = {}
         if self.sigma < 0:
             raise ValueError(f"[plane_light] smoothing_cells: expected a number >= 0, got {pl.smoothing_cells!r}")
         self.thr = float(cfg.planes.inlier_threshold_m)
@@ -298,13 +312,7 @@ class PlaneLightStage(Stage):
         self.observed_cells = 0
 
     def _moved(self, T: np.ndarray) -> bool:
-        if self._T_prev is None:
-            return True
-        h = self.extent / (self.grid - 1)
-        dt = np.linalg.norm(T[:3, 3] - self._T_prev[:3, 3])
-        cosang = (np.trace(self._T_prev[:3, :3].T @ T[:3, :3]) - 1.0) / 2.0
-        ang = np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
-        return dt > h / 2.0 or ang > 2.0
+        return self._T_prev is None or _moved(self._T_prev, T, self.extent / (self.grid - 1))
 
     def process(self, frame: Frame) -> Frame:
         self.frames += 1
@@ -339,14 +347,65 @@ class PlaneLightStage(Stage):
         E = (np.pi / self.albedo) * lin / np.float32(scale)
         self.fusion.update(E.astype(np.float32), observed, coverage)
         has = self.fusion.has_value
-        irr = np.where(has[:, None], self.fusion.est, 0.0).astype(np.float32)
+        parts = [(self.vertices, self.normals, np.where(has[:, None], self.fusion.est, 0.0), has.copy(),
+                  np.where(has, self.fusion.conf, 0.0), observed, label)]
+        if self.n_extra and not anchor.synthetic:
+            parts += self._extra(frame, anchor, scale)
+        elif self._extra_state:
+            self._extra_state.clear()
         self._last = PlaneLight(
-            vertices=self.vertices, normals=self.normals, irradiance=irr, mask=has.copy(),
-            confidence=np.where(has, self.fusion.conf, 0.0).astype(np.float32), grid=self.grid,
-            exposure_scale=float(scale), plane_slices=(slice(0, P),), labels=(label,),
-            observed=observed, exposure_source=source,
+            vertices=np.concatenate([p[0] for p in parts]) if len(parts) > 1 else self.vertices,
+            normals=np.concatenate([p[1] for p in parts]) if len(parts) > 1 else self.normals,
+            irradiance=np.concatenate([p[2] for p in parts]).astype(np.float32),
+            mask=np.concatenate([p[3] for p in parts]),
+            confidence=np.concatenate([p[4] for p in parts]).astype(np.float32), grid=self.grid,
+            exposure_scale=float(scale), plane_slices=tuple(slice(k * P, (k + 1) * P) for k in range(len(parts))),
+            labels=tuple(p[6] for p in parts), observed=np.concatenate([p[5] for p in parts]),
+            exposure_source=source,
         )
         return frame.with_result(self.name, self._last)
+
+    def _extra(self, frame: Frame, anchor: Anchor, scale: float) -> list[tuple]:
+        """Measure up to ``[plane_light] extra_planes`` more planes (walls first, then by area).
+
+        Each gets a grid of the same size on its own plane, centred on the anchor origin projected
+        onto it and lifted by half the extent along the anchor's up direction (so a wall's grid
+        stands on the floor rather than reaching under it). Vertices and normals are expressed in
+        the anchor's object frame; each plane has its own fusion, reset when its grid moves.
+        """
+        planes = [p for p in frame.results.get("planes", ()) if p.id != anchor.plane_id]
+        planes.sort(key=lambda p: (p.label != "wall", -p.area_m2))
+        R_a, t_a = anchor.R, anchor.t
+        up = R_a[:, 1]
+        out, keep = [], set()
+        P = self.grid * self.grid
+        for p in planes[: self.n_extra]:
+            n = np.asarray(p.normal, np.float64)
+            o = t_a - p.distance(t_a) * n
+            lift = up - (up @ n) * n
+            if np.linalg.norm(lift) > 1e-6:
+                o = o + (self.extent / 2.0) * lift / np.linalg.norm(lift)
+            T = object_frame(n, o)
+            fusion, T_prev = self._extra_state.get(p.id, (None, None))
+            if fusion is None:
+                fusion = CellFusion(P, self.fusion.f)
+            if T_prev is None or _moved(T_prev, T, self.extent / (self.grid - 1)):
+                fusion.reset()
+            lin, obs, cov = measure_cells(frame, T, self.grid, self.extent, self.thr, self.lut)
+            lin = smooth_cells(lin, obs, self.grid, self.sigma)
+            fusion.update(((np.pi / self.albedo) * lin / np.float32(scale)).astype(np.float32), obs, cov)
+            self._extra_state[p.id] = (fusion, T)
+            keep.add(p.id)
+            has = fusion.has_value
+            v_cam = self.vertices @ T[:3, :3].T + T[:3, 3]
+            v_obj = (v_cam - t_a) @ R_a
+            n_obj = np.tile(R_a.T @ n, (P, 1))
+            out.append((v_obj, n_obj, np.where(has[:, None], fusion.est, 0.0), has.copy(),
+                        np.where(has, fusion.conf, 0.0), obs, p.label))
+        for pid in list(self._extra_state):
+            if pid not in keep:
+                del self._extra_state[pid]
+        return out
 
     def _exposure(self, frame: Frame, lin: np.ndarray, observed: np.ndarray) -> tuple[float, str]:
         s = frame.exposure.scale

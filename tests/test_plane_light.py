@@ -279,3 +279,29 @@ def test_done_when_on_the_synthetic_camera(url):
     assert m.mean() > 0.5
     est = pl.irradiance[m] * alb.mean() / alb
     assert np.median(np.abs(est - E[m]) / E[m]) <= 0.05
+
+
+def test_extra_planes_measure_the_wall_in_the_object_frame(scene):
+    cfg = apply_overrides(defaults(), [("plane_light", "extra_planes", 2)])
+    chain = Chain(cfg)
+    for k in range(4):
+        out = chain(scene.frame(k))
+    pl, a = out.results["plane_light"], out.results["anchor"]
+    P = 32 * 32
+    assert pl.labels == ("floor", "wall", "table")
+    assert pl.plane_slices == (slice(0, P), slice(P, 2 * P), slice(2 * P, 3 * P))
+    assert pl.irradiance.shape == (3 * P, 3) and pl.mask.shape == pl.observed.shape == (3 * P,)
+    wall = [p for p in out.results["planes"] if p.label == "wall"][0]
+    sl = pl.plane_slices[1]
+    v_cam = pl.vertices[sl] @ a.R.T + a.t
+    assert np.abs(wall.distance(v_cam)).max() < 1e-6  # the wall grid lies on the wall
+    assert np.allclose(pl.normals[sl] @ a.R.T, wall.normal)
+    assert pl.mask[sl].mean() > 0.5
+    E = scene.true_irradiance_cam(v_cam, np.tile(wall.normal, (P, 1)))
+    m = pl.mask[sl]
+    assert np.median(np.abs(pl.irradiance[sl][m] - E[m]) / E[m]) < 0.05
+    # the anchor plane's slice is unchanged by the extra planes
+    base = Chain()
+    for k in range(4):
+        ref = base(scene.frame(k))
+    assert np.allclose(ref.results["plane_light"].irradiance, pl.irradiance[:P])
