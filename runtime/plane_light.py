@@ -23,8 +23,8 @@ What this module owns
       ``[plane_light] fusion`` for the previous estimate; an observation more than 35 % away from
       the running estimate (luminance) is rejected as an outlier (specular highlight, a passing
       shadow); a cell that stays an outlier for 5 frames, or more than half the cells at once
-      (the light changed), resets to the new value. The state resets when the anchor moves by more
-      than half a cell or turns by more than 2 degrees.
+      (the light changed), resets to the new value. The state resets when the anchor has moved by
+      more than half a cell or turned by more than 2 degrees since the last reset.
 
 The representation (:class:`~illuminet.runtime.scene.PlaneLight`) concatenates planes via
 ``plane_slices``; the anchor plane is the first slice. With ``[plane_light] extra_planes = N``
@@ -303,7 +303,7 @@ class PlaneLightStage(Stage):
         self.vertices = grid_vertices(self.grid, self.extent)
         self.normals = np.tile(np.array([0.0, 1.0, 0.0]), (self.grid * self.grid, 1))
         self.fusion = CellFusion(self.grid * self.grid, float(pl.fusion))
-        self._T_prev: np.ndarray | None = None
+        self._T_ref: np.ndarray | None = None  # anchor pose at the last restart of the fusion
         self._scale_rel: float | None = None
         self._warn = LogOnce(log, "plane_light")
         self._last: PlaneLight | None = None
@@ -312,7 +312,7 @@ class PlaneLightStage(Stage):
         self.observed_cells = 0
 
     def _moved(self, T: np.ndarray) -> bool:
-        return self._T_prev is None or _moved(self._T_prev, T, self.extent / (self.grid - 1))
+        return self._T_ref is None or _moved(self._T_ref, T, self.extent / (self.grid - 1))
 
     def process(self, frame: Frame) -> Frame:
         self.frames += 1
@@ -327,18 +327,20 @@ class PlaneLightStage(Stage):
         P = self.grid * self.grid
         if anchor.synthetic:
             self.fusion.reset()
-            self._T_prev = None
-            self._scale_rel = None
+            self._T_ref = None
             lin = np.zeros((P, 3), np.float32)
             observed = np.zeros(P, bool)
             coverage = np.zeros(P, np.float32)
         else:
+            # Compared with the pose at the last restart, not the previous frame, so that slow
+            # drift (a moving camera re-anchoring a little each frame) also restarts the grid once
+            # it adds up to half a cell. The relative exposure scale is kept: moving is no reason
+            # for the exposure to have changed.
             if self._moved(anchor.T_cam_obj):
-                if self._T_prev is not None:
+                if self._T_ref is not None:
                     self.anchor_resets += 1
                 self.fusion.reset()
-                self._scale_rel = None
-            self._T_prev = anchor.T_cam_obj.copy()
+                self._T_ref = anchor.T_cam_obj.copy()
             lin, observed, coverage = measure_cells(frame, anchor.T_cam_obj, self.grid, self.extent, self.thr,
                                                     self.lut)
             lin = smooth_cells(lin, observed, self.grid, self.sigma)
@@ -386,15 +388,16 @@ class PlaneLightStage(Stage):
             if np.linalg.norm(lift) > 1e-6:
                 o = o + (self.extent / 2.0) * lift / np.linalg.norm(lift)
             T = object_frame(n, o)
-            fusion, T_prev = self._extra_state.get(p.id, (None, None))
+            fusion, T_ref = self._extra_state.get(p.id, (None, None))
             if fusion is None:
                 fusion = CellFusion(P, self.fusion.f)
-            if T_prev is None or _moved(T_prev, T, self.extent / (self.grid - 1)):
+            if T_ref is None or _moved(T_ref, T, self.extent / (self.grid - 1)):
                 fusion.reset()
+                T_ref = T
             lin, obs, cov = measure_cells(frame, T, self.grid, self.extent, self.thr, self.lut)
             lin = smooth_cells(lin, obs, self.grid, self.sigma)
             fusion.update(((np.pi / self.albedo) * lin / np.float32(scale)).astype(np.float32), obs, cov)
-            self._extra_state[p.id] = (fusion, T)
+            self._extra_state[p.id] = (fusion, T_ref)
             keep.add(p.id)
             has = fusion.has_value
             v_cam = self.vertices @ T[:3, :3].T + T[:3, 3]
@@ -417,7 +420,7 @@ class PlaneLightStage(Stage):
             rad = (self.fusion.est[both] @ _LUMA) * (self.albedo / np.pi)
             ratio = lum[both] / np.maximum(rad, 1e-9)
             self._scale_rel = float(np.median(ratio))
-        elif observed.any():
+        elif self._scale_rel is None and observed.any():
             self._scale_rel = float(np.median(lum[observed])) / REFERENCE_RADIANCE
         if not self._scale_rel or not np.isfinite(self._scale_rel) or self._scale_rel <= 0:
             self._scale_rel = 1.0

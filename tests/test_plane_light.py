@@ -305,3 +305,17 @@ def test_extra_planes_measure_the_wall_in_the_object_frame(scene):
     for k in range(4):
         ref = base(scene.frame(k))
     assert np.allclose(ref.results["plane_light"].irradiance, pl.irradiance[:P])
+
+
+def test_slow_anchor_drift_restarts_the_grid_once_it_adds_up(scene):
+    chain = Chain()
+    out = chain(scene.frame(0))
+    a = out.results["anchor"]
+    h = 1.0 / 31
+    for k in range(1, 6):  # 0.2 cell per frame: each step is small, the sum is a cell
+        T = a.T_cam_obj.copy()
+        T[:3, 3] += 0.2 * h * k * T[:3, 0]
+        f = scene.frame(k).with_result("planes", out.results["planes"]).with_result(
+            "anchor", Anchor(T_cam_obj=T, plane_id=a.plane_id))
+        chain.light.process(f)
+    assert chain.light.stats()["anchor_moved_resets"] == 1
