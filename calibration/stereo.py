@@ -405,9 +405,14 @@ class HostStereo:
         left_bgr, right_bgr : ndarray
             Raw (unrectified) images of the calibrated size, BGR uint8 as OpenCV delivers (or grey).
         """
-        lr, rr = self.rectify_pair(left_bgr, right_bgr)
+        self._check(left_bgr, "left")
+        self._check(right_bgr, "right")
+        # only the left image is needed in colour: the right one is converted to grey before the
+        # remap (a third of the work)
+        lr = cv2.remap(left_bgr, self._map_l[0], self._map_l[1], cv2.INTER_LINEAR)
         gl = lr if lr.ndim == 2 else cv2.cvtColor(lr, cv2.COLOR_BGR2GRAY)
-        gr = rr if rr.ndim == 2 else cv2.cvtColor(rr, cv2.COLOR_BGR2GRAY)
+        r_gray = right_bgr if right_bgr.ndim == 2 else cv2.cvtColor(right_bgr, cv2.COLOR_BGR2GRAY)
+        gr = cv2.remap(r_gray, self._map_r[0], self._map_r[1], cv2.INTER_LINEAR)
         disp = self.disparity(gl, gr)
         fb = np.float32(self.fx_rect * self._sx * self.baseline_m)
         with np.errstate(divide="ignore"):

@@ -271,6 +271,19 @@ def _keep_away(p: np.ndarray, centres: np.ndarray, radius: float) -> np.ndarray:
 
 
 def _indoor(rng: np.random.Generator, n: int, object_size: float) -> PointLights:
+    return sample_indoor_scene(rng, n, object_size)[0]
+
+
+def sample_indoor_scene(
+    rng: np.random.Generator, n: int = 32, object_size: float = 0.25
+) -> tuple[PointLights, np.ndarray, np.ndarray]:
+    """The ``"indoor"`` environment of :func:`sample_lights` together with its room.
+
+    Returns
+    -------
+    lights : PointLights, object frame
+    room_lo, room_hi : (3,) corners of the room box (floor at y = 0), metres
+    """
     lo, hi = _room(rng)
     pos = np.zeros((0, 3))
     kinds = np.zeros(0, dtype=int)
@@ -285,7 +298,8 @@ def _indoor(rng: np.random.Generator, n: int, object_size: float) -> PointLights
             axis = rng.choice([0, 2], size=wall.sum())
             side = rng.integers(0, 2, size=wall.sum())
             idx = np.flatnonzero(wall)
-            p[idx, axis] = np.where(side == 0, lo[axis] + 0.05, hi[axis] - 0.05)
+            # 30 cm in front of the wall: a window's or a lit wall's light, not a hot spot on it
+            p[idx, axis] = np.where(side == 0, lo[axis] + 0.3, hi[axis] - 0.3)
             p[idx, 1] = rng.uniform(0.8, 2.2, size=wall.sum())
         ok = _keep_away(p, np.zeros((1, 3)), 2.0 * object_size)
         pos = np.concatenate([pos, p[ok]])
@@ -295,7 +309,7 @@ def _indoor(rng: np.random.Generator, n: int, object_size: float) -> PointLights
     # two decades of strength: a few lights dominate, as in real rooms
     strength = _loguniform(rng, 0.01, 1.0, n)
     lights = PointLights(pos, color_temperature_rgb(cct) * strength[:, None])
-    return _normalise_horizontal(lights, _loguniform(rng, 3.0, 30.0))
+    return _normalise_horizontal(lights, _loguniform(rng, 3.0, 30.0)), lo, hi
 
 
 #: Distance of the sun and sky lights in the outdoor environment, metres (|x|/D error on a 1 m floor: <1 %).
@@ -347,6 +361,14 @@ def sample_spatial_scene(
     lights : PointLights in the scene frame (floor y = 0, +Y up, metres)
     positions : (K, 3) float64 object positions on the floor
     """
+    lights, obj, _, _ = sample_spatial_room(rng, n, n_positions, object_size)
+    return lights, obj
+
+
+def sample_spatial_room(
+    rng: np.random.Generator, n: int = 32, n_positions: int | None = None, object_size: float = 0.25
+) -> tuple[PointLights, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`sample_spatial_scene` plus the room box: (lights, positions, room_lo, room_hi)."""
     k = int(rng.integers(3, 6)) if n_positions is None else int(n_positions)
     lo, hi = _room(rng)
     centre = np.array([rng.uniform(lo[0] + 1.2, hi[0] - 1.2), 0.0, rng.uniform(lo[2] + 1.2, hi[2] - 1.2)])
@@ -369,7 +391,7 @@ def sample_spatial_scene(
     cct = np.where(local, rng.uniform(2200, 4500, n), rng.uniform(3500, 5000, n))
     strength = _loguniform(rng, 0.03, 1.0, n) * np.where(local, 1.0, 0.05)
     lights = PointLights(pos, color_temperature_rgb(cct) * strength[:, None])
-    return _normalise_horizontal(lights, _loguniform(rng, 3.0, 30.0), at=obj), obj
+    return _normalise_horizontal(lights, _loguniform(rng, 3.0, 30.0), at=obj), obj, lo, hi
 
 
 def sample_lights(kind: str, rng: np.random.Generator, n: int = 32, object_size: float = 0.25) -> PointLights:

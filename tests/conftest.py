@@ -24,13 +24,14 @@ def shared_data() -> Path:
 @pytest.fixture(scope="session")
 def gl_ctx():
     """One standalone EGL OpenGL context for the whole run (created in one place, as moderngl's tests do)."""
-    moderngl = pytest.importorskip("moderngl")
+    pytest.importorskip("moderngl")
+    from illuminet.runtime.gl import GLError, get_context
+
     try:
-        ctx = moderngl.create_standalone_context(backend="egl", require=330)
-    except Exception as e:  # no EGL / GL driver on this machine
+        ctx = get_context("egl")  # the runtime's own shared context (illuminet.runtime.gl)
+    except GLError as e:  # no EGL / GL driver on this machine
         pytest.skip(f"no OpenGL context via EGL: {e}")
     yield ctx
-    ctx.release()
 
 
 @pytest.fixture

@@ -239,3 +239,54 @@ def test_load_real_meshes(shared_data):
     spot = load_object(str(shared_data / "meshes" / "spot" / "spot_triangulated.obj"))
     assert spot.visual.kind == "texture"  # UVs and material kept
     assert spot.bounds[1, 1] == pytest.approx(0.25)
+
+
+# --------------------------------------------------------------------------------- visibility
+
+from illuminet.runtime.visibility import VisibilityField, exact_visibility, shadow_on_plane  # noqa: E402
+
+
+def test_convex_mesh_sees_every_light_in_front():
+    sphere = load_object("builtin:sphere", "proxy")
+    lights = L.uniform_environment(1.0, n=64, distance=50.0)
+    vis = exact_visibility(sphere, sphere.vertices, lights, normals=sphere.vertex_normals)
+    facing = np.einsum("vnx,vx->vn", lights.positions[None] - sphere.vertices[:, None], sphere.vertex_normals) > 0.05
+    assert vis[facing].all()  # unoccluded convex mesh
+    # so with exact visibility a uniform environment still gives pi * L
+    env = L.uniform_environment(0.5, n=4096, distance=100.0)
+    vis = exact_visibility(sphere, sphere.vertices, env, normals=sphere.vertex_normals)
+    e = L.irradiance(sphere.vertices, sphere.vertex_normals, env, vis)
+    np.testing.assert_allclose(e, np.pi * 0.5, rtol=0.02)
+
+
+def test_hollow_vase_shadows_its_inside():
+    vase = load_object("builtin:vase", "proxy")
+    above = L.PointLights([[0.0, 3.0, 0.0]], [[1.0, 1.0, 1.0]])
+    low_side = L.PointLights([[3.0, 0.3, 0.0]], [[1.0, 1.0, 1.0]])
+    inside_bottom = np.array([[0.0, 0.02, 0.0]])
+    assert exact_visibility(vase, inside_bottom, above)[0, 0]  # straight down the neck
+    assert not exact_visibility(vase, inside_bottom, low_side)[0, 0]  # through the wall
+
+
+def test_shadow_on_plane_under_a_sphere():
+    sphere = load_object("builtin:sphere", "proxy")
+    light = L.PointLights([[0.0, 2.0, 0.0], [2.0, 0.1, 0.0]], np.ones((2, 3)))
+    pts = np.array([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [-0.3, 0.0, 0.0]])
+    vis = shadow_on_plane(sphere, pts, light)
+    assert vis.shape == (3, 2)
+    np.testing.assert_array_equal(vis[:, 0], [0.0, 1.0, 1.0])  # under the sphere: dark
+    assert vis[2, 1] == 0.0 and vis[1, 1] == 1.0  # a low light throws a long shadow behind it
+
+
+def test_visibility_field_is_close_to_exact_ray_casts():
+    vase = load_object("builtin:vase", "proxy")
+    field = VisibilityField(vase, n_directions=1024)
+    assert field.hit_distance.shape == (len(vase.vertices), 1024)
+    rng = np.random.default_rng(0)
+    for kind in L.ENVIRONMENT_KINDS:
+        err = field.error(L.sample_lights(kind, rng))
+        assert err["disagree"] < 0.03 and err["irradiance_rel"] < 0.05, (kind, err)
+    # distant-light lookup agrees with the near-light path for far lights
+    far = L.uniform_environment(1.0, n=16, distance=1e4)
+    d = far.positions / np.linalg.norm(far.positions, axis=1, keepdims=True)
+    np.testing.assert_allclose(field.lookup(d), field.lookup_lights(far), atol=0.05)

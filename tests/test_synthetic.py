@@ -1,0 +1,197 @@
+"""The synthetic RGB-D camera: URL handling, frame format, physical consistency, ground truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from illuminet.hw import open_source
+from illuminet.hw.synthetic import SCENES, SyntheticError, SyntheticSource, open_url
+from illuminet.runtime import lighting as L
+from illuminet.runtime.objects import load_object
+from illuminet.runtime.physics import linearize
+
+
+@pytest.fixture(scope="module")
+def indoor():
+    src = open_source("synthetic://indoor?seed=1&frames=3")
+    with src:
+        yield src, src.read()
+
+
+def test_registered_and_reads_until_end():
+    src = open_source("synthetic://lamp?seed=2&frames=2&size=320x200")
+    assert isinstance(src, SyntheticSource) and not src.live
+    with src:
+        frames = [src.read(), src.read(), src.read()]
+    assert frames[2] is None and frames[1].seq == 1
+    assert frames[1].t_device_ns > frames[0].t_device_ns
+
+
+@pytest.mark.parametrize(
+    "url, match",
+    [
+        ("synthetic://moon?seed=1", "scene must be one of"),
+        ("synthetic://indoor?sed=1", "unknown parameter"),
+        ("synthetic://indoor?seed=x", "seed must be an integer"),
+        ("synthetic://indoor?size=640", "WIDTHxHEIGHT"),
+        ("synthetic://indoor?path=fly", "path must be one of"),
+        ("synthetic://indoor?hdr=/x.hdr", "outdoor scene only"),
+        ("synthetic://outdoor?hdr=/nonexistent/x.hdr", "HDR map not found: /nonexistent/x.hdr"),
+        ("synthetic://indoor?table=2", "table must be 0 or 1"),
+    ],
+)
+def test_bad_urls_say_what_is_wrong(url, match):
+    with pytest.raises(SyntheticError, match=match):
+        open_url(url)
+
+
+def test_frame_format(indoor):
+    src, f = indoor
+    assert f.color.shape == (400, 640, 3) and f.color.dtype == np.uint8
+    assert f.depth.shape == (400, 640) and f.depth.dtype == np.float32
+    assert f.intrinsics.fx == pytest.approx(400.0) and f.intrinsics.width == 640
+    assert f.exposure.known and f.exposure.wb_gains == (1.0, 1.0, 1.0)
+    assert np.linalg.norm(f.gravity) == pytest.approx(1.0)
+    # gravity in the camera frame is world down
+    T = f.results["synthetic_gt"]["T_cam_world"]
+    np.testing.assert_allclose(f.gravity, T[:3, :3] @ [0, -1.0, 0], atol=1e-9)
+    valid = f.depth > 0
+    assert 0.85 < valid.mean() < 1.0  # holes exist, most pixels valid
+    assert open_url("synthetic://lamp?width=320&height=200").scene.intrinsics.width == 320
+    big = open_url("synthetic://indoor?seed=1&size=1280x800&frames=1").read()
+    assert big.color.shape == (800, 1280, 3) and big.intrinsics.fx == pytest.approx(800.0)
+
+
+def test_deterministic_per_seed():
+    a = open_url("synthetic://lamp?seed=4&frames=2&size=320x200")
+    b = open_url("synthetic://lamp?seed=4&frames=2&size=320x200")
+    c = open_url("synthetic://lamp?seed=5&frames=2&size=320x200")
+    fa, fb, fc = a.render(1), b.render(1), c.render(1)
+    np.testing.assert_array_equal(fa.color, fb.color)
+    np.testing.assert_array_equal(fa.depth, fb.depth)
+    assert not np.array_equal(fa.color, fc.color)
+    # frames differ by noise on a static path
+    assert not np.array_equal(a.render(0).color, fa.color)
+
+
+def _floor_pixels(src, frame, n=3000):
+    sc = src.scene
+    idx, depth, _, _ = src._renderer.geometry(sc.poses[frame])
+    K = sc.intrinsics
+    sel = np.flatnonzero(idx == 0)
+    sel = np.random.default_rng(0).choice(sel, min(n, sel.size), replace=False)
+    v, u = np.divmod(sel, K.width)
+    z = depth[sel]
+    pts = np.stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, z], 1)
+    return v, u, pts
+
+
+@pytest.mark.parametrize("url", ["synthetic://indoor?seed=1", "synthetic://lamp?seed=3", "synthetic://outdoor?seed=2"])
+def test_pixels_are_albedo_times_true_irradiance_over_pi(url):
+    src = open_url(url)
+    f = src.render(0)
+    sc = src.scene
+    v, u, pts = _floor_pixels(src, 0)
+    T = sc.T_cam_world(0)
+    e = sc.true_plane_irradiance(pts, T[:3, :3] @ [0, 1.0, 0])
+    world = pts @ sc.poses[0][:3, :3].T + sc.poses[0][:3, 3]
+    p = sc.planes[0]
+    S = p.albedo_tile.shape[0]
+    k = S / p.albedo_period_m
+    alb = p.albedo_tile[(world[:, 0] * k).astype(int) & (S - 1), (world[:, 2] * k).astype(int) & (S - 1)]
+    lin = linearize(f.color)[v, u] / f.exposure.scale
+    ok = np.all((f.color[v, u] > 8) & (f.color[v, u] < 250), axis=1)  # not clipped or in the noise floor
+    ratio = lin[ok] / (alb[ok] * e[ok] / np.pi)
+    np.testing.assert_allclose(np.median(ratio, axis=0), 1.0, atol=0.03)
+
+
+def test_auto_exposure_targets_mid_grey(indoor):
+    src, f = indoor
+    lin = linearize(f.color)
+    mean = float((lin @ [0.2126, 0.7152, 0.0722]).mean())
+    assert 0.1 < mean < 0.3
+    e = f.exposure
+    assert 100 <= e.exposure_us <= 33_333 and 100 <= e.iso <= 1600
+    assert e.scale == pytest.approx(e.exposure_us * 1e-6 * e.iso / 100)
+
+
+def test_depth_noise_grows_with_distance(indoor):
+    src, f = indoor
+    _, clean = src._renderer.render(src.scene.poses[0])
+    clean = clean.reshape(f.depth.shape)
+    ok = (f.depth > 0) & (clean > 0)
+    err = (f.depth - clean)[ok]
+    z = clean[ok]
+    near, far = err[z < 1.5], err[(z > 2.5) & (z < 4.0)]
+    assert near.size > 1000 and far.size > 1000
+    assert np.std(far) > 2.5 * np.std(near)  # ~ z^2
+    assert np.std(near) < 0.01
+
+
+def test_default_anchor_is_in_view_on_the_floor(indoor):
+    src, f = indoor
+    T = src.scene.default_anchor()
+    K = f.intrinsics
+    x = T[:3, 3]
+    u, v = K.fx * x[0] / x[2] + K.cx, K.fy * x[1] / x[2] + K.cy
+    assert 0.15 * K.width < u < 0.85 * K.width and 0.3 * K.height < v < K.height
+    # the anchor's +Y is the floor normal: up, against gravity
+    np.testing.assert_allclose(T[:3, 1], -f.gravity, atol=1e-9)
+
+
+def test_true_object_shading_is_frame_independent_and_matches_transport():
+    src = open_url("synthetic://spatial?seed=6&path=orbit&frames=8&size=320x200")
+    sc = src.scene
+    mesh = load_object("builtin:vase", "proxy")  # hollow: it shadows itself
+    k = len(sc.object_positions) - 1
+    a = sc.true_object_shading(mesh, sc.default_anchor(0, k), frame=0)
+    b = sc.true_object_shading(mesh, sc.default_anchor(5, k), frame=5)
+    np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9)
+    # without visibility it is plain point-light transport of the lights moved to the object
+    lights = sc.lights.translated(-sc.object_positions[k])
+    c = sc.true_object_shading(mesh, sc.default_anchor(0, k), visibility=False)
+    np.testing.assert_allclose(c, L.irradiance(mesh.vertices, mesh.vertex_normals, lights), rtol=1e-9)
+    assert np.all(a <= c + 1e-9) and a.sum() < c.sum()  # self-shadowing only removes light
+    oi = sc.true_object_oi(mesh, sc.default_anchor(0, k))
+    np.testing.assert_allclose(np.einsum("vcx,vx->vc", oi, mesh.vertex_normals), a, rtol=1e-9, atol=1e-12)
+
+
+def test_orbit_moves_the_camera_inside_the_room():
+    src = open_url("synthetic://indoor?seed=3&path=orbit&frames=10&size=160x100")
+    eyes = np.array([T[:3, 3] for T in src.scene.poses])
+    assert np.ptp(eyes[:, 0]) + np.ptp(eyes[:, 2]) > 0.3
+    lo, hi = src.scene.room
+    assert np.all(eyes > lo) and np.all(eyes < hi)
+
+
+def test_every_scene_renders():
+    for kind in SCENES:
+        f = open_url(f"synthetic://{kind}?seed=0&size=160x100").read()
+        assert f.color.std() > 2 and (f.depth > 0).mean() > 0.5, kind
+
+
+@pytest.mark.shared_data
+def test_outdoor_with_a_real_hdr_map(shared_data):
+    path = shared_data / "hdri" / "chinese_garden_1k.hdr"
+    src = open_url(f"synthetic://outdoor?seed=1&hdr={path}&size=320x200")
+    f = src.read()
+    assert src.scene.info["hdr"] == str(path)
+    assert f.color.std() > 5
+    e = L.irradiance(np.zeros((1, 3)), np.array([[0, 1.0, 0]]), src.scene.lights)[0] @ L._LUMA
+    assert 250 < e < 3000
+
+
+def test_table_never_hides_the_object():
+    for seed in range(4):
+        src = open_url(f"synthetic://indoor?seed={seed}&path=orbit&frames=6&size=160x100")
+        sc = src.scene
+        assert sc.info["table_centre"] is not None
+        src.open()
+        K = sc.intrinsics
+        for i in range(0, 6, 2):
+            T = sc.default_anchor(i)
+            x = T[:3, 3]
+            u, v = int(K.fx * x[0] / x[2] + K.cx), int(K.fy * x[1] / x[2] + K.cy)
+            idx = src._renderer.geometry(sc.poses[i])[0].reshape(K.height, K.width)
+            assert sc.planes[idx[v, u]].label == "floor", (seed, i)
