@@ -350,6 +350,29 @@ class SyntheticScene:
         pw = pts @ Tw[:3, :3].T + Tw[:3, 3]
         return L.irradiance(pts, nrm, self.lights_cam(frame), self.occlusion(pw))
 
+    def albedo_at(self, points_cam: np.ndarray, frame: int = 0, tol: float = 0.01) -> np.ndarray:
+        """True linear albedo (P, 3) at camera-frame points on the scene's planes; NaN off every plane.
+
+        A point belongs to the first plane within ``tol`` metres of it and inside its bounds.
+        """
+        pts = np.asarray(points_cam, float).reshape(-1, 3)
+        Tw = self.poses[frame % len(self.poses)]
+        pw = pts @ Tw[:3, :3].T + Tw[:3, 3]
+        out = np.full((pts.shape[0], 3), np.nan)
+        todo = np.ones(pts.shape[0], bool)
+        for p in self.planes:
+            on = todo & (np.abs(pw[:, p.axis] - p.coord) <= tol) & p.contains(pw)
+            if not on.any():
+                continue
+            S = p.albedo_tile.shape[0]
+            k = S / p.albedo_period_m
+            a, b = p.axes
+            ia = np.floor(pw[on, a] * k).astype(np.int64) % S
+            ib = np.floor(pw[on, b] * k).astype(np.int64) % S
+            out[on] = p.albedo_tile[ia, ib]
+            todo &= ~on
+        return out
+
     def object_lights(self, T_cam_obj: np.ndarray, frame: int = 0) -> L.PointLights:
         """The scene lights in the object frame of an object at ``T_cam_obj`` (seen in ``frame``)."""
         T_obj_world = _inv(self.poses[frame % len(self.poses)] @ np.asarray(T_cam_obj, float))
@@ -704,7 +727,8 @@ class _Renderer:
             xb = o[b] + t * d[b, sel]
             S = p["S"]
             m = S - 1
-            ti = ((xa * p["k"]).astype(np.int32) & m) * S + ((xb * p["k"]).astype(np.int32) & m)
+            # floor, not truncation: texel -1 is S - 1 (a tile repeats the same on both sides of 0)
+            ti = (np.floor(xa * p["k"]).astype(np.int32) & m) * S + (np.floor(xb * p["k"]).astype(np.int32) & m)
             alb = np.take(p["albedo"], ti, axis=0)
             gu, gv = p["gshape"]
             ga = np.clip(((xa - p["glo"][0]) * p["ginv"] + np.float32(0.5)).astype(np.int32), 0, gu - 1)

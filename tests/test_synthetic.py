@@ -95,15 +95,14 @@ def test_pixels_are_albedo_times_true_irradiance_over_pi(url):
     v, u, pts = _floor_pixels(src, 0)
     T = sc.T_cam_world(0)
     e = sc.true_plane_irradiance(pts, T[:3, :3] @ [0, 1.0, 0])
-    world = pts @ sc.poses[0][:3, :3].T + sc.poses[0][:3, 3]
-    p = sc.planes[0]
-    S = p.albedo_tile.shape[0]
-    k = S / p.albedo_period_m
-    alb = p.albedo_tile[(world[:, 0] * k).astype(int) & (S - 1), (world[:, 2] * k).astype(int) & (S - 1)]
+    alb = sc.albedo_at(pts)
+    assert not np.isnan(alb).any()
     lin = linearize(f.color)[v, u] / f.exposure.scale
     ok = np.all((f.color[v, u] > 8) & (f.color[v, u] < 250), axis=1)  # not clipped or in the noise floor
     ratio = lin[ok] / (alb[ok] * e[ok] / np.pi)
     np.testing.assert_allclose(np.median(ratio, axis=0), 1.0, atol=0.03)
+    # per pixel the spread is the sensor noise and 8-bit steps only (a wrong texel would add more)
+    assert np.percentile(np.abs(ratio - 1), 50) < 0.12
 
 
 def test_auto_exposure_targets_mid_grey(indoor):
