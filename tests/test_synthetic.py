@@ -179,6 +179,15 @@ def test_outdoor_with_a_real_hdr_map(shared_data):
     assert f.color.std() > 5
     e = L.irradiance(np.zeros((1, 3)), np.array([[0, 1.0, 0]]), src.scene.lights)[0] @ L._LUMA
     assert 250 < e < 3000
+    # the sky drawn in the picture is the same rotated map the lights came from: looking towards
+    # the strongest light one sees the sun
+    sc = src.scene
+    j = np.argmax(sc.lights.intensities @ L._LUMA)
+    d = sc.lights.positions[j] / np.linalg.norm(sc.lights.positions[j])
+    towards = float(sc.sky.radiance(d[None])[0] @ L._LUMA)
+    img = L.load_hdr(path)
+    assert towards > 0.5 * np.percentile(img @ L._LUMA, 99.9) * sc.sky.scale
+    assert float(sc.sky.radiance(-d[None])[0] @ L._LUMA) < 0.01 * towards
 
 
 def test_table_never_hides_the_object():
