@@ -166,8 +166,8 @@ def suggest_dictionary(gray: np.ndarray) -> str | None:
     """When a board is not found: the predefined dictionary that finds the most markers, if any."""
     best, best_n = None, 0
     for name in dictionary_names():
-        if not name.endswith(("_50", "_1000")) and "ARUCO_ORIGINAL" not in name and "APRILTAG" not in name:
-            continue  # the _100/_250 variants are prefixes of _1000; one per family is enough
+        if not name.endswith("_1000") and name not in ("DICT_ARUCO_ORIGINAL", "DICT_ARUCO_MIP_36h12"):
+            continue  # _50/_100/_250 are prefixes of _1000: one per family is enough (AprilTag skipped: slow)
         det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)),
                                       cv2.aruco.DetectorParameters())
         _, ids, _ = det.detectMarkers(gray)

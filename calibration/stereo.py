@@ -48,6 +48,7 @@ class StereoResult:
     per_pair_rms: list[float]
 
     def summary(self) -> str:
+        """One line: baseline, T, rotation angle, RMS, number of pairs."""
         T = np.asarray(self.stereo.T).ravel()
         ang = float(np.degrees(np.linalg.norm(cv2.Rodrigues(np.asarray(self.stereo.R))[0])))
         return (f"stereo {self.stereo.left}->{self.stereo.right}: baseline {self.stereo.baseline_m * 1000:.2f} mm, "
@@ -200,6 +201,7 @@ class Rectification:
         return float(-self.P2[0, 3] / self.P2[0, 0])
 
     def as_dict(self) -> dict[str, np.ndarray]:
+        """``{"R1", "R2", "P1", "P2", "Q"}`` as stored in :attr:`StereoCalib.rectification`."""
         return {"R1": self.R1, "R2": self.R2, "P1": self.P1, "P2": self.P2, "Q": self.Q}
 
 
@@ -405,9 +407,14 @@ class HostStereo:
         left_bgr, right_bgr : ndarray
             Raw (unrectified) images of the calibrated size, BGR uint8 as OpenCV delivers (or grey).
         """
-        lr, rr = self.rectify_pair(left_bgr, right_bgr)
+        self._check(left_bgr, "left")
+        self._check(right_bgr, "right")
+        # only the left image is needed in colour: the right one is converted to grey before the
+        # remap (a third of the work)
+        lr = cv2.remap(left_bgr, self._map_l[0], self._map_l[1], cv2.INTER_LINEAR)
         gl = lr if lr.ndim == 2 else cv2.cvtColor(lr, cv2.COLOR_BGR2GRAY)
-        gr = rr if rr.ndim == 2 else cv2.cvtColor(rr, cv2.COLOR_BGR2GRAY)
+        r_gray = right_bgr if right_bgr.ndim == 2 else cv2.cvtColor(right_bgr, cv2.COLOR_BGR2GRAY)
+        gr = cv2.remap(r_gray, self._map_r[0], self._map_r[1], cv2.INTER_LINEAR)
         disp = self.disparity(gl, gr)
         fb = np.float32(self.fx_rect * self._sx * self.baseline_m)
         with np.errstate(divide="ignore"):

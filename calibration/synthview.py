@@ -11,11 +11,16 @@ Outputs are the BGR image and the true depth (camera z, metres).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from illuminet.calibration.calibfile import CameraCalib
+
+if TYPE_CHECKING:
+    from illuminet.calibration.board import BoardSpec
+    from illuminet.calibration.calibfile import Calibration
 
 _CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
 
@@ -36,6 +41,7 @@ class TexturedPlane:
 
     @property
     def normal(self) -> np.ndarray:
+        """Unit normal u x v."""
         n = np.cross(self.u, self.v)
         return n / np.linalg.norm(n)
 
@@ -142,3 +148,99 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0,
     y = np.cross(z, x)
     R = np.stack([x, y, z])
     return R, -R @ eye
+
+
+@dataclass
+class StereoScene:
+    """A synthetic stereo pair with known geometry (see :func:`stereo_scene`)."""
+
+    calibration: "Calibration"
+    left: np.ndarray  # raw BGR
+    right: np.ndarray
+    planes: list[TexturedPlane]
+
+    def depth_rectified(self, R1: np.ndarray, P1: np.ndarray) -> np.ndarray:
+        """True depth (z of the rectified left camera, metres, 0 = nothing) for rectification R1, P1."""
+        cam = self.calibration.camera(self.calibration.stereo.left)
+        rect = CameraCalib(cam.width, cam.height, np.asarray(P1, float)[:3, :3], np.zeros(0))
+        _, depth = render(rect, np.asarray(R1, float), np.zeros(3), self.planes, supersample=1)
+        return depth
+
+
+def stereo_scene(width: int = 640, height: int = 400, fx: float = 400.0, baseline_m: float = 0.075,
+                 seed: int = 0, noise: float = 1.5, fisheye: bool = False) -> StereoScene:
+    """A room-like scene (back wall at 3 m, floor, a tilted panel at ~1.2 m) seen by a slightly
+    imperfect stereo pair (distortion, small rotation, different principal points), like a cheap
+    V4L2 stereo camera, with blur and sensor noise added. ``fisheye`` uses ``cv2.fisheye`` lenses."""
+    from illuminet.calibration.calibfile import Calibration, StereoCalib
+
+    K = np.array([[fx, 0, (width - 1) / 2 + 2.3], [0, fx * 1.001, (height - 1) / 2 - 1.7], [0, 0, 1.0]])
+    K2 = K.copy()
+    K2[0, 2] += 4.0
+    K2[1, 2] -= 2.0
+    if fisheye:
+        left = CameraCalib(width, height, K, np.array([-0.02, -0.008, 0.008, -0.004]), "fisheye")
+        right = CameraCalib(width, height, K2, np.array([-0.025, 0.01, -0.016, 0.006]), "fisheye")
+    else:
+        left = CameraCalib(width, height, K, np.array([-0.05, 0.01, 0.0002, -0.0001, 0.0]))
+        right = CameraCalib(width, height, K2, np.array([-0.045, 0.008, -0.0001, 0.0002, 0.0]))
+    R = cv2.Rodrigues(np.array([0.002, -0.008, 0.003]))[0]
+    T = np.array([-baseline_m, 0.0004, 0.001])
+    calib = Calibration({"left": left, "right": right}, StereoCalib("left", "right", R, T))
+    planes = [
+        TexturedPlane(np.array([-3.0, -2.0, 3.0]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]),
+                      random_texture(800, 1200, seed + 1), 0.005),
+        TexturedPlane(np.array([-0.3, -0.25, 1.2]), np.array([1.0, 0, 0]), np.array([0, 0.8, -0.6]),
+                      random_texture(250, 300, seed + 2), 0.002),
+        TexturedPlane(np.array([-3.0, 0.6, 0.2]), np.array([1.0, 0, 0]), np.array([0, 0, 1.0]),
+                      random_texture(600, 1200, seed + 3), 0.005),
+    ]
+    li, _ = render(left, np.eye(3), np.zeros(3), planes)
+    ri, _ = render(right, R, T, planes)
+    return StereoScene(calib, degrade(li, 0.5, noise, seed + 10), degrade(ri, 0.5, noise, seed + 11), planes)
+
+
+def depth_error(depth: np.ndarray, truth: np.ndarray) -> dict[str, float]:
+    """Relative depth error statistics where both are valid, plus coverage.
+
+    ``median_rel`` / ``p90_rel``: |z - z_true| / z_true; ``bad_5pct``: fraction of valid pixels off by
+    more than 5 %; ``valid``: fraction of pixels with true depth that got a depth.
+    """
+    has = truth > 0
+    v = has & (depth > 0)
+    if not v.any():
+        return {"median_rel": float("nan"), "p90_rel": float("nan"), "bad_5pct": float("nan"), "valid": 0.0}
+    rel = np.abs(depth[v] - truth[v]) / truth[v]
+    return {
+        "median_rel": float(np.median(rel)),
+        "p90_rel": float(np.percentile(rel, 90)),
+        "bad_5pct": float((rel > 0.05).mean()),
+        "valid": float(v.sum() / max(1, has.sum())),
+    }
+
+
+def board_plane(spec: "BoardSpec", dpi: float = 200.0, margin_mm: float = 15.0) -> TexturedPlane:
+    """The printed board as a textured plane whose board coordinates equal world coordinates
+    (origin at the board's top-left corner, x right, y down, z = 0), like ``spec.corner_points()``."""
+    from illuminet.calibration.board import board_image
+
+    tex = board_image(spec, dpi=dpi, margin_mm=margin_mm)
+    sq_px = int(round(spec.square_mm * dpi / 25.4))
+    px = spec.square_m / sq_px
+    m = int(round(margin_mm * dpi / 25.4))
+    return TexturedPlane(np.array([-m * px, -m * px, 0.0]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), tex, px)
+
+
+def board_poses(spec: "BoardSpec", n: int, seed: int = 0, distance: tuple[float, float] = (0.35, 0.6),
+                tilt: float = 0.6, shift: tuple[float, float] = (0.12, 0.08)) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``n`` random board poses as camera (R, t) with ``X_cam = R X_board + t``: the board centre at
+    ``distance`` metres ahead, shifted sideways, tilted up to ``tilt`` radians about x and y."""
+    rng = np.random.default_rng(seed)
+    c = np.array([spec.size_mm[0] / 2000.0, spec.size_mm[1] / 2000.0, 0.0])
+    out = []
+    for _ in range(n):
+        ang = rng.uniform(-tilt, tilt, 3) * np.array([1.0, 1.0, 0.5])
+        R = cv2.Rodrigues(ang)[0]
+        off = np.array([rng.uniform(-shift[0], shift[0]), rng.uniform(-shift[1], shift[1]), rng.uniform(*distance)])
+        out.append((R, off - R @ c))
+    return out

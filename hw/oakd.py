@@ -433,6 +433,79 @@ def depthai_version() -> str:
 
 # ---------------------------------------------------------------------------------------- the source
 
+@dataclass
+class OakdSession:
+    """One connection: what :class:`OakdSource` reads from until the device is lost.
+
+    Attributes
+    ----------
+    pipeline : dai.Pipeline
+        Started; stopped on disconnect.
+    queues : dict
+        ``"sync_queue"`` (colour+depth message groups) and ``"imu_queue"`` (``dai.IMUData``, or None).
+    converter : FrameConverter
+        With the device's intrinsics and IMU matcher.
+    device : dai.Device or None
+        Closed on disconnect.
+    device_id : str
+    """
+
+    pipeline: Any
+    queues: dict
+    converter: FrameConverter
+    device: Any = None
+    device_id: str = ""
+
+
+def connect_device(opts: OakdOptions, imu_rotation: Any = None, max_skew_ms: float = 20.0) -> OakdSession:
+    """Open the device, read its calibration, build and start the pipeline.
+
+    Raises
+    ------
+    OakdError
+        When no such device can be opened (with what DepthAI sees and how to fix access).
+    """
+    try:
+        device = dai.Device(dai.DeviceInfo(opts.device)) if opts.device else dai.Device()
+    except RuntimeError as e:
+        found = ", ".join(d["id"] for d in list_devices()) or "none"
+        raise OakdError(
+            f"cannot open OAK device {opts.device or '(first available)'}: {e}. Devices found: {found}. "
+            "Check the USB cable/port (USB3 preferred) or PoE link, and on Linux the udev rule "
+            "(echo 'SUBSYSTEM==\"usb\", ATTRS{idVendor}==\"03e7\", MODE=\"0666\"' | "
+            "sudo tee /etc/udev/rules.d/80-movidius.rules; sudo udevadm control --reload-rules "
+            "&& sudo udevadm trigger). `illuminet doctor` lists what DepthAI sees."
+        ) from e
+    try:
+        device_id = device.getDeviceId()
+        calib = device.readCalibration()
+        intr = intrinsics_from_calibration(calib, *opts.size, undistorted=opts.undistort)
+        has_imu = opts.imu and str(device.getConnectedIMU()).upper() not in ("", "NONE")
+        matcher = None
+        if has_imu:
+            R = imu_rotation_from_calibration(calib)
+            if R is None and imu_rotation is not None:
+                R = np.asarray(imu_rotation, dtype=np.float64).reshape(3, 3)
+            if R is None:
+                log.warning(
+                    "OAK %s: its calibration has no IMU-to-camera extrinsics, so gravity is not given "
+                    "(a wrong axis guess would mislabel floors and walls). Set [imu] rotation "
+                    "(IMU axes -> camera axes) to enable it.", device_id)
+                has_imu = False
+            else:
+                matcher = ImuMatcher(max_skew_ms=max_skew_ms, rotation=R)
+        pipeline = dai.Pipeline(device)
+        queues = build_device_pipeline(pipeline, opts, has_imu)
+        pipeline.start()
+    except Exception:
+        device.close()
+        raise
+    log.info("OAK %s: %dx%d at %.0f fps, depth aligned to CAM_A, IMU %s", device_id,
+             opts.size[0], opts.size[1], opts.fps, "on" if matcher else "off")
+    return OakdSession(pipeline=pipeline, queues=queues, converter=FrameConverter(intr, matcher),
+                       device=device, device_id=device_id)
+
+
 class OakdSource(Source):
     """Live colour + aligned depth (+ gravity) from an OAK device; see the module docstring.
 
@@ -444,6 +517,11 @@ class OakdSource(Source):
         ending the stream with an error. ``opts.reconnect`` overrides it.
     imu_rotation : 3x3 array-like, optional
         IMU -> colour camera rotation for devices whose calibration has no IMU extrinsics.
+    max_skew_ms : float
+        Largest IMU-to-frame time gap.
+    connect : callable, optional
+        ``connect(opts) -> OakdSession``; default :func:`connect_device`. (Tests connect a host-only
+        DepthAI pipeline to exercise reading, newest-wins, timeouts and reconnection.)
     """
 
     name = "oakd"
@@ -453,74 +531,35 @@ class OakdSource(Source):
     BACKOFF_MAX_S = 10.0
 
     def __init__(self, opts: OakdOptions, reconnect: bool = True, imu_rotation: Any = None,
-                 max_skew_ms: float = 20.0):
+                 max_skew_ms: float = 20.0, connect: Any = None):
         self.opts = opts
         self.reconnect = opts.reconnect if opts.reconnect is not None else bool(reconnect)
         self.imu_rotation = imu_rotation
         self.max_skew_ms = max_skew_ms
-        self._device = None
-        self._pipeline = None
-        self._queues: dict[str, Any] = {}
-        self._converter: FrameConverter | None = None
+        self._connect_fn = connect or (lambda o: connect_device(o, self.imu_rotation, self.max_skew_ms))
+        self._session: OakdSession | None = None
         self._stop = threading.Event()
         self._seq = 0
         self.reconnects = 0
         self.bad_frames = 0
         self.device_id = ""
         self._dropped_before = 0
+        self._last_converter: FrameConverter | None = None
 
     # -- connection
 
     def _connect(self) -> None:
-        opts = self.opts
-        try:
-            device = dai.Device(dai.DeviceInfo(opts.device)) if opts.device else dai.Device()
-        except RuntimeError as e:
-            found = ", ".join(d["id"] for d in list_devices()) or "none"
-            raise OakdError(
-                f"cannot open OAK device {opts.device or '(first available)'}: {e}. Devices found: {found}. "
-                "Check the USB cable/port (USB3 preferred) or PoE link, and on Linux the udev rule "
-                "(echo 'SUBSYSTEM==\"usb\", ATTRS{idVendor}==\"03e7\", MODE=\"0666\"' | "
-                "sudo tee /etc/udev/rules.d/80-movidius.rules; sudo udevadm control --reload-rules "
-                "&& sudo udevadm trigger). `illuminet doctor` lists what DepthAI sees."
-            ) from e
-        try:
-            self.device_id = device.getDeviceId()
-            calib = device.readCalibration()
-            intr = intrinsics_from_calibration(calib, *opts.size, undistorted=opts.undistort)
-            has_imu = opts.imu and str(device.getConnectedIMU()).upper() not in ("", "NONE")
-            matcher = None
-            if has_imu:
-                R = imu_rotation_from_calibration(calib)
-                if R is None and self.imu_rotation is not None:
-                    R = np.asarray(self.imu_rotation, dtype=np.float64).reshape(3, 3)
-                if R is None:
-                    log.warning(
-                        "OAK %s: its calibration has no IMU-to-camera extrinsics, so gravity is not given "
-                        "(a wrong axis guess would mislabel floors and walls). Set [imu] rotation "
-                        "(IMU axes -> camera axes) to enable it.", self.device_id)
-                    has_imu = False
-                else:
-                    matcher = ImuMatcher(max_skew_ms=self.max_skew_ms, rotation=R)
-            pipeline = dai.Pipeline(device)
-            self._queues = build_device_pipeline(pipeline, opts, has_imu)
-            pipeline.start()
-        except Exception:
-            device.close()
-            raise
-        self._device, self._pipeline = device, pipeline
-        prev = self._converter
-        self._converter = FrameConverter(intr, matcher)
-        if prev is not None:
-            self._dropped_before += prev.dropped
-        log.info("OAK %s: %dx%d at %.0f fps, depth aligned to CAM_A, IMU %s", self.device_id,
-                 opts.size[0], opts.size[1], opts.fps, "on" if matcher else "off")
+        session = self._connect_fn(self.opts)
+        if self._last_converter is not None:
+            self._dropped_before += self._last_converter.dropped
+        self._session, self._last_converter = session, session.converter
+        self.device_id = session.device_id
 
     def _disconnect(self) -> None:
-        pipeline, device = self._pipeline, self._device
-        self._pipeline = self._device = None
-        self._queues = {}
-        for closer in (getattr(pipeline, "stop", None), getattr(device, "close", None)):
+        session, self._session = self._session, None
+        if session is None:
+            return
+        for closer in (getattr(session.pipeline, "stop", None), getattr(session.device, "close", None)):
             if closer is None:
                 continue
             try:
@@ -538,20 +577,20 @@ class OakdSource(Source):
 
     # -- frames
 
-    def _next_group(self):
-        q = self._queues["sync_queue"]
+    def _next_group(self, session: OakdSession):
+        q = session.queues["sync_queue"]
+        imu_q = session.queues.get("imu_queue")
         deadline = time.monotonic() + self.opts.timeout_s
         while not self._stop.is_set():
-            imu_q = self._queues.get("imu_queue")
             if imu_q is not None:
                 for data in imu_q.tryGetAll():
-                    self._converter.add_imu(data)
+                    session.converter.add_imu(data)
             groups = q.tryGetAll()
             if groups:
                 return groups[-1]  # keep the newest; older ones count as drops via sequence gaps
             if time.monotonic() > deadline:
                 raise OakdError(f"no frame from OAK {self.device_id} for {self.opts.timeout_s:g} s")
-            if self._pipeline is not None and not self._pipeline.isRunning():
+            if not session.pipeline.isRunning():
                 raise OakdError(f"OAK {self.device_id} pipeline stopped")
             msg = q.get(datetime.timedelta(milliseconds=50))
             if msg is not None:
@@ -564,14 +603,17 @@ class OakdSource(Source):
         backoff = self.BACKOFF_START_S
         while not self._stop.is_set():
             try:
-                if self._pipeline is None:
+                if self._session is None:
                     self._connect()
                     backoff = self.BACKOFF_START_S
-                group = self._next_group()
+                session = self._session  # close() from another thread may clear the attribute
+                if session is None:
+                    return None
+                group = self._next_group(session)
                 if group is None:
                     return None
                 try:
-                    frame = self._converter.convert(group)
+                    frame = session.converter.convert(group)
                 except ValueError as e:  # one bad frame: skip it, the stream goes on
                     self.bad_frames += 1
                     log.warning("OAK %s: skipped a bad frame: %s", self.device_id, e)
@@ -597,7 +639,7 @@ class OakdSource(Source):
         return None
 
     def stats(self) -> dict[str, Any]:
-        conv = self._converter
+        conv = self._last_converter
         return {"device": self.device_id, "dropped": self._dropped_before + (conv.dropped if conv else 0),
                 "reconnects": self.reconnects, "bad_frames": self.bad_frames}
 

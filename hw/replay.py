@@ -19,7 +19,7 @@ import collections
 import logging
 import threading
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import CancelledError, ThreadPoolExecutor
 from pathlib import Path
 from urllib.parse import parse_qsl, unquote, urlsplit
 
@@ -108,18 +108,26 @@ class ReplaySource(Source):
         self._pool = ThreadPoolExecutor(max_workers=self.workers, thread_name_prefix="illuminet-replay")
         self._closing.clear()
         self._closed = False
+        self._pending.clear()
+        self._next_pos = self._next_round = self._emitted = self._corrupt = self._bad_in_row = 0
+        self._t0_wall = None
         self._fill()
 
     def _fill(self) -> None:
         # keep a few frames decoding ahead; order is preserved by the deque
         n = len(self.session)
-        while len(self._pending) < 2 * self.workers:
+        pool = self._pool
+        while pool is not None and len(self._pending) < 2 * self.workers:
             if self._next_pos >= n:
                 if not self.loop:
                     return
                 self._next_pos, self._next_round = 0, self._next_round + 1
             pos, rnd = self._next_pos, self._next_round
-            self._pending.append((pos, rnd, self._pool.submit(self.session.read, pos)))
+            try:
+                fut = pool.submit(self.session.read, pos)
+            except RuntimeError:  # the pool was shut down by close() meanwhile
+                return
+            self._pending.append((pos, rnd, fut))
             self._next_pos += 1
 
     def read(self) -> Frame | None:
@@ -128,12 +136,19 @@ class ReplaySource(Source):
         if self.max_frames and self._emitted >= self.max_frames:
             return None
         while True:
+            if self._closed:  # close() from another thread (the loop stopping)
+                return None
             self._fill()
             if not self._pending:
                 return None
-            pos, rnd, fut = self._pending.popleft()
+            try:
+                pos, rnd, fut = self._pending.popleft()
+            except IndexError:  # emptied by close() from another thread
+                return None
             try:
                 frame: Frame = fut.result()
+            except CancelledError:  # close() cancelled the decode we were waiting for
+                return None
             except CorruptFrame as e:
                 self._corrupt += 1
                 self._bad_in_row += 1

@@ -154,8 +154,12 @@ class AnalyticScene:
         return self.irradiance_world(self.to_world(p_c), n_c @ self.R_c2w.T)
 
     # -- frames
-    def frame(self, seq: int = 0, t_ns: int | None = None) -> Frame:
-        """Frame ``seq``: the static render plus fresh noise and holes."""
+    def frame(self, seq: int = 0, t_ns: int | None = None, gain: float = 1.0) -> Frame:
+        """Frame ``seq``: the static render plus fresh noise and holes.
+
+        ``gain`` multiplies the linear image (a changed auto exposure when the metadata is unknown,
+        or a changed light level when it is known: the metadata stays the same).
+        """
         rng = np.random.default_rng(self.seed * 100003 + seq)
         H, W = self._z.shape
         z = self._z
@@ -165,7 +169,7 @@ class AnalyticScene:
         for _ in range(3):  # blob holes like textureless stereo gaps
             cy, cx, rr = rng.integers(0, H), rng.integers(0, W), rng.integers(4, 14)
             d[max(0, cy - rr):cy + rr, max(0, cx - rr):cx + rr] = 0.0
-        lin = self._lin * (1.0 + self.color_noise * rng.standard_normal(self._lin.shape))
+        lin = gain * self._lin * (1.0 + self.color_noise * rng.standard_normal(self._lin.shape))
         color = linear_to_srgb8(lin)
         t = int(seq * 33_333_333) if t_ns is None else t_ns
         return Frame(seq=seq, t_device_ns=t, t_host_ns=t, color=color, depth=d.astype(np.float32),

@@ -14,7 +14,7 @@ import shutil
 import tempfile
 import time
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -62,8 +62,8 @@ def numpy_rgbd_frames(n: int, width: int = WIDTH, height: int = HEIGHT, seed: in
                     gravity=np.array([0.0, 1.0, 0.0]))
 
 
-def _frames(n: int, cfg: Config) -> tuple[str, Iterator[Frame]]:
-    """Source frames for the benchmark session: synthetic:// when present, else numpy ones."""
+def _frames(n: int, cfg: Config, width: int, height: int) -> tuple[str, Iterator[Frame]]:
+    """Source frames for the benchmark session: synthetic:// when present (and of the asked size), else numpy ones."""
     if importlib.util.find_spec("illuminet.hw.synthetic") is not None:
         from illuminet.hw import open_source
         url = f"synthetic://indoor?seed=0&frames={n}"
@@ -73,57 +73,92 @@ def _frames(n: int, cfg: Config) -> tuple[str, Iterator[Frame]]:
         except Exception as e:  # the synthetic source belongs to another part; fall back, say so
             print(f"  ({url} unavailable: {e}; using numpy frames)")
         else:
-            def gen():
-                try:
-                    for _ in range(n):
-                        f = src.read()
-                        if f is None:
-                            return
-                        yield f
-                finally:
-                    src.close()
-            return url, gen()
-    return "numpy_rgbd_frames(seed=0)", numpy_rgbd_frames(n)
+            first = src.read()
+            if first is not None and first.size == (width, height) and first.depth is not None:
+                def gen():
+                    try:
+                        yield first
+                        for _ in range(n - 1):
+                            f = src.read()
+                            if f is None:
+                                return
+                            yield f
+                    finally:
+                        src.close()
+                return url, gen()
+            src.close()
+            got = "nothing" if first is None else f"{first.size[0]}x{first.size[1]}"
+            print(f"  ({url} gives {got}, not {width}x{height} RGB-D; using numpy frames)")
+    return "numpy_rgbd_frames(seed=0)", numpy_rgbd_frames(n, width, height)
 
 
-def record_session(path: Path, n: int, cfg: Config, color: str = "png") -> dict:
+def record_session(path: Path, n: int, cfg: Config, color: str = "png", width: int = WIDTH,
+                   height: int = HEIGHT) -> dict:
     """Write a benchmark session of ``n`` frames at ``path``; returns what was recorded and how fast."""
-    origin, frames = _frames(n, cfg)
-    t0 = time.perf_counter()
+    origin, frames = _frames(n, cfg, width, height)
+    dt = 0.0  # time in the writer only, not in making the frames
     with SessionWriter(path, source=origin, color=color) as w:
         for f in frames:
+            t0 = time.perf_counter()
             w.append(f)
-    dt = time.perf_counter() - t0
+            dt += time.perf_counter() - t0
     size = sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
     return {"origin": origin, "frames": w.count, "write_fps": w.count / dt, "bytes_per_frame": size / max(w.count, 1)}
 
 
 def run(args, cfg: Config) -> dict:
-    """Record, then replay asap through a null sink ``runs`` times; print and return the figures."""
-    from illuminet.hw.replay import ReplaySource
-
+    """``illuminet bench replay``: 300 frames, 5 runs, PNG then raw colour (``--quick``: 60 frames, 3 runs, PNG)."""
     quick = bool(getattr(args, "quick", False))
     n, runs = (60, 3) if quick else (300, 5)
+    return measure(n, runs, cfg, colors=("png",) if quick else ("png", "raw"))
+
+
+def _replay_runs(path: Path, runs: int) -> tuple[list[float], list[float], Any]:
+    from illuminet.hw.replay import ReplaySource
+
+    fps, cpu, last = [], [], None
+    for _ in range(runs):
+        src = ReplaySource(path, timing="asap")
+        c0 = time.process_time()
+        last = run_loop(src, [], [NullSink()], install_signals=False)
+        cpu.append((time.process_time() - c0) / max(last.frames, 1))
+        fps.append(last.frames / last.elapsed_s)
+    return fps, cpu, last
+
+
+def measure(n: int, runs: int, cfg: Config, width: int = WIDTH, height: int = HEIGHT,
+            colors: tuple[str, ...] = ("png",)) -> dict:
+    """Record ``n`` frames per colour encoding, replay each asap through a null sink ``runs`` times.
+
+    Prints and returns the figures; the top-level keys are those of the first encoding (the default
+    PNG), ``by_color`` has every encoding's.
+    """
     tmp = Path(tempfile.mkdtemp(prefix="illuminet-bench-replay-"))
     try:
-        rec = record_session(tmp / "session", n, cfg)
-        print(f"  session: {rec['frames']} frames {WIDTH}x{HEIGHT} RGB-D from {rec['origin']}, colour PNG, "
-              f"depth 16-bit PNG; {rec['bytes_per_frame'] / 1e3:.0f} kB/frame; recorded at {rec['write_fps']:.1f} frames/s "
-              f"(with fsync)")
-        fps = []
-        last = None
-        for _ in range(runs):
-            src = ReplaySource(tmp / "session", timing="asap")
-            last = run_loop(src, [], [NullSink()], install_signals=False)
-            fps.append(last.frames / last.elapsed_s)
-        med = float(np.median(fps))
-        print("  replay asap -> null sink, frames/s per run: " + ", ".join(f"{x:.1f}" for x in fps))
-        print(f"  median {med:.1f} frames/s (target >= {TARGET_FPS:.0f}): {'OK' if med >= TARGET_FPS else 'BELOW TARGET'}")
-        print("  last run, per step:")
-        print("    " + last.format_stats().replace("\n", "\n    "))
-        return {"frames": rec["frames"], "width": WIDTH, "height": HEIGHT, "origin": rec["origin"],
-                "replay_fps_runs": fps, "replay_fps_median": med, "target_fps": TARGET_FPS,
-                "record_fps": rec["write_fps"], "bytes_per_frame": rec["bytes_per_frame"],
-                "steps": last.to_dict()["steps"]}
+        out: dict[str, Any] = {}
+        for color in colors:
+            path = tmp / f"session-{color}"
+            rec = record_session(path, n, cfg, color=color, width=width, height=height)
+            print(f"  session: {rec['frames']} frames {width}x{height} RGB-D from {rec['origin']}, colour {color}, "
+                  f"depth 16-bit PNG; {rec['bytes_per_frame'] / 1e3:.0f} kB/frame; writer: {rec['write_fps']:.1f} "
+                  f"frames/s (one thread, with fsync)")
+            fps, cpu, last = _replay_runs(path, runs)
+            shutil.rmtree(path, ignore_errors=True)
+            med = float(np.median(fps))
+            cpu_ms = float(np.median(cpu)) * 1e3
+            print(f"  [{color}] replay asap -> null sink, frames/s per run: " + ", ".join(f"{x:.1f}" for x in fps))
+            print(f"  [{color}] median {med:.1f} frames/s (target >= {TARGET_FPS:.0f}): "
+                  f"{'OK' if med >= TARGET_FPS else 'BELOW TARGET'}")
+            # wall-clock figures depend on what else runs on the machine; CPU time per frame does not
+            print(f"  [{color}] CPU time {cpu_ms:.2f} ms/frame (all threads): with the machine to itself that is "
+                  f"~{1e3 / cpu_ms:.0f} frames/s on one core, ~{2e3 / cpu_ms:.0f} on two (decoding runs on 2 threads)")
+            if color == colors[0]:
+                print("  last run, per step:")
+                print("    " + last.format_stats().replace("\n", "\n    "))
+            out[color] = {"frames": rec["frames"], "width": width, "height": height, "origin": rec["origin"],
+                          "color": color, "replay_fps_runs": fps, "replay_fps_median": med, "target_fps": TARGET_FPS,
+                          "cpu_ms_per_frame": cpu_ms, "record_fps": rec["write_fps"],
+                          "bytes_per_frame": rec["bytes_per_frame"], "steps": last.to_dict()["steps"]}
+        return {**out[colors[0]], "by_color": out}
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -132,6 +132,9 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
     except (SourceError, SinkError, SessionError) as e:
         print(f"illuminet: {e}", file=sys.stderr)
         return 1
+    except ModuleNotFoundError as e:  # a source module that is not part of this build
+        print(f"illuminet: source {url!r} is not available in this build ({e})", file=sys.stderr)
+        return 1
     rc = 0
     try:
         run_loop(source, stages, sinks, strict=cfg.logging.strict, max_frames=cfg.source.max_frames, stats=stats)

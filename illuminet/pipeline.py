@@ -14,9 +14,31 @@ from illuminet.runtime.sinks import PngSequenceSink, SessionRecorderSink, VideoS
 from illuminet.runtime.stage import Sink, Stage
 
 
-def build_stages(cfg: Config) -> list[Stage]:
-    """Planes -> anchor -> plane light -> shading -> render, as configured."""
-    return []
+def build_stages(cfg: Config, *, render: bool = True) -> list[Stage]:
+    """Planes -> anchor -> plane light -> shading -> render, as configured (unopened).
+
+    Parameters
+    ----------
+    cfg : Config
+        All sections; ``[source] response_curve`` (when set) is loaded once and given to both the
+        plane measurement (to linearise) and the renderer (to encode the object the same way).
+    render : bool
+        Include the :class:`~illuminet.runtime.render.RenderStage` (False: lighting only, e.g.
+        for evaluation or benchmarks of the lighting stages alone).
+    """
+    from illuminet.runtime.anchor import AnchorStage
+    from illuminet.runtime.plane_light import PlaneLightStage, load_response_lut
+    from illuminet.runtime.planes import PlaneStage
+    from illuminet.runtime.transfer import ShadingStage
+
+    lut = load_response_lut(cfg.source.response_curve) if cfg.source.response_curve else None
+    stages: list[Stage] = [PlaneStage(cfg), AnchorStage(cfg), PlaneLightStage(cfg, response_lut=lut),
+                           ShadingStage(cfg)]
+    if render:
+        from illuminet.runtime.render import RenderStage
+
+        stages.append(RenderStage(cfg, response_lut=lut))
+    return stages
 
 
 def build_sinks(

@@ -3,10 +3,11 @@
 What this module owns
     * Choosing the anchor plane and point, by ``[anchor] mode``:
 
-      ``auto``   the largest horizontal plane (``floor``/``table`` label) containing the image
-                 centre, else the largest horizontal plane; the point is where the central ray
-                 meets it, or (when the centre is not on it) the plane's inlier pixel nearest the
-                 image centre. The choice is sticky: the same plane ID is kept while it is tracked.
+      ``auto``   the largest horizontal plane (``floor``/``table`` label) under the image centre
+                 (a quarter of the cloud samples within ~12 pixels are its inliers), else the
+                 largest horizontal plane; the point is where the central ray meets it, or (when
+                 the centre is not on it) the ray through its inlier pixel nearest the image
+                 centre. The choice is sticky: the same plane ID is kept while it is tracked.
       ``pixel``  the colour-image pixel ``[anchor] pixel``: its ray hits the plane under it (the
                  plane whose inliers contain it, else the nearest plane the ray meets).
       ``point``  the 3D camera-frame point ``[anchor] point`` projected onto the nearest plane.
@@ -99,15 +100,23 @@ def _pixel_ray(frame: Frame, u: float, v: float) -> np.ndarray:
     return np.array([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, 1.0])
 
 
-def _mask_at(p: Plane, u: int, v: int) -> bool:
-    m = p.inlier_mask
-    if m is not None:
-        return 0 <= v < m.shape[0] and 0 <= u < m.shape[1] and bool(m[v, u])
+def _covers(p: Plane, u: float, v: float, radius: int = 3, min_fraction: float = 0.25) -> bool:
+    """Whether plane ``p`` lies under pixel (u, v): at least ``min_fraction`` of the cloud samples within
+    ``radius`` samples around it are its inliers.
+
+    A neighbourhood, not the single pixel: one hole or one noisy sample at the pixel must not move
+    the anchor (the origin would then jump to the nearest inlier and back from frame to frame).
+    """
     m, s = p.cloud_mask, max(1, p.cloud_stride)
+    if m is None and p.inlier_mask is not None:
+        m, s = p.inlier_mask[::4, ::4], 4
     if m is None:
         return False
-    i, j = v // s, u // s
-    return 0 <= i < m.shape[0] and 0 <= j < m.shape[1] and bool(m[i, j])
+    i, j = int(round(v / s)), int(round(u / s))
+    if not (0 <= i < m.shape[0] and 0 <= j < m.shape[1]):
+        return False
+    win = m[max(0, i - radius):i + radius + 1, max(0, j - radius):j + radius + 1]
+    return win.size > 0 and float(win.mean()) >= min_fraction
 
 
 def _nearest_inlier_pixel(p: Plane, u: float, v: float) -> tuple[float, float] | None:
@@ -165,7 +174,7 @@ class AnchorStage(Stage):
                                             "using the image centre")
                 u, v = (w - 1) / 2.0, (h - 1) / 2.0
             ray = _pixel_ray(frame, u, v)
-            under = [p for p in planes if _mask_at(p, int(u), int(v))]
+            under = [p for p in planes if _covers(p, u, v)]
             hits = [(p, x) for p in (under or planes) if (x := p.intersect(ray)) is not None]
             if not hits:
                 return None
@@ -179,9 +188,9 @@ class AnchorStage(Stage):
         if prev:
             p = prev[0]
         else:
-            centre = [p for p in horiz if _mask_at(p, int(u), int(v))]
+            centre = [p for p in horiz if _covers(p, u, v)]
             p = max(centre or horiz, key=lambda q: q.area_m2)
-        if not _mask_at(p, int(u), int(v)):
+        if not _covers(p, u, v):
             near = _nearest_inlier_pixel(p, u, v)
             if near is not None:
                 u, v = near

@@ -67,7 +67,7 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "redetect_every": _f(int, 30, "full re-detection every N frames (tracking in between)"),
         "max_planes": _f(int, 4, "most planes kept per frame"),
         "min_area_m2": _f(float, 0.02, "smallest plane kept, square metres"),
-        "inlier_threshold_m": _f(float, 0.01, "distance of an inlier at 1 m; grows with z^2 like stereo noise"),
+        "inlier_threshold_m": _f(float, 0.03, "distance of an inlier at 1 m; grows with z^2 like stereo noise (0.045 for integer-disparity depth)"),
         "smoothing": _f(float, 0.8, "temporal smoothing of plane parameters, 0 = none, <1"),
     },
     "anchor": {
@@ -93,7 +93,14 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "shadow": _f(bool, True, "draw the object's shadow on the anchor plane"),
         "shadow_map": _f(int, 1024, "shadow map resolution, pixels"),
         "occlusion": _f(bool, True, "real geometry nearer than the object hides it"),
-        "msaa": _f(int, 4, "multisample anti-aliasing samples (0 = off)"),
+        "antialias": _f(str, "edge", "object edges: filtered silhouette (cheap), multisampling, or none",
+                        choices=("edge", "msaa", "off")),
+        "msaa": _f(int, 4, "samples per pixel when antialias = \"msaa\" (0 = off)"),
+        "shadow_softness": _f(float, 0.05, "shadow penumbra radius as a fraction of the object's size"),
+        "contact_shadow": _f(float, 0.6, "strength of the contact shadow under the object's base, 0..1"),
+        "depth_tolerance_m": _f(float, 0.03, "real depth this much nearer (at 1 m; grows with z^2) hides the object"),
+        "gl_backend": _f(str, "egl", "OpenGL context: headless EGL, or the platform default (needs a display)",
+                         choices=("egl", "default")),
     },
     "output": {
         "video": _f(str, "", "write an .mp4/.avi video here ('' = off)"),
@@ -109,7 +116,7 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "record_fsync": _f(bool, True, "fsync every recorded frame (survives power loss; kill -9 is safe either way)"),
     },
     "imu": {
-        "url": _f(str, "", "serial IMU URL for serial.serial_for_url, e.g. /dev/ttyUSB0 or loop:// ('' = none)"),
+        "url": _f(str, "", "serial IMU: serial://PORT?baud=N, or any serial.serial_for_url URL (/dev/ttyUSB0, loop://); '' = none"),
         "baudrate": _f(int, 115200, "serial baud rate"),
         "max_skew_ms": _f(float, 20.0, "largest IMU-to-frame timestamp gap accepted"),
         "rotation": _f(list, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],

@@ -289,16 +289,17 @@ class _FailureLog:
     def __init__(self) -> None:
         self.seen: set[str] = set()
 
-    def report(self, key: str, frame: Frame, err: BaseException, what_next: str) -> None:
+    def report(self, key: str, frame: Frame | None, err: BaseException, what_next: str) -> None:
+        where = f"frame {frame.seq}" if frame is not None else "before the first frame"
         if key in self.seen:
-            log.debug("%s failed again on frame %d: %s", key, frame.seq, err)
+            log.debug("%s failed again on %s: %s", key, where, err)
             return
         self.seen.add(key)
         log.error(
-            "%s failed on frame %d: %s: %s. %s This is logged once per kind; the count is in the final "
+            "%s failed on %s: %s: %s. %s This is logged once per kind; the count is in the final "
             "statistics. To stop at the first failure with a traceback use --strict ([logging] strict = true); "
             "--log-level debug logs every occurrence.",
-            key.split(": ")[0], frame.seq, type(err).__name__, err, what_next,
+            key.split(": ")[0], where, type(err).__name__, err, what_next,
         )
 
 
@@ -365,24 +366,40 @@ def run_loop(
     reason = "end of stream"
 
     def report() -> None:
-        stats.set_source_stats(source.stats())
-        if slot is not None:
-            stats.set_dropped(slot.dropped)
-        if on_stats is not None:
-            on_stats(stats.snapshot())
+        try:
+            stats.set_source_stats(source.stats())
+            if slot is not None:
+                stats.set_dropped(slot.dropped)
+            if on_stats is not None:
+                on_stats(stats.snapshot())
+        except Exception as e:  # statistics must never stop the stream
+            if strict:
+                raise
+            failures.report(f"stats: {type(e).__name__}", current[0], e, "Statistics may be stale.")
 
-    with contextlib.ExitStack() as stack, _signals_stop(stop, install_signals):
-        # close order is the reverse of this: sinks, stages, then the reader thread and source
+    current: list[Frame | None] = [None]  # the frame being processed, for messages
+
+    # signal handlers stay installed until everything is closed: a SIGTERM during finalisation must
+    # not kill the process with the default handler half-way through closing a recording
+    with _signals_stop(stop, install_signals), contextlib.ExitStack() as stack:
+        # close order is the reverse of this: sinks, stages, reader stop, source, last reader join.
+        # The reader thread may be blocked inside read() (waiting for a camera, or replay sleeping
+        # until a timestamp): it gets a moment to notice the stop, then closing the source unblocks it.
+        @stack.callback
+        def _join_reader() -> None:
+            if reader is not None:
+                reader.join(timeout=2.0)
+                if reader.is_alive():
+                    log.warning("source %r did not return from read() within 2 s of being closed",
+                                _name(source, "source"))
+
         stack.enter_context(source)
 
         @stack.callback
         def _stop_reader() -> None:
             reader_stop.set()
             if reader is not None:
-                reader.join(timeout=2.0)
-                if reader.is_alive():
-                    log.warning("source %r did not return from read() within 2 s of stopping",
-                                _name(source, "source"))
+                reader.join(timeout=0.5)
 
         for st in stages:
             stack.enter_context(st)
@@ -433,6 +450,7 @@ def run_loop(
                     if frame is None:
                         break
                 # ---- stages
+                current[0] = frame
                 frame_failed = False
                 for k, st in enumerate(stages):
                     before = frame.results
@@ -481,7 +499,7 @@ def run_loop(
             stats.stop(reason)
             try:
                 report()
-            except Exception:  # a failing stats callback must not hide the real outcome
+            except Exception:  # strict: a failing stats callback must not hide the real outcome
                 log.exception("stats callback failed")
     # after close: the source's final counters (e.g. frames it dropped itself)
     try:

@@ -15,9 +15,10 @@ How a frame travels, and why the loop never waits for a client::
           └──▶ latest JPEG (bytes, sequence number) ──▶ client thread 1 ── socket
                                                     └─▶ client thread 2 ── socket ...
 
-* JPEG encoding happens at most once per frame whatever the number of clients, and not at all while
-  nobody watches. It runs in its own thread (``cv2.imencode`` releases the GIL), so the loop only
-  pays for storing a reference.
+* JPEG encoding happens at most once per frame whatever the number of clients, not at all while
+  nobody watches, and at most ``max_fps`` times a second (default 30: a viewer's display rate).
+  It runs in its own thread (``cv2.imencode`` releases the GIL), so the loop only pays for storing
+  a reference.
 * Each client thread sends the latest encoded frame it has not sent yet. A slow client simply skips
   frames: it never holds the encoder or the loop back.
 * The server binds 127.0.0.1 by default. ``listen="0.0.0.0"`` serves the local network (a headset);
@@ -26,6 +27,7 @@ How a frame travels, and why the loop never waits for a client::
 
 from __future__ import annotations
 
+import collections
 import json
 import logging
 import threading
@@ -97,35 +99,44 @@ poll(); setInterval(poll, 1000);
 
 
 class _Hub:
-    """Shared state between the loop (``offer``), the encoder thread and the client threads."""
+    """Shared state between the loop (``offer``), the encoder thread and the client threads.
 
-    def __init__(self, quality: int):
+    One lock, two conditions: ``frame_cond`` wakes the encoder (a new frame while someone watches),
+    ``cond`` wakes the client threads (a new JPEG). The loop notifies only when the encoder is
+    actually waiting for a frame, so a fast loop does not wake a thread (and fight it for the GIL)
+    on every frame.
+    """
+
+    def __init__(self, quality: int, max_fps: float = 0.0):
         self.quality = int(quality)
-        self.cond = threading.Condition()
+        self.min_interval = 1.0 / max_fps if max_fps > 0 else 0.0
+        self.lock = threading.Lock()
+        self.cond = threading.Condition(self.lock)        # new JPEG -> client threads
+        self.frame_cond = threading.Condition(self.lock)  # new frame / new client -> encoder
+        self.closed_event = threading.Event()
         self.pending: np.ndarray | None = None  # newest RGB image not yet encoded
         self.pending_seq = 0
         self.jpeg: bytes | None = None
         self.jpeg_seq = 0
         self.clients = 0
         self.closed = False
+        self.encoder_waiting = False
         self.offered = 0
         self.encoded = 0
         self.sent = 0
-        self._times: list[float] = []
+        self._times: collections.deque[float] = collections.deque(maxlen=60)
 
     def offer(self, rgb: np.ndarray) -> None:
-        with self.cond:
+        with self.lock:
             self.pending = rgb
             self.pending_seq += 1
             self.offered += 1
-            now = time.monotonic()
-            self._times.append(now)
-            if len(self._times) > 60:
-                del self._times[:30]
-            self.cond.notify_all()
+            self._times.append(time.monotonic())
+            if self.encoder_waiting and self.clients > 0:
+                self.frame_cond.notify()
 
     def fps(self) -> float:
-        with self.cond:
+        with self.lock:
             t = list(self._times)
         if len(t) < 2 or t[-1] <= t[0]:
             return 0.0
@@ -135,16 +146,25 @@ class _Hub:
         """Encoder thread: encode the newest offered image once, while at least one client watches."""
         last = 0
         params = [int(cv2.IMWRITE_JPEG_QUALITY), self.quality]
+        next_time = 0.0
         while True:
-            with self.cond:
+            # the preview rate cap: a viewer needs no more than its display rate, and the CPU saved
+            # stays with the loop (the newest frame at the next slot is encoded; the rest skipped)
+            wait = next_time - time.monotonic()
+            if wait > 0 and self.closed_event.wait(wait):
+                return
+            with self.lock:
+                self.encoder_waiting = True
                 while not self.closed and (self.pending_seq == last or self.clients == 0):
-                    self.cond.wait(0.5)
+                    self.frame_cond.wait(0.5)
+                self.encoder_waiting = False
                 if self.closed:
                     return
                 img, last = self.pending, self.pending_seq
                 self.pending = None  # drop the reference: the loop's frame can be freed
             if img is None:
                 continue
+            next_time = time.monotonic() + self.min_interval
             try:
                 ok, buf = cv2.imencode(".jpg", cv2.cvtColor(img, cv2.COLOR_RGB2BGR), params)
             except cv2.error as e:  # a bad image must not kill the server
@@ -152,7 +172,7 @@ class _Hub:
                 continue
             if not ok:
                 continue
-            with self.cond:
+            with self.lock:
                 self.jpeg, self.jpeg_seq = buf.tobytes(), last
                 self.encoded += 1
                 self.cond.notify_all()
@@ -171,14 +191,16 @@ class _Hub:
             return self.jpeg, self.jpeg_seq
 
     def add_client(self, delta: int) -> None:
-        with self.cond:
+        with self.lock:
             self.clients += delta
-            self.cond.notify_all()
+            self.frame_cond.notify()
 
     def close(self) -> None:
-        with self.cond:
+        with self.lock:
             self.closed = True
             self.cond.notify_all()
+            self.frame_cond.notify_all()
+        self.closed_event.set()
 
 
 def _make_handler(sink: "MjpegSink"):
@@ -187,6 +209,7 @@ def _make_handler(sink: "MjpegSink"):
     class Handler(BaseHTTPRequestHandler):
         server_version = "IllumiNet-MJPEG/1"
         protocol_version = "HTTP/1.1"
+        timeout = 30  # idle keep-alive connections (the page's stats polling) are closed after this
 
         def log_message(self, fmt: str, *args: Any) -> None:  # route to logging, not stderr
             log.debug("MJPEG %s: " + fmt, self.address_string(), *args)
@@ -260,6 +283,9 @@ class MjpegSink(Sink):
         ``dropped``, ``failed_frames``, ``stages_ms``, ``source``; others are passed through).
     quality : int
         JPEG quality 1..100.
+    max_fps : float
+        Most frames per second encoded for the clients (0 = every frame the loop writes). The
+        stream shows the newest frame at each slot; frames between slots are skipped, not queued.
     client_timeout_s : float
         A client that accepts no data for this long is disconnected.
 
@@ -275,7 +301,7 @@ class MjpegSink(Sink):
 
     def __init__(self, listen: str = "127.0.0.1", port: int = 8080,
                  stats: Callable[[], dict[str, Any]] | None = None, quality: int = 80,
-                 client_timeout_s: float = 10.0):
+                 client_timeout_s: float = 10.0, max_fps: float = 30.0):
         if not (1 <= int(quality) <= 100):
             raise ValueError(f"MjpegSink quality must be within 1..100, got {quality!r}")
         if not (0 <= int(port) <= 65535):
@@ -284,8 +310,11 @@ class MjpegSink(Sink):
         self.port = int(port)
         self.stats_fn = stats
         self.client_timeout_s = float(client_timeout_s)
+        if max_fps < 0:
+            raise ValueError(f"MjpegSink max_fps must be >= 0 (0 = no cap), got {max_fps!r}")
         self._quality = int(quality)
-        self._hub = _Hub(self._quality)
+        self.max_fps = float(max_fps)
+        self._hub = _Hub(self._quality, self.max_fps)
         self._server: ThreadingHTTPServer | None = None
         self._threads: list[threading.Thread] = []
 
@@ -298,7 +327,7 @@ class MjpegSink(Sink):
         """Bind the port and start the server and encoder threads."""
         if self._server is not None:
             return
-        self._hub = _Hub(self._quality)
+        self._hub = _Hub(self._quality, self.max_fps)
         try:
             server = ThreadingHTTPServer((self.listen, self.port), _make_handler(self))
         except OSError as e:
@@ -316,7 +345,11 @@ class MjpegSink(Sink):
         ]
         for t in self._threads:
             t.start()
-        log.info("MJPEG stream at %sstream.mjpg (status page %s)", self.url, self.url)
+        if self.listen in ("0.0.0.0", "", "::"):
+            log.info("MJPEG server on all interfaces, port %d: open http://<this machine's address>:%d/ "
+                     "on the headset (locally %s)", self.port, self.port, self.url)
+        else:
+            log.info("MJPEG stream at %sstream.mjpg (status page %s)", self.url, self.url)
 
     def write(self, frame: Frame) -> None:
         """Offer ``frame.results["composite"]`` (or the camera colour) to the clients; O(1)."""

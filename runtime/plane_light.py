@@ -116,27 +116,50 @@ def measure_cells(frame: Frame, T_cam_obj: np.ndarray, grid: int, extent_m: floa
     # warpPerspective samples src at the pixel centre convention (x = col index); ours matches.
     col = cv2.warpPerspective(frame.color, Hm, (S, S), flags=flags, borderMode=cv2.BORDER_CONSTANT,
                               borderValue=(0, 0, 0))
-    ones = np.ones((H, W), np.uint8)
-    inside = cv2.warpPerspective(ones, Hm, (S, S), flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     # depth the plane predicts at each sample (camera z of the sample point), and whether in front
-    a = np.arange(S, dtype=np.float64)
-    z_pred = (M_cam[2, 0] * a[None, :] + M_cam[2, 1] * a[:, None] + M_cam[2, 2]).astype(np.float32)
-    ok = (inside > 0) & (z_pred > 0.05)
+    a = np.arange(S, dtype=np.float32)
+    z_pred = (np.float32(M_cam[2, 0]) * a[None, :] + np.float32(M_cam[2, 1]) * a[:, None]
+              + np.float32(M_cam[2, 2]))
+    ok = z_pred > 0.05
     if frame.depth is not None:
+        # outside the image the border value 0 reads as invalid depth
         dm = cv2.warpPerspective(frame.depth, Hm, (S, S), flags=flags, borderMode=cv2.BORDER_CONSTANT,
                                  borderValue=0.0)
         tol = 3.0 * inlier_threshold(z_pred, inlier_threshold_m)
         with np.errstate(invalid="ignore"):
-            ok &= np.isfinite(dm) & (dm > 0) & (np.abs(dm - z_pred) < tol)
-    ok &= col.max(axis=2) < SATURATED
-    lin = linearize(col, response_lut)
+            ok &= np.abs(dm - z_pred) < tol  # NaN compares False; 0 (invalid) is far from z_pred
+    else:
+        inside = cv2.warpPerspective(np.ones((H, W), np.uint8), Hm, (S, S), flags=flags,
+                                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        ok &= inside > 0
+    # (np.max over a length-3 last axis is ~20x slower than two element-wise maxima)
+    ok &= np.maximum(np.maximum(col[..., 0], col[..., 1]), col[..., 2]) < SATURATED
+    lin = cv2.LUT(col, _lut_table(response_lut))  # = physics.linearize, applied by OpenCV
     okf = ok.astype(np.float32)
-    sums = (lin * okf[..., None]).reshape(G, K, G, K, 3).sum(axis=(1, 3))
-    cnt = okf.reshape(G, K, G, K).sum(axis=(1, 3))
-    coverage = (cnt / (K * K)).reshape(-1)
+    lin *= okf[..., None]
+    # block means over the K x K samples of each cell (INTER_AREA with an integer factor is exact)
+    sums = cv2.resize(lin, (G, G), interpolation=cv2.INTER_AREA).reshape(-1, 3)
+    coverage = cv2.resize(okf, (G, G), interpolation=cv2.INTER_AREA).reshape(-1)
     observed = coverage >= MIN_CELL_COVERAGE
-    linear = np.where(observed[:, None], sums.reshape(-1, 3) / np.maximum(cnt.reshape(-1, 1), 1.0), 0.0)
+    linear = np.where(observed[:, None], sums / np.maximum(coverage[:, None], 1e-6), 0.0)
     return linear.astype(np.float32), observed, coverage.astype(np.float32)
+
+
+_LUT_CACHE: dict[int, tuple[Any, np.ndarray]] = {}
+
+
+def _lut_table(response_lut: np.ndarray | None) -> np.ndarray:
+    """(256, 1, 3) float32 table of :func:`~illuminet.runtime.physics.linearize` for ``cv2.LUT``."""
+    key = id(response_lut)
+    hit = _LUT_CACHE.get(key)
+    if hit is not None and hit[0] is response_lut:
+        return hit[1]
+    ramp = np.repeat(np.arange(256, dtype=np.uint8).reshape(256, 1, 1), 3, axis=2)
+    table = np.ascontiguousarray(linearize(ramp, response_lut), dtype=np.float32)
+    if len(_LUT_CACHE) > 8:
+        _LUT_CACHE.clear()
+    _LUT_CACHE[key] = (response_lut, table)
+    return table
 
 
 class CellFusion:

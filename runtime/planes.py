@@ -111,6 +111,8 @@ def check_depth(depth: np.ndarray | None, sample: np.ndarray | None = None) -> t
     if w < MIN_FRAME[0] or h < MIN_FRAME[1]:
         return "tiny", f"depth map is {w}x{h}; expected at least {MIN_FRAME[0]}x{MIN_FRAME[1]} pixels"
     s = depth if sample is None else sample
+    if s.size > 4096:  # statistics need a few thousand values, not the whole map
+        s = s.reshape(-1)[:: s.size // 4096]
     finite = np.isfinite(s)
     valid = finite & (s > 0)
     frac = float(valid.mean()) if s.size else 0.0
@@ -146,9 +148,6 @@ class Cloud:
         Camera-frame points; zeros where invalid.
     valid : (h, w) bool
         Valid depth.
-    normals : (h, w, 3) float32
-        Unit normals pointing towards the camera (zeros where ``normal_valid`` is False).
-    normal_valid : (h, w) bool
     stride : int
         Sample (i, j) is the full-resolution pixel (stride*i, stride*j).
     full_size : (width, height)
@@ -157,17 +156,36 @@ class Cloud:
         Full-resolution intrinsics (matching ``full_size``).
     nonfinite : int
         Sampled values that were NaN/inf (treated as invalid).
+
+    Normals (:attr:`normals`, :attr:`normal_valid`) and fit moments are computed on first use:
+    frames that only track planes never need normals.
     """
 
     points: np.ndarray
     valid: np.ndarray
-    normals: np.ndarray
-    normal_valid: np.ndarray
     stride: int
     full_size: tuple[int, int]
     intrinsics: Intrinsics
     nonfinite: int = 0
     ray_grid: np.ndarray | None = field(default=None, repr=False)
+    _normals: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+    _moments: np.ndarray | None = field(default=None, repr=False)
+    _thr: dict = field(default_factory=dict, repr=False)
+    _inv_rn: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def normals(self) -> np.ndarray:
+        """(h, w, 3) float32 unit normals towards the camera (zeros where not :attr:`normal_valid`)."""
+        if self._normals is None:
+            self._normals = estimate_normals(self.points, self.valid)
+        return self._normals[0]
+
+    @property
+    def normal_valid(self) -> np.ndarray:
+        """(h, w) bool: where :attr:`normals` is defined."""
+        if self._normals is None:
+            self._normals = estimate_normals(self.points, self.valid)
+        return self._normals[1]
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -183,11 +201,50 @@ class Cloud:
             self.ray_grid = _rays(self.intrinsics, self.stride, self.shape)
         return self.ray_grid
 
+    def moments(self) -> np.ndarray:
+        """(h*w, 18) float64 per-point terms whose masked sums give every plane fit in one product.
+
+        Columns: 1, x, y, x^2, xy, y^2 (ray coordinates x = X/Z, y = Y/Z), q, xq, yq (q = 1/Z), then
+        X, Y, Z, XX, XY, XZ, YY, YZ, ZZ (the points). float32: sums over ~10^4 points stay within
+        1e-5 relative, far below the noise. Rows of invalid points are not zero (masks never
+        include them). A fit on any mask is then ``mask @ moments`` (one matrix-vector product, no
+        gathering of points).
+        """
+        if self._moments is None:
+            h, w = self.shape
+            F = np.empty((h * w, 18), np.float32)
+            F[:, :6] = _ray_moments(self.rays())
+            q = np.zeros(h * w, np.float32)
+            Z = self.points[..., 2].reshape(-1)
+            np.divide(1.0, Z, out=q, where=Z > 0)
+            x, y = F[:, 1], F[:, 2]
+            F[:, 6], F[:, 7], F[:, 8] = q, x * q, y * q
+            X, Y = x * Z, y * Z
+            F[:, 9], F[:, 10], F[:, 11] = X, Y, Z
+            F[:, 12], F[:, 13], F[:, 14] = X * X, X * Y, X * Z
+            F[:, 15], F[:, 16], F[:, 17] = Y * Y, Y * Z, Z * Z
+            self._moments = F
+        return self._moments
+
+    def threshold(self, at_1m: float) -> np.ndarray:
+        """:func:`inlier_threshold` of every point (cached per value)."""
+        t = self._thr.get(at_1m)
+        if t is None:
+            t = self._thr[at_1m] = inlier_threshold(self.z, at_1m)
+        return t
+
+    def inv_ray_norm(self) -> np.ndarray:
+        """(h*w,) 1/|r| of the rays (for viewing-angle cosines)."""
+        if self._inv_rn is None:
+            self._inv_rn = _ray_moments(self.rays())[:, 3:6] @ np.array([1, 0, 1], np.float32)
+            self._inv_rn = 1.0 / np.sqrt(self._inv_rn + 1.0)
+        return self._inv_rn
+
     def upsample_mask(self, mask: np.ndarray) -> np.ndarray:
         """Low-resolution mask -> full-resolution HxW bool (each sample covers its stride block)."""
         w, h = self.full_size
         up = cv2.resize(mask.view(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST)
-        return up.astype(bool)
+        return up.view(bool)
 
 
 def _rays(intr: Intrinsics, stride: int, shape: tuple[int, int]) -> np.ndarray:
@@ -204,6 +261,21 @@ def _rays(intr: Intrinsics, stride: int, shape: tuple[int, int]) -> np.ndarray:
 
 
 _RAY_CACHE: dict[tuple, np.ndarray] = {}
+_RAYMOM_CACHE: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _ray_moments(rays: np.ndarray) -> np.ndarray:
+    """(h*w, 6) float32: 1, x, y, x^2, xy, y^2 of the rays (cached per ray grid)."""
+    hit = _RAYMOM_CACHE.get(id(rays))
+    if hit is not None and hit[0] is rays:
+        return hit[1]
+    r = rays.reshape(-1, 3)
+    x, y = r[:, 0], r[:, 1]
+    m = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=1).astype(np.float32)
+    if len(_RAYMOM_CACHE) > 16:
+        _RAYMOM_CACHE.clear()
+    _RAYMOM_CACHE[id(rays)] = (rays, m)
+    return m
 
 
 def cloud_stride(width: int) -> int:
@@ -212,7 +284,7 @@ def cloud_stride(width: int) -> int:
 
 
 def make_cloud(depth: np.ndarray, intr: Intrinsics, stride: int | None = None) -> Cloud:
-    """Downsample ``depth`` by striding, back-project, and estimate normals.
+    """Downsample ``depth`` by striding and back-project (normals follow on demand).
 
     Parameters
     ----------
@@ -240,8 +312,7 @@ def make_cloud(depth: np.ndarray, intr: Intrinsics, stride: int | None = None) -
             _RAY_CACHE.clear()
         rays = _RAY_CACHE[key] = _rays(intr, s, z.shape)
     P = rays * z[..., None]
-    N, nvalid = estimate_normals(P, valid)
-    return Cloud(P, valid, N, nvalid, s, (W, H), intr, nonfinite, rays)
+    return Cloud(P, valid, s, (W, H), intr, nonfinite, rays)
 
 
 def estimate_normals(P: np.ndarray, valid: np.ndarray, window: int = 5) -> tuple[np.ndarray, np.ndarray]:
@@ -258,17 +329,22 @@ def estimate_normals(P: np.ndarray, valid: np.ndarray, window: int = 5) -> tuple
     ws = cv2.boxFilter(wgt, -1, (window, window), normalize=False, borderType=cv2.BORDER_REPLICATE)
     pm = ps / np.maximum(ws, 1.0)[..., None]
     k = 2
-    pp = np.pad(pm, ((k, k), (k, k), (0, 0)), mode="edge")
+    pp = cv2.copyMakeBorder(pm, k, k, k, k, cv2.BORDER_REPLICATE)
     dx = pp[k:-k, 2 * k:] - pp[k:-k, : -2 * k]
     dy = pp[2 * k:, k:-k] - pp[: -2 * k, k:-k]
-    n = np.cross(dx, dy)
-    norm = np.linalg.norm(n, axis=-1)
+    # cross product by components (float32 throughout; np.cross is slower on small arrays)
+    ax, ay, az = dx[..., 0], dx[..., 1], dx[..., 2]
+    bx, by, bz = dy[..., 0], dy[..., 1], dy[..., 2]
+    n = np.empty_like(pm)
+    n[..., 0] = ay * bz - az * by
+    n[..., 1] = az * bx - ax * bz
+    n[..., 2] = ax * by - ay * bx
+    norm = np.sqrt(n[..., 0] ** 2 + n[..., 1] ** 2 + n[..., 2] ** 2)
     ok = valid & (ws >= 0.6 * window * window) & (norm > 1e-12)
-    n = n / np.maximum(norm, 1e-12)[..., None]
-    flip = np.einsum("ijk,ijk->ij", n, P) > 0
-    n[flip] *= -1.0
-    n[~ok] = 0.0
-    return n.astype(np.float32), ok
+    # orient towards the camera: n . P < 0; invalid normals become 0
+    sgn = np.where(n[..., 0] * P[..., 0] + n[..., 1] * P[..., 1] + n[..., 2] * P[..., 2] > 0, -1.0, 1.0)
+    n *= (np.where(ok, sgn, 0.0) / np.maximum(norm, 1e-12))[..., None].astype(np.float32)
+    return n, ok
 
 
 # --------------------------------------------------------------------------------------------
@@ -340,30 +416,39 @@ def fit_plane_disparity(rays: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, fl
     """
     A = rays.astype(np.float64, copy=False)
     y = 1.0 / z.astype(np.float64)
+    return _solve_disparity(A.T @ A, A.T @ y)
+
+
+def _solve_disparity(AtA: np.ndarray, Aty: np.ndarray) -> tuple[np.ndarray, float] | None:
     try:
-        abc = np.linalg.solve(A.T @ A, A.T @ y)
+        abc = np.linalg.solve(AtA, Aty)
     except np.linalg.LinAlgError:  # collinear pixels: no plane
         return None
     s = np.linalg.norm(abc)
     if not np.isfinite(s) or s < 1e-9:
         return None
-    n = -abc / s
-    d = 1.0 / s
-    return n, d
+    return -abc / s, 1.0 / s
+
+
+def _fit_moments(S: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """:func:`fit_plane_disparity` from summed :meth:`Cloud.moments` (``S = mask @ moments``)."""
+    AtA = np.array([[S[3], S[4], S[1]], [S[4], S[5], S[2]], [S[1], S[2], S[0]]])
+    return _solve_disparity(AtA, np.array([S[7], S[8], S[6]]))
 
 
 def _inliers(cloud: Cloud, n: np.ndarray, d: float, thr_1m: float, allowed: np.ndarray | None,
-             normal_cos: float) -> np.ndarray:
-    P = cloud.points
-    dist = np.abs(P @ n.astype(np.float32) + np.float32(d))
-    ok = cloud.valid & (dist < inlier_threshold(cloud.z, thr_1m))
+             normal_cos: float | None, despeckle: bool = True) -> np.ndarray:
+    n32 = n.astype(np.float32)
+    dist = np.abs(cloud.points @ n32 + np.float32(d))
+    ok = dist < cloud.threshold(thr_1m)  # invalid points are at the origin: dist = d > threshold
+    ok &= cloud.valid
     # Points whose own normal is known must agree; points without a normal (near holes and edges)
     # are accepted on distance alone so planes reach their borders.
-    agree = (cloud.normals @ n.astype(np.float32)) > normal_cos
-    ok &= agree | ~cloud.normal_valid
+    if normal_cos is not None:
+        ok &= (cloud.normals @ n32 > normal_cos) | ~cloud.normal_valid
     if allowed is not None:
         ok &= allowed
-    return _drop_specks(ok)
+    return _drop_specks(ok) if despeckle else ok
 
 
 def _drop_specks(mask: np.ndarray, min_size: int = 12, rel: float = 0.05) -> np.ndarray:
@@ -386,42 +471,51 @@ def _drop_specks(mask: np.ndarray, min_size: int = 12, rel: float = 0.05) -> np.
 
 
 def refine(cloud: Cloud, n: np.ndarray, d: float, thr_1m: float, allowed: np.ndarray | None = None,
-           iterations: int = 2) -> PlaneFit | None:
+           iterations: int = 2, final_inliers: bool = True, despeckle: bool = True,
+           use_normals: bool = True) -> PlaneFit | None:
     """Refit a plane on its inliers ``iterations`` times (inlier set recomputed each time).
 
     The fit is :func:`fit_plane_disparity`; centroid, area, extent and axes come from the final
-    inliers. ``allowed`` restricts which cloud points may be inliers. ``None`` when too few remain.
+    inliers. ``allowed`` restricts which cloud points may be inliers. With ``final_inliers=False``
+    the returned mask is the one the last fit used (tracking saves one pass this way).
+    ``despeckle`` drops small disconnected inlier specks (see :func:`_drop_specks`);
+    ``use_normals=False`` tests distance only (tracking: no normals needed). ``None`` when too few
+    points remain.
     """
-    normal_cos = float(np.cos(np.radians(NORMAL_TOL_DEG)))
+    normal_cos = float(np.cos(np.radians(NORMAL_TOL_DEG))) if use_normals else None
+    F = cloud.moments()
     mask = None
     for _ in range(iterations):
-        mask = _inliers(cloud, n, d, thr_1m, allowed, normal_cos)
-        if int(mask.sum()) < MIN_FIT_POINTS:
+        mask = _inliers(cloud, n, d, thr_1m, allowed, normal_cos, despeckle)
+        S = (mask.reshape(-1).view(np.uint8).astype(np.float32) @ F).astype(np.float64)
+        if S[0] < MIN_FIT_POINTS:
             return None
-        nd = fit_plane_disparity(cloud.rays()[mask], cloud.z[mask])
+        nd = _fit_moments(S)
         if nd is None:
             return None
         n, d = nd
-    mask = _inliers(cloud, n, d, thr_1m, allowed, normal_cos)
-    cnt = int(mask.sum())
+    if final_inliers:
+        mask = _inliers(cloud, n, d, thr_1m, allowed, normal_cos, despeckle)
+        S = (mask.reshape(-1).view(np.uint8).astype(np.float32) @ F).astype(np.float64)
+    cnt = int(round(S[0]))
     if cnt < MIN_FIT_POINTS:
         return None
-    pts = cloud.points[mask]
-    c = pts.mean(axis=0, dtype=np.float64)
-    Q = pts - c
-    evals, evecs = np.linalg.eigh(Q.T @ Q / cnt)
+    c = S[9:12] / cnt
+    M2 = np.array([[S[12], S[13], S[14]], [S[13], S[15], S[16]], [S[14], S[16], S[17]]]) / cnt
+    evals, evecs = np.linalg.eigh(M2 - np.outer(c, c))
     # Area: each sample covers stride^2 pixels; a pixel's footprint on the plane is
     # d^2 / |n . r|^3 dx dy with r = (x/z, y/z, 1) (exact for a pinhole camera).
-    rays = cloud.rays()[mask]
     intr = cloud.intrinsics
     pix = (cloud.stride / intr.fx) * (cloud.stride / intr.fy)
-    ndotr = np.abs(rays @ n.astype(np.float32))
-    view_cos = float(np.median(ndotr / np.linalg.norm(rays, axis=1)))
-    area = float(np.sum(d * d / np.maximum(ndotr, 1e-3) ** 3) * pix)
+    mf = mask.reshape(-1)
+    ndotr = np.abs(cloud.rays().reshape(-1, 3) @ n.astype(np.float32))
+    ndotr = np.maximum(ndotr, np.float32(1e-3))
+    view_cos = float(np.dot(mf, ndotr * cloud.inv_ray_norm())) / cnt
+    area = float(np.dot(mf, ndotr ** -3)) * d * d * pix
     # Extent along the in-plane principal axes (a uniform rectangle has variance L^2 / 12).
     ext = np.sqrt(12.0 * np.maximum(evals[1:], 0.0))
     return PlaneFit(
-        normal=n.astype(np.float64), offset=float(d), mask=mask, n_inliers=cnt, centroid=c,
+        normal=np.asarray(n, np.float64), offset=float(d), mask=mask, n_inliers=cnt, centroid=c,
         area_m2=area, extent_m=(float(ext[1]), float(ext[0])), axes=evecs[:, [2, 1]].T.copy(),
         view_cos=view_cos,
     )
@@ -689,8 +783,8 @@ class PlaneTracker:
         Full detection every N frames (1 = every frame).
     smoothing : float
         Exponential smoothing of normal and offset in [0, 1). A jump larger than the noise (more
-        than 3 degrees or 3 inlier thresholds) is taken as camera motion and not smoothed, so the
-        planes do not lag behind a moving camera.
+        than 3 degrees, or more than the inlier threshold at the plane's centroid) is taken as
+        camera motion and not smoothed, so the planes do not lag behind a moving camera.
     """
 
     #: association gates (degrees, metres at 1 m scaled like the inlier threshold)
@@ -739,7 +833,7 @@ class PlaneTracker:
         # Predicted inliers, each point to its nearest tracked plane (planes close together, such as
         # a plate on the ground, must not steal each other's points).
         P = cloud.points
-        zthr = inlier_threshold(cloud.z, thr)
+        zthr = cloud.threshold(thr)
         best_d = np.full(cloud.shape, np.inf, np.float32)
         owner = np.full(cloud.shape, -1, np.int16)
         for k, t in enumerate(self.tracks):
@@ -750,7 +844,8 @@ class PlaneTracker:
         near = cloud.valid & (best_d < zthr)
         updates = []
         for k, t in enumerate(self.tracks):
-            fit = refine(cloud, t.normal, t.offset, thr, allowed=near & (owner == k), iterations=1)
+            fit = refine(cloud, t.normal, t.offset, thr, allowed=near & (owner == k), iterations=1,
+                         final_inliers=False, despeckle=False, use_normals=False)
             if fit is None or fit.n_inliers < 0.5 * t.ref_inliers:
                 return False  # lost: the caller re-detects
             if np.degrees(np.arccos(np.clip(abs(fit.normal @ t.normal), -1, 1))) > self.MATCH_DEG:
@@ -763,8 +858,8 @@ class PlaneTracker:
     def _smooth_into(self, t: Track, fit: PlaneFit) -> None:
         s = self.smoothing
         ang = np.degrees(np.arccos(np.clip(fit.normal @ t.normal, -1.0, 1.0)))
-        thr = self.params.inlier_threshold_m * max(fit.centroid[2], 0.5) ** 2
-        if s > 0 and ang < 3.0 and abs(fit.offset - t.offset) < 3.0 * thr:
+        thr = float(inlier_threshold(np.float64(fit.centroid[2]), self.params.inlier_threshold_m))
+        if s > 0 and ang < 3.0 and abs(fit.offset - t.offset) < thr:
             n = s * t.normal + (1.0 - s) * fit.normal
             n /= np.linalg.norm(n)
             d = s * t.offset + (1.0 - s) * fit.offset
@@ -782,7 +877,8 @@ class PlaneTracker:
             for j, t in enumerate(old):
                 ang = np.degrees(np.arccos(np.clip(f.normal @ t.normal, -1.0, 1.0)))
                 doff = abs(f.offset - t.offset)
-                gate = max(self.MATCH_OFFSET_M, 3 * self.params.inlier_threshold_m * max(f.centroid[2], 0.5) ** 2)
+                gate = max(self.MATCH_OFFSET_M,
+                           3.0 * float(inlier_threshold(np.float64(f.centroid[2]), self.params.inlier_threshold_m)))
                 if ang < self.MATCH_DEG and doff < gate:
                     pairs.append((ang / self.MATCH_DEG + doff / gate, i, j))
         pairs.sort()
@@ -875,3 +971,13 @@ class PlaneStage(Stage):
             "planes": len(self._last),
             "up_from": self.up_source,
         }
+
+
+def __getattr__(name: str):
+    # ``from illuminet.runtime.planes import AnchorStage`` (an import some callers use) resolves to
+    # the anchor module's class; importing it at module level would be circular.
+    if name == "AnchorStage":
+        from illuminet.runtime.anchor import AnchorStage
+
+        return AnchorStage
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -94,6 +94,10 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+# fdatasync skips the inode's timestamps (not needed to read the data back); Linux has it, macOS not
+_datasync = getattr(os, "fdatasync", os.fsync)
+
+
 def _write_file(path: Path, data: bytes, fsync: bool) -> None:
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
     try:
@@ -102,7 +106,7 @@ def _write_file(path: Path, data: bytes, fsync: bool) -> None:
             n = os.write(fd, view)
             view = view[n:]
         if fsync:
-            os.fsync(fd)
+            _datasync(fd)
     finally:
         os.close(fd)
 
@@ -155,6 +159,15 @@ _IMREAD_RGB = getattr(cv2, "IMREAD_COLOR_RGB", None)
 
 # --------------------------------------------------------------------------------------------------
 # writer
+
+
+@dataclass(frozen=True)
+class EncodedFrame:
+    """A frame with its image files already compressed (:meth:`SessionWriter.encode`)."""
+
+    frame: Frame
+    color: bytes
+    depth: bytes | None
 
 
 class SessionWriter:
@@ -241,10 +254,10 @@ class SessionWriter:
             "frame_count": None,
             "closed": None,
         }
-        _atomic_write_json(self.path / MANIFEST, self._manifest, self.fsync)
+        # the index exists before the manifest, so a session with a manifest always has an index
+        # (a kill in between leaves no manifest: reported as "killed before its first frame")
         self._index_fd = os.open(self.path / INDEX, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
-        if self.fsync:
-            _fsync_dir(self.path)
+        _atomic_write_json(self.path / MANIFEST, self._manifest, self.fsync)  # also syncs the folder
 
     # -- frames
 
@@ -260,6 +273,20 @@ class SessionWriter:
             raise SessionError(f"{self.path}: OpenCV could not encode a {rgb.shape} colour frame as {self.color}")
         return buf.tobytes()
 
+    def encode(self, frame: Frame) -> "EncodedFrame":
+        """Compress a frame's images (thread-safe: no writer state is touched).
+
+        Lets a recorder encode several frames in parallel and commit them in order with
+        :meth:`commit`; ``append(f)`` is ``commit(encode(f))``.
+        """
+        depth = None
+        if frame.depth is not None:
+            ok, buf = cv2.imencode(".png", depth_to_mm(frame.depth), _PNG_DEPTH_PARAMS)
+            if not ok:
+                raise SessionError(f"{self.path}: OpenCV could not encode depth of frame {frame.seq} as 16-bit PNG")
+            depth = buf.tobytes()
+        return EncodedFrame(frame=frame, color=self._encode_color(frame.color), depth=depth)
+
     def append(self, frame: Frame) -> int:
         """Write one frame; returns its index in the session. The frame is complete when this returns.
 
@@ -269,6 +296,11 @@ class SessionWriter:
             When the frame does not fit the session (different size, timestamp not increasing) or the
             writer is closed.
         """
+        return self.commit(self.encode(frame))
+
+    def commit(self, enc: "EncodedFrame") -> int:
+        """Write an encoded frame's files, then its index line (the commit point); returns its index."""
+        frame = enc.frame
         if self._closed:
             raise SessionError(f"{self.path}: session writer is closed")
         if self._manifest is None:
@@ -289,17 +321,13 @@ class SessionWriter:
         entry: dict[str, Any] = {"i": i, "seq": int(frame.seq), "t_device_ns": int(frame.t_device_ns),
                                  "t_host_ns": int(frame.t_host_ns)}
         # 1) the frame's files, complete (and durable) before the index mentions them
-        cbytes = self._encode_color(frame.color)
         crel = stem + _COLOR_EXT[self.color]
-        _write_file(self.path / crel, cbytes, self.fsync)
-        entry["color"], entry["color_bytes"] = crel, len(cbytes)
-        if frame.depth is not None:
-            ok, buf = cv2.imencode(".png", depth_to_mm(frame.depth), _PNG_DEPTH_PARAMS)
-            if not ok:
-                raise SessionError(f"{self.path}: OpenCV could not encode depth of frame {frame.seq} as 16-bit PNG")
+        _write_file(self.path / crel, enc.color, self.fsync)
+        entry["color"], entry["color_bytes"] = crel, len(enc.color)
+        if enc.depth is not None:
             drel = stem + ".depth.png"
-            _write_file(self.path / drel, buf.tobytes(), self.fsync)
-            entry["depth"], entry["depth_bytes"] = drel, int(buf.size)
+            _write_file(self.path / drel, enc.depth, self.fsync)
+            entry["depth"], entry["depth_bytes"] = drel, len(enc.depth)
         else:
             entry["depth"], entry["depth_bytes"] = None, 0
         entry["exposure"] = frame.exposure.to_dict()
@@ -317,7 +345,7 @@ class SessionWriter:
         if n != len(line):  # pragma: no cover - a full disk; the reader will see a torn line
             raise SessionError(f"{self.path}: short write to {INDEX} ({n} of {len(line)} bytes): disk full?")
         if self.fsync:
-            os.fsync(self._index_fd)
+            _datasync(self._index_fd)
         self.count += 1
         self._last_t = int(frame.t_device_ns)
         return i
@@ -548,7 +576,7 @@ class SessionReader:
         exp = d.get("exposure")
         try:
             exposure = Exposure.from_dict(exp)
-        except (TypeError, ValueError, KeyError) as ex:
+        except (TypeError, ValueError, KeyError, AttributeError) as ex:
             raise SessionError(f"{where}: key 'exposure': {ex}") from None
         g = d.get("gravity")
         gravity = None if g is None else np.asarray(_vec(g, 3, f"{where}: key 'gravity'"), dtype=np.float64)
@@ -566,7 +594,7 @@ class SessionReader:
         if d.get("intrinsics") is not None:
             try:
                 intr = Intrinsics.from_dict(d["intrinsics"])
-            except (KeyError, TypeError, ValueError) as ex:
+            except (KeyError, TypeError, ValueError, AttributeError) as ex:
                 raise SessionError(f"{where}: key 'intrinsics': {ex!r}") from None
         return FrameEntry(i=i, line=no, seq=seq, t_device_ns=t_dev, t_host_ns=t_host, color=color,
                           color_bytes=cbytes, depth=depth, depth_bytes=dbytes, exposure=exposure,

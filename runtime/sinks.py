@@ -12,6 +12,7 @@ import logging
 import os
 import queue
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from types import MappingProxyType
 
@@ -193,12 +194,13 @@ class PngSequenceSink(Sink):
 
 
 class SessionRecorderSink(Sink):
-    """Record the input frames (colour, depth, metadata) as a session, on a writer thread.
+    """Record the input frames (colour, depth, metadata) as a session, off the loop thread.
 
-    Encoding and fsync run on a background thread (OpenCV's encoders release the GIL, so this overlaps
-    with the stages on a second core). The queue is bounded: when the disk is slower than the stream
-    the loop waits (back-pressure) rather than silently losing frames of a recording; a live source's
-    flow limiter then drops frames *before* the stages, where drops are counted.
+    Images are compressed on a small encoder pool (OpenCV's encoders release the GIL, so this uses the
+    second core) and committed in order by one writer thread (files, fsync, index line). The queue is
+    bounded: when the disk or the CPU is slower than the stream the loop waits (back-pressure) rather
+    than silently losing frames of a recording; a live source's flow limiter then drops frames *before*
+    the stages, where drops are counted.
 
     Parameters
     ----------
@@ -210,6 +212,8 @@ class SessionRecorderSink(Sink):
         See :class:`~illuminet.runtime.session.SessionWriter`.
     queue_size : int
         Frames that may wait for the writer thread.
+    encoders : int
+        Threads compressing frames in parallel.
     """
 
     name = "record"
@@ -224,29 +228,33 @@ class SessionRecorderSink(Sink):
         png_compression: int = DEFAULT_PNG_COMPRESSION,
         fsync: bool = True,
         queue_size: int = 8,
+        encoders: int = 2,
     ):
         self.path = Path(path)
         self._writer_args = dict(source=source, color=color, jpeg_quality=jpeg_quality,
                                  png_compression=png_compression, fsync=fsync)
         self._queue_size = queue_size
+        self._encoders = max(1, int(encoders))
         self._writer: SessionWriter | None = None
+        self._pool: ThreadPoolExecutor | None = None
         self._queue: queue.Queue | None = None
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
 
     def open(self) -> None:
         self._writer = SessionWriter(self.path, **self._writer_args)
+        self._pool = ThreadPoolExecutor(max_workers=self._encoders, thread_name_prefix="illuminet-session-encode")
         self._queue = queue.Queue(maxsize=self._queue_size)
         self._thread = threading.Thread(target=self._run, name="illuminet-session-writer", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
         while True:
-            frame = self._queue.get()
-            if frame is None:
+            fut = self._queue.get()
+            if fut is None:
                 return
             try:
-                self._writer.append(frame)
+                self._writer.commit(fut.result())  # in submission order: the index stays in frame order
             except BaseException as e:  # reported on the next write() in the loop thread
                 self._error = e
 
@@ -257,7 +265,7 @@ class SessionRecorderSink(Sink):
         # only the input is recorded: drop results so the queue does not keep render buffers alive
         if frame.results:
             frame = frame.replace(results=MappingProxyType({}))
-        self._queue.put(frame)
+        self._queue.put(self._pool.submit(self._writer.encode, frame))
 
     @property
     def frames(self) -> int:
@@ -269,6 +277,9 @@ class SessionRecorderSink(Sink):
             self._queue.put(None)
             self._thread.join()
             self._thread = None
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
         if self._writer is not None:
             self._writer.close()
             if self._error is not None:

@@ -10,7 +10,19 @@ import pytest
 os.environ.setdefault("DEPTHAI_TELEMETRY", "0")
 
 REPO = Path(__file__).resolve().parent.parent
-SHARED_DATA = REPO.parent / "shared" / "data"
+
+def _shared_data_dir() -> Path:
+    """../shared/data beside the checkout; ILLUMINET_SHARED_DATA overrides (e.g. for git worktrees)."""
+    env = os.environ.get("ILLUMINET_SHARED_DATA")
+    if env:
+        return Path(env)
+    for base in (REPO.parent, REPO.parent.parent):  # a checkout, or a worktree one level deeper
+        if (base / "shared" / "data").is_dir():
+            return base / "shared" / "data"
+    return REPO.parent / "shared" / "data"
+
+
+SHARED_DATA = _shared_data_dir()
 
 
 @pytest.fixture(scope="session")
@@ -24,13 +36,14 @@ def shared_data() -> Path:
 @pytest.fixture(scope="session")
 def gl_ctx():
     """One standalone EGL OpenGL context for the whole run (created in one place, as moderngl's tests do)."""
-    moderngl = pytest.importorskip("moderngl")
+    pytest.importorskip("moderngl")
+    from illuminet.runtime.gl import GLError, get_context
+
     try:
-        ctx = moderngl.create_standalone_context(backend="egl", require=330)
-    except Exception as e:  # no EGL / GL driver on this machine
+        ctx = get_context("egl")  # the runtime's own shared context (illuminet.runtime.gl)
+    except GLError as e:  # no EGL / GL driver on this machine
         pytest.skip(f"no OpenGL context via EGL: {e}")
     yield ctx
-    ctx.release()
 
 
 @pytest.fixture

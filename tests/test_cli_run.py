@@ -75,6 +75,13 @@ def test_record_then_replay_end_to_end(tmp_path, capsys):
     assert rc == 0 and "9 intact frames, finalised" in capsys.readouterr().out
 
 
+def test_run_records_its_input_while_processing(tmp_path):
+    src = make_session(tmp_path / "s", 6)
+    assert main(["run", f"replay://{tmp_path}/s?timing=asap", "--record", str(tmp_path / "rec"), "--no-mjpeg"]) == 0
+    r = SessionReader(tmp_path / "rec", strict=True)
+    assert len(r) == 6 and all(same_frame(a, b) for a, b in zip(src, r))
+
+
 def test_run_with_loop_and_max_frames(tmp_path, capsys):
     make_session(tmp_path / "s", 4)
     rc = main(["run", f"replay://{tmp_path}/s", "--timing", "asap", "--loop", "--max-frames", "10",
@@ -143,3 +150,21 @@ def test_cli_record_killed_with_sigkill_replays_complete_frames(tmp_path):
     for f in r:
         assert np.array_equal(f.color, src[f.seq % 10].color) and np.array_equal(f.depth, src[f.seq % 10].depth)
     assert main(["replay", str(out), "--timing", "asap"]) == 0
+
+
+def test_bench_replay_reports_its_figures(capsys):
+    from illuminet.bench_replay import measure
+    d = measure(12, 2, defaults(), width=64, height=48, colors=("png", "raw"))  # the real path, small frames
+    out = capsys.readouterr().out
+    assert "median" in out and "frames/s" in out and "CPU time" in out and "source" in out
+    assert d["frames"] == 12 and (d["width"], d["height"]) == (64, 48)
+    assert len(d["replay_fps_runs"]) == 2 and d["replay_fps_median"] > 0 and d["cpu_ms_per_frame"] > 0
+    assert d["steps"]["source"]["n"] == 13  # 12 frames + the end-of-stream read
+    assert set(d["by_color"]) == {"png", "raw"} and d["by_color"]["raw"]["bytes_per_frame"] > 64 * 48 * 3
+    json.dumps(d)
+
+
+def test_bench_command_lists_replay(capsys):
+    with pytest.raises(SystemExit):
+        main(["bench", "--help"])
+    assert "replay" in capsys.readouterr().out

@@ -172,8 +172,19 @@ def test_max_frames_and_stop_event(session):
     threading.Timer(0.2, stop.set).start()
     t0 = time.monotonic()
     st = run_loop(ReplaySource(session, timing="recorded", loop=True), [], [sink], stop_event=stop)
-    assert st.end_reason == "stopped" and time.monotonic() - t0 < 2.0 and sink.closed
-    assert 3 <= st.frames <= 9  # 30 fps for ~0.2 s
+    elapsed = time.monotonic() - t0
+    assert st.end_reason == "stopped" and elapsed < 2.0 and sink.closed
+    assert 3 <= st.frames <= 30 * elapsed + 2  # a 30 fps recording, played at its pace until stopped
+
+
+def test_stop_does_not_wait_for_a_slow_live_source(tmp_path):
+    make_session(tmp_path / "slow", 3, fps=0.5)  # the replay sleeps 2 s between frames
+    stop = threading.Event()
+    threading.Timer(0.3, stop.set).start()
+    t0 = time.monotonic()
+    st = run_loop(ReplaySource(tmp_path / "slow", timing="recorded"), [], [], stop_event=stop)
+    assert st.frames == 1 and st.end_reason == "stopped"
+    assert time.monotonic() - t0 < 1.5
 
 
 def test_snapshot_is_thread_safe_and_on_stats_is_called(session):
@@ -200,6 +211,16 @@ def test_snapshot_is_thread_safe_and_on_stats_is_called(session):
     assert len(reports) >= 2 and reports[-1]["frames"] == 150
     assert all(a["frames"] <= b["frames"] for a, b in zip(polled, polled[1:]))
     json.loads(json.dumps(last))
+
+
+def test_failing_stats_callback_does_not_stop_the_stream(session, caplog):
+    def bad(snapshot):
+        raise RuntimeError("status page gone")
+    with caplog.at_level(logging.ERROR):
+        st = run_loop(_asap(session), [], [], on_stats=bad, stats_interval_s=0.0)
+    assert st.frames == 10 and "status page gone" in caplog.text
+    with pytest.raises(RuntimeError, match="status page gone"):
+        run_loop(_asap(session), [], [], on_stats=bad, stats_interval_s=0.0, strict=True)
 
 
 def test_to_json_and_table(session):

@@ -208,3 +208,31 @@ def test_port_in_use_names_the_port():
     with MjpegSink(port=0) as a:
         with pytest.raises(OSError, match=f"127.0.0.1:{a.port}"):
             MjpegSink(port=a.port).open()
+
+
+def test_encoding_rate_is_capped_and_uncapped_follows_the_loop():
+    with MjpegSink(port=0, max_fps=10) as sink:
+        with _Feeder(sink, period=0.002):
+            t0 = time.perf_counter()
+            parts = _read_parts(sink.port, 6)
+            dt = time.perf_counter() - t0
+        st = sink.status()["sink"]
+    assert len(parts) == 6 and dt >= 0.4  # 6 frames at <= 10 fps take at least ~0.5 s
+    assert st["encoded"] <= 10 * dt + 2 and st["frames"] > 3 * st["encoded"]
+    with MjpegSink(port=0, max_fps=0) as sink:
+        with _Feeder(sink, period=0.01):
+            _read_parts(sink.port, 10)
+        assert sink.status()["sink"]["encoded"] >= 10
+    with pytest.raises(ValueError, match="max_fps"):
+        MjpegSink(max_fps=-1)
+
+
+@pytest.mark.slow
+def test_bench_mjpeg_quick_runs_and_reports_a_ratio(capsys):
+    import argparse
+
+    from illuminet.bench_mjpeg import run
+    res = run(argparse.Namespace(quick=True), None)
+    assert res["2 clients"]["median_client_frames"] >= 1 and not res["2 clients"]["client_errors"]
+    assert 0 < res["ratio_2_clients_vs_none"] < 10
+    assert "ratio 2 clients / no sink" in capsys.readouterr().out

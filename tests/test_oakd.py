@@ -24,6 +24,7 @@ dai = pytest.importorskip("depthai")
 from illuminet.hw import oakd  # noqa: E402
 from illuminet.runtime.config import defaults  # noqa: E402
 from illuminet.runtime.frame import Intrinsics  # noqa: E402
+from illuminet.runtime.stage import EndOfStream  # noqa: E402
 
 CALIB = "calibration/oakd_pro_af_calib_18443010F116631200.json"
 
@@ -277,3 +278,67 @@ def test_live_device_frames():
     assert (f.depth > 0).mean() > 0.3
     assert all(b.t_device_ns > a.t_device_ns for a, b in zip(frames, frames[1:]))
     assert f.exposure.known
+
+
+class _HostRig:
+    """Connects OakdSource to a host-only DepthAI pipeline (Sync node + queue) that the test feeds."""
+
+    def __init__(self):
+        self.sessions = []
+        self.inputs = None
+
+    def connect(self, opts):
+        pipeline = dai.Pipeline(False)
+        sync, queue = oakd.build_sync(pipeline, opts)
+        self.inputs = (sync.inputs["color"].createInputQueue(), sync.inputs["depth"].createInputQueue())
+        pipeline.start()
+        s = oakd.OakdSession(pipeline=pipeline, queues={"sync_queue": queue, "imu_queue": None},
+                             converter=oakd.FrameConverter(Intrinsics(50, 50, 32, 20, 64, 40)),
+                             device_id=f"host-rig-{len(self.sessions)}")
+        self.sessions.append(s)
+        return s
+
+    def send(self, i):
+        qc, qd = self.inputs
+        qc.send(_img(i))
+        qd.send(_depth(i))
+
+
+def test_source_reads_newest_and_reconnects_after_a_stall():
+    rig = _HostRig()
+    opts = oakd.parse_url("oakd://?size=64x40&queue=2&timeout_s=0.5")
+    src = oakd.OakdSource(opts, reconnect=True, connect=rig.connect)
+    src.BACKOFF_START_S = 0.05
+    with src:
+        rig.send(0)
+        f0 = src.read()
+        for i in range(1, 6):  # the loop was busy: 5 frames arrive before the next read
+            rig.send(i)
+        time.sleep(0.3)
+        f1 = src.read()
+        assert (f0.seq, f1.seq) == (0, 1) and f1.color[5, 5, 1] == 5  # the newest
+        # the device stalls: after timeout_s the source reconnects and goes on with the new session
+        out = {}
+        import threading
+        t = threading.Thread(target=lambda: out.setdefault("f", src.read()))
+        t.start()
+        deadline = time.time() + 5
+        while len(rig.sessions) < 2 and time.time() < deadline:
+            time.sleep(0.02)
+        time.sleep(0.1)
+        rig.send(10)
+        t.join(5)
+        assert out["f"].color[5, 5, 1] == 10 and out["f"].seq == 2
+        st = src.stats()
+    assert st["reconnects"] == 1 and st["device"] == "host-rig-1" and st["dropped"] >= 3
+
+
+def test_source_without_reconnect_ends_with_a_clear_error():
+    rig = _HostRig()
+    opts = oakd.parse_url("oakd://?size=64x40&timeout_s=0.3&reconnect=0")
+    src = oakd.OakdSource(opts, reconnect=True, connect=rig.connect)
+    with src:
+        rig.send(0)
+        assert src.read() is not None
+        with pytest.raises(EndOfStream, match="lost: no frame from OAK host-rig-0 for 0.3 s"):
+            src.read()

@@ -46,8 +46,8 @@ def test_recorded_timing_follows_timestamps_and_asap_is_faster(tmp_path):
     assert np.allclose(expected, np.arange(10) * 0.05)
     # never early (it sleeps until the timestamp), late only by scheduling noise on a busy machine
     assert np.all(rel >= expected - 0.002), rel - expected
-    assert np.median(rel - expected) < 0.02, rel - expected
-    assert rel[-1] < 0.45 + 0.25
+    assert np.median(rel - expected) < 0.05, rel - expected
+    assert rel[-1] < 0.45 + 0.3
     _, t_asap = _read_all(ReplaySource(tmp_path / "s", timing="asap"))
     assert t_asap[-1] - t_asap[0] < 0.5 * rel[-1]
 

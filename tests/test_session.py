@@ -150,6 +150,29 @@ def test_kill_9_mid_recording_keeps_every_complete_frame(tmp_path, attempt):
         assert same_frame(expected[k], f), f"frame {k} differs after kill -9"
 
 
+@pytest.mark.slow
+def test_kill_9_at_many_random_moments(tmp_path):
+    """Stress: 25 SIGKILLs at random moments (with fsync on); every complete frame always replays."""
+    import random
+    import time
+    rnd = random.Random(1)
+    for k in range(25):
+        path = tmp_path / f"s{k}"
+        proc = spawn(["-c", _WRITER.replace("fsync=False", "fsync=True"), str(path)])
+        try:
+            wait_for_lines(_index(path), 1, proc)
+            time.sleep(rnd.uniform(0.0, 0.3))
+        finally:
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=10)
+        n_complete = complete_lines(_index(path))
+        r = SessionReader(path)
+        assert len(r) == n_complete
+        assert all("not finalised" in p or "torn" in p for p in r.problems), r.problems
+        expected = frames(n_complete)
+        assert all(same_frame(expected[i], f) for i, f in enumerate(r))
+
+
 def test_kill_before_first_frame_is_reported(tmp_path):
     (tmp_path / "s" / "frames").mkdir(parents=True)
     with pytest.raises(SessionError, match=r"manifest.json: missing.*killed before its first"):
@@ -294,6 +317,23 @@ def test_missing_key_in_index_line(tmp_path):
     lines[1] = json.dumps(d)
     _index(tmp_path / "s").write_text("\n".join(lines) + "\n")
     _check_skips(tmp_path / "s", 1, "missing key 't_device_ns'")
+
+
+@pytest.mark.parametrize("key, value, expect", [
+    ("exposure", [1, 2], "key 'exposure'"),
+    ("exposure", {"iso": "high"}, "key 'exposure'"),
+    ("gravity", [0, 1], "key 'gravity': expected a list of 3 numbers"),
+    ("imu", [{"t_ns": 1, "accel": [0, 0]}], r"imu\[0\].accel: expected a list of 3 numbers"),
+    ("intrinsics", [1, 2], "key 'intrinsics'"),
+    ("color_bytes", "big", "key 'color_bytes': expected int, got str"),
+])
+def test_bad_metadata_in_an_index_line(tmp_path, key, value, expect):
+    import re
+    make_session(tmp_path / "s", 6)
+    _rewrite_line(tmp_path / "s", 4, **{key: value})
+    r = SessionReader(tmp_path / "s")
+    assert [f.seq for f in r] == [0, 1, 2, 3, 5]
+    assert any(re.search(expect, p) and "line 5" in p for p in r.problems), r.problems
 
 
 def test_timestamp_going_backwards(tmp_path):

@@ -99,11 +99,12 @@ def test_bad_composite_is_refused():
 
 
 def test_recorder_records_input_frames_not_results(tmp_path):
-    fs = frames(6)
-    rec = SessionRecorderSink(tmp_path / "rec", source="test://x", fsync=False)
+    fs = frames(20)
+    # three encoders finish out of order; the writer must still commit in frame order
+    rec = SessionRecorderSink(tmp_path / "rec", source="test://x", fsync=False, encoders=3)
     run_loop(ReplaySource(_session(tmp_path, fs), timing="asap"), [Composite()], [rec])
     r = SessionReader(tmp_path / "rec", strict=True)
-    assert r.finalized and len(r) == 6 and rec.frames == 6
+    assert r.finalized and len(r) == 20 and rec.frames == 20
     for a, b in zip(fs, r):
         assert same_frame(a, b)  # the camera input, not the inverted composite
 
@@ -156,3 +157,39 @@ def test_build_sinks_from_config(tmp_path):
     bad = apply_overrides(cfg, [("output", "record_jpeg_quality", 0)])
     with pytest.raises(ConfigError, match=r"record_jpeg_quality: expected an int in 1..100, got 0"):
         build_sinks(bad)
+
+
+def test_mjpeg_status_page_shows_the_loop_snapshot(tmp_path):
+    """build_sinks wires LoopStats.snapshot into the MJPEG server; a real HTTP client reads both."""
+    import json as _json
+    import threading
+    import urllib.request
+
+    from illuminet.runtime.loop import LoopStats
+
+    src_path = _session(tmp_path, frames(5))
+    cfg = apply_overrides(defaults(), [("output", "mjpeg", True), ("output", "port", 0)])
+    stats = LoopStats()
+    (sink,) = build_sinks(cfg, stats=stats.snapshot)
+    stop = threading.Event()
+    src = ReplaySource(src_path, timing="recorded", loop=True)
+    t = threading.Thread(target=run_loop, args=(src, [Composite()], [sink]),
+                         kwargs={"stats": stats, "stop_event": stop})
+    t.start()
+    try:
+        deadline = time.monotonic() + 10
+        while (sink._server is None or stats.frames < 5) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        with urllib.request.urlopen(f"http://127.0.0.1:{sink.port}/stats.json", timeout=5) as r:
+            page = _json.loads(r.read())
+        with urllib.request.urlopen(f"http://127.0.0.1:{sink.port}/stream.mjpg", timeout=5) as r:
+            head = r.read(20000)
+    finally:
+        stop.set()
+        t.join(timeout=10)
+    loop = page["loop"]
+    assert loop["running"] is True and loop["frames"] >= 5 and "stage:composite" in loop["stages_ms"]
+    assert loop["dropped"] >= 0 and "fps_recent" in loop
+    start = head.index(b"\xff\xd8")
+    jpg = cv2.imdecode(np.frombuffer(head[start:head.index(b"\xff\xd9", start) + 2], np.uint8), cv2.IMREAD_COLOR)
+    assert jpg.shape == (H, W, 3)

@@ -1,0 +1,226 @@
+"""`illuminet calibrate ...` end to end on files, and view capture from a Source."""
+
+from __future__ import annotations
+
+import json
+import re
+import zlib
+
+import cv2
+import numpy as np
+import pytest
+
+from illuminet.calibration.board import BoardSpec
+from illuminet.calibration.calibfile import CalibrationError, CameraCalib, load_calibration
+from illuminet.calibration.capture import capture_views
+from illuminet.calibration.charuco import detect
+from illuminet.calibration.synthview import board_plane, board_poses, degrade, pixel_rays, render
+from illuminet.cli import main
+from illuminet.runtime.frame import Frame, Intrinsics
+from illuminet.runtime.stage import Source
+
+SPEC = BoardSpec(9, 6, 30.0, 22.0, "DICT_4X4_50")
+CAM = CameraCalib(640, 400, np.array([[450.0, 0, 322.3], [0, 451.0, 197.6], [0, 0, 1]]),
+                  np.array([-0.12, 0.05, 0.0005, -0.0003, 0.0]))
+
+
+def _write_views(folder, n, seed=0):
+    folder.mkdir(parents=True, exist_ok=True)
+    plane = board_plane(SPEC)
+    rays = pixel_rays(CAM.scaled_to(1280, 800))
+    for k, (R, t) in enumerate(board_poses(SPEC, n, seed)):
+        img, _ = render(CAM, R, t, [plane], background=128, rays=rays)
+        cv2.imwrite(str(folder / f"view_{k:02d}.png"), degrade(img, 0.7, 2.0, k))
+
+
+def test_board_png_and_pdf(tmp_path, capsys):
+    png = tmp_path / "b.png"
+    assert main(["calibrate", "board", "--squares", "9x6", "--square-mm", "30", "--marker-mm", "22",
+                 "--dictionary", "DICT_4X4_50", "--dpi", "100", "-o", str(png)]) == 0
+    img = cv2.imread(str(png), cv2.IMREAD_GRAYSCALE)
+    sq = round(30 * 100 / 25.4)
+    assert img.shape == (6 * sq, 9 * sq)
+    assert b"pHYs" in png.read_bytes()[:100]
+    # the printed board is the board we detect: every inner corner found
+    padded = cv2.copyMakeBorder(img, 40, 40, 40, 40, cv2.BORDER_CONSTANT, value=255)
+    assert len(detect(padded, SPEC)) == SPEC.n_corners
+    side = json.loads((tmp_path / "b.json").read_text())
+    assert BoardSpec.from_dict(side["board"]) == SPEC
+    pdf = tmp_path / "b.pdf"
+    assert main(["calibrate", "board", "-o", str(pdf), "--page", "a4"]) == 0
+    data = pdf.read_bytes()
+    assert data.startswith(b"%PDF-1.4") and data.rstrip().endswith(b"%%EOF")
+    # image drawn at exactly 220 x 160 mm (11x8 squares of 20 mm): 623.62 x 453.54 pt
+    m = re.search(rb"q ([\d.]+) 0 0 ([\d.]+) [\d.]+ [\d.]+ cm /Im0 Do Q", data)
+    assert m and float(m.group(1)) == pytest.approx(220 / 25.4 * 72, abs=1e-3)
+    assert float(m.group(2)) == pytest.approx(160 / 25.4 * 72, abs=1e-3)
+    # a well-formed file: every xref offset points at its object, and the embedded image is the board
+    xref_at = int(data[data.rindex(b"startxref") + 9:].split()[0])
+    rows = data[xref_at:].split(b"\n")[3:3 + 6]
+    for k, row in enumerate(rows, start=1):
+        off = int(row.split()[0])
+        assert data[off:].startswith(f"{k} 0 obj".encode())
+    im = re.search(rb"/Width (\d+) /Height (\d+) .*?/Length (\d+) >>\nstream\n", data, re.S)
+    w, h, n = (int(g) for g in im.groups())
+    pixels = np.frombuffer(zlib.decompress(data[im.end():im.end() + n]), np.uint8).reshape(h, w)
+    assert len(detect(cv2.copyMakeBorder(pixels, 40, 40, 40, 40, cv2.BORDER_CONSTANT, value=255),
+                      BoardSpec())) == BoardSpec().n_corners
+    assert main(["calibrate", "board", "--square-mm", "40", "--marker-mm", "30", "-o", str(pdf)]) == 2
+    assert "does not fit on a4" in capsys.readouterr().err
+
+
+def test_intrinsics_cli_writes_calibration(tmp_path, capsys):
+    _write_views(tmp_path / "views", 8)
+    out = tmp_path / "cam.json"
+    rc = main(["calibrate", "intrinsics", str(tmp_path / "views"), "--squares", "9x6", "--square-mm", "30",
+               "--marker-mm", "22", "--dictionary", "DICT_4X4_50", "-o", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    c = load_calibration(out)
+    assert abs(c.camera("left").K[0, 0] / 450.0 - 1) < 0.01
+    assert c.meta["board"]["squares_x"] == 9
+
+
+def test_cli_errors_are_one_line_exit_2(tmp_path, capsys):
+    _write_views(tmp_path / "views", 2)
+    args = ["--squares", "9x6", "--square-mm", "30", "--marker-mm", "22", "--dictionary", "DICT_4X4_50"]
+    assert main(["calibrate", "intrinsics", str(tmp_path / "views"), *args]) == 2
+    assert "too few views: 2 usable" in capsys.readouterr().err
+    assert main(["calibrate", "intrinsics", str(tmp_path / "nothing"), *args]) == 2
+    assert "no such image file or folder" in capsys.readouterr().err
+    bad = tmp_path / "bad.json"
+    bad.write_text("{}")
+    assert main(["calibrate", "import-depthai", str(bad), "-o", str(tmp_path / "x.json")]) == 2
+    assert "missing key 'cameraData'" in capsys.readouterr().err
+
+
+def test_import_depthai_cli(tmp_path, capsys):
+    K = [[800.0, 0, 640.0], [0, 800.0, 400.0], [0, 0, 1]]
+    cam = {"width": 1280, "height": 800, "intrinsicMatrix": K, "distortionCoeff": [0.0] * 14, "cameraType": 0}
+    data = {
+        "cameraData": [
+            [1, cam | {"extrinsics": {"rotationMatrix": np.eye(3).tolist(), "toCameraSocket": 2,
+                                       "translation": {"x": -7.5, "y": 0.0, "z": 0.0}}}],
+            [2, cam | {"extrinsics": {"rotationMatrix": [[0.0] * 3] * 3, "toCameraSocket": -1,
+                                       "translation": {"x": 0, "y": 0, "z": 0}}}],
+        ],
+        "stereoRectificationData": {"leftCameraSocket": 1, "rightCameraSocket": 2},
+    }
+    src = tmp_path / "dai.json"
+    src.write_text(json.dumps(data))
+    out = tmp_path / "ours.json"
+    assert main(["calibrate", "import-depthai", str(src), "-o", str(out)]) == 0
+    c = load_calibration(out)
+    assert c.stereo.baseline_m == pytest.approx(0.075) and c.stereo.T[0] == pytest.approx(-0.075)
+    assert "baseline 75.00 mm" in capsys.readouterr().out
+
+
+class _BoardSource(Source):
+    """A real Source: yields frames of the board at given poses (each pose twice: a still board)."""
+
+    def __init__(self, poses):
+        self._poses = [p for p in poses for _ in range(2)]
+        self._plane = board_plane(SPEC)
+        self._rays = pixel_rays(CAM.scaled_to(1280, 800))
+        self._i = 0
+
+    def read(self):
+        if self._i >= len(self._poses):
+            return None
+        R, t = self._poses[self._i]
+        img, _ = render(CAM, R, t, [self._plane], background=128, rays=self._rays)
+        bgr = degrade(img, 0.7, 2.0, self._i)
+        self._i += 1
+        return Frame(self._i, self._i * 33_000_000, self._i * 33_000_000, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), None,
+                     Intrinsics(450, 451, 322.3, 197.6, 640, 400))
+
+
+def test_capture_keeps_diverse_views(tmp_path):
+    poses = board_poses(SPEC, 6, seed=9)
+    seen = []
+    with _BoardSource(poses) as src:
+        res = capture_views(src, tmp_path / "cap", SPEC, views=50, on_frame=lambda n, v, s: seen.append(v))
+    assert res.frames_read == 12
+    kept = [v for v in seen if v.accepted]
+    assert 4 <= len(kept) <= 6  # the repeated frame of each pose is never kept twice
+    assert any("too similar" in v.reason for v in seen)
+    assert len(res.files) == len(kept) and all(f.is_file() for f in res.files)
+    assert (tmp_path / "cap" / "coverage.png").is_file()
+    assert 0 < res.coverage <= 1 and set(res.coverage_text) <= {"#", ".", "\n"}
+
+
+def test_capture_without_board_fails_clearly(tmp_path):
+    class Blank(Source):
+        n = 0
+
+        def read(self):
+            self.n += 1
+            if self.n > 3:
+                return None
+            return Frame(self.n, self.n, self.n, np.full((400, 640, 3), 100, np.uint8), None,
+                         Intrinsics(450, 451, 320, 200, 640, 400))
+
+    with pytest.raises(CalibrationError, match=r"no usable board view in 3 frame\(s\)"):
+        capture_views(Blank(), tmp_path / "cap", SPEC)
+
+
+def test_capture_cli_from_replay_then_intrinsics(tmp_path, capsys):
+    """End to end: a recorded session of a board -> `calibrate capture replay://...` -> `calibrate intrinsics`."""
+    from illuminet.runtime.session import SessionWriter
+
+    session = tmp_path / "session"
+    src = _BoardSource(board_poses(SPEC, 10, seed=21))
+    with SessionWriter(session, source="test://board", fsync=False) as w:
+        while (f := src.read()) is not None:
+            w.append(f.replace(depth=np.zeros(f.color.shape[:2], np.float32)))
+    views = tmp_path / "views"
+    args = ["--squares", "9x6", "--square-mm", "30", "--marker-mm", "22", "--dictionary", "DICT_4X4_50"]
+    rc = main(["calibrate", "capture", f"replay://{session}?timing=asap", *args, "-o", str(views), "--views", "50"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    assert "coverage" in out.out and (views / "coverage.png").is_file()
+    kept = sorted(views.glob("view_*.png"))
+    assert 6 <= len(kept) <= 10
+    rc = main(["calibrate", "intrinsics", str(views), *args, "-o", str(tmp_path / "cam.json")])
+    assert rc == 0, capsys.readouterr().err
+    assert abs(load_calibration(tmp_path / "cam.json").camera("left").K[0, 0] / 450.0 - 1) < 0.01
+
+
+class _SbsBoardSource(Source):
+    """Side-by-side stereo frames (left|right) of the board: a UVC stereo camera's format."""
+
+    R = cv2.Rodrigues(np.array([0.002, -0.01, 0.003]))[0]
+    T = np.array([-0.06, 0.0004, 0.001])
+
+    def __init__(self, poses):
+        self._poses = poses
+        self._plane = board_plane(SPEC)
+        self._rays = pixel_rays(CAM.scaled_to(1280, 800))
+        self._i = 0
+
+    def read(self):
+        if self._i >= len(self._poses):
+            return None
+        Rb, tb = self._poses[self._i]
+        left, _ = render(CAM, Rb, tb, [self._plane], background=128, rays=self._rays)
+        right, _ = render(CAM, self.R @ Rb, self.R @ tb + self.T, [self._plane], background=128, rays=self._rays)
+        sbs = degrade(np.hstack([left, right]), 0.7, 2.0, self._i)
+        self._i += 1
+        return Frame(self._i, self._i, self._i, cv2.cvtColor(sbs, cv2.COLOR_BGR2RGB), None,
+                     Intrinsics(450, 451, 322.3, 197.6, 1280, 400))
+
+
+def test_sbs_capture_then_stereo_cli(tmp_path, capsys):
+    poses = board_poses(SPEC, 12, seed=31, distance=(0.45, 0.7), shift=(0.06, 0.05))
+    res = capture_views(_SbsBoardSource(poses), tmp_path / "cap", SPEC, views=50, split="sbs", min_novelty=0.03)
+    left = sorted((tmp_path / "cap" / "left").glob("*.png"))
+    right = sorted((tmp_path / "cap" / "right").glob("*.png"))
+    assert len(left) == len(right) >= 8 and [p.name for p in left] == [p.name for p in right]
+    assert len(res.files) == 2 * len(left)
+    out = tmp_path / "rig.json"
+    rc = main(["calibrate", "stereo", str(tmp_path / "cap" / "left"), str(tmp_path / "cap" / "right"),
+               "--squares", "9x6", "--square-mm", "30", "--marker-mm", "22", "--dictionary", "DICT_4X4_50",
+               "-o", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    c = load_calibration(out)
+    assert abs(c.stereo.baseline_m / np.linalg.norm(_SbsBoardSource.T) - 1) < 0.01
+    assert c.stereo.rectification is not None and c.color_camera == "left"
