@@ -848,7 +848,9 @@ class SyntheticSource(Source):
         x = x + sigma * self._bank[off : off + x.size].reshape(x.shape)
         q = np.clip(x * np.float32(_SRGB_LUT_SIZE - 1) + np.float32(0.5), 0, _SRGB_LUT_SIZE - 1).astype(np.int32)
         color = self._lut[q].reshape(H, W, 3)
-        depth_img = _stereo_depth(depth.reshape(H, W), intr.fx, rng, self._bank, off)
+        # its own window of the bank, so depth noise is independent of the colour noise
+        off_d = int(rng.integers(0, self._bank.size - H * W))
+        depth_img = _stereo_depth(depth.reshape(H, W), intr.fx, rng, self._bank, off_d)
         down = T_wc[:3, :3].T @ np.array([0.0, -1.0, 0.0])
         frame = Frame(
             seq=i,
@@ -883,7 +885,7 @@ def _stereo_depth(z: np.ndarray, fx: float, rng: np.random.Generator, bank: np.n
     valid = (z > MIN_DEPTH_M) & (z < MAX_DEPTH_M)
     with np.errstate(divide="ignore"):
         disp = np.where(valid, fb / np.maximum(z, 1e-6), 0).astype(np.float32)
-    noise = bank[off + 17 : off + 17 + z.size].reshape(z.shape)
+    noise = bank[off : off + z.size].reshape(z.shape)
     disp = np.round((disp + np.float32(DISPARITY_NOISE_PX) * noise) / np.float32(DISPARITY_STEP_PX)) * np.float32(DISPARITY_STEP_PX)
     # holes where depth jumps (occlusion / matching failure at edges), dilated a few pixels
     jump = np.zeros_like(valid)
