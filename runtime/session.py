@@ -620,6 +620,8 @@ class SessionReader:
             buf = np.fromfile(path, dtype=np.uint8)
         except FileNotFoundError:
             raise CorruptFrame(f"{what}: missing file {path}") from None
+        except OSError as e:  # permissions, I/O error: this frame is lost, the others may still read
+            raise CorruptFrame(f"{what}: cannot read {path}: {e.strerror or e}") from None
         if buf.size != expected:
             raise CorruptFrame(f"{what}: truncated frame: {path} has {buf.size} bytes, the index says {expected}")
         return buf
