@@ -27,6 +27,7 @@ def frames(n: int, *, fps: float = 30.0, seed: int = 0, w: int = W, h: int = H) 
 def make_session(path: Path, n: int = 8, *, fps: float = 30.0, **writer_kw) -> list[Frame]:
     """Record ``n`` frames into a new session at ``path``; returns the frames written."""
     fs = frames(n, fps=fps)
+    writer_kw.setdefault("color", "png")  # most bad-session tests damage PNG files; raw is tested explicitly
     with SessionWriter(path, source="test://frames", **writer_kw) as w:
         for f in fs:
             w.append(f)
