@@ -26,9 +26,8 @@ RSS_TARGET_MB = 600.0
 
 
 def run(args, cfg) -> dict:
-    from illuminet.cmd_demo import DEFAULT_SOURCE, describe_shading, peak_rss_mb, StillSink
+    from illuminet.cmd_demo import DEFAULT_SOURCE, StillSink, demo_stages, describe_shading, peak_rss_mb
     from illuminet.hw import open_source
-    from illuminet.pipeline import build_stages
     from illuminet.runtime.loop import run_loop
 
     quick = bool(getattr(args, "quick", False))
@@ -36,7 +35,7 @@ def run(args, cfg) -> dict:
     cfg = apply_overrides(cfg, [("source", "timing", "asap")])
     url = DEFAULT_SOURCE.format(frames=n)
     probe = StillSink(None, index=-1)
-    stats = run_loop(open_source(url, cfg), build_stages(cfg), [probe], max_frames=n, install_signals=False)
+    stats = run_loop(open_source(url, cfg), demo_stages(cfg), [probe], max_frames=n, install_signals=False)
     d = stats.to_dict()
     steps = d["steps"]
     total = steps.get("total", {}).get("median_ms", 0.0)

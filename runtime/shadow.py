@@ -365,8 +365,10 @@ class ShadowCaster:
         ctx = self.ctx
         height = float(self.bbox_max[1] - max(self.bbox_min[1], 0.0))
         foot = max(self.bbox_max[0] - self.bbox_min[0], self.bbox_max[2] - self.bbox_min[2])
-        h0 = 0.25 * max(height, 1e-3)  # undersides higher than this leave no contact shadow
-        sigma_m = 0.08 * foot + 0.02 * height
+        # undersides higher than h0 leave no contact shadow; the halo reaches about 2 sigma past
+        # the footprint, enough to show beyond a bulging body (a vase hides its own base)
+        h0 = 0.5 * max(height, 1e-3)
+        sigma_m = 0.10 * foot + 0.04 * height
         margin = 3.0 * sigma_m
         rect = np.array([self.bbox_min[0] - margin, self.bbox_min[2] - margin,
                          self.bbox_max[0] + margin, self.bbox_max[2] + margin])
