@@ -733,7 +733,7 @@ class Compositor:
 
     def __init__(self, ctx, mesh: RenderMesh, msaa: int = 4, shadow: bool = True, shadow_map: int = 1024,
                  occlusion: bool = True, depth_tolerance_m: float = 0.03, shadow_softness: float = 0.05,
-                 contact_shadow: float = 0.75, response_lut: np.ndarray | None = None, antialias: str = "msaa"):
+                 contact_shadow: float = 0.75, response_lut: np.ndarray | None = None, antialias: str = "edge"):
         import moderngl
 
         self.ctx = ctx
