@@ -37,7 +37,7 @@ from typing import Any, Callable
 import numpy as np
 
 from illuminet.runtime.frame import Frame
-from illuminet.runtime.gl import check_gl, park
+from illuminet.runtime.gl import check_gl, make_current, park
 from illuminet.runtime.physics import srgb_to_linear
 from illuminet.runtime.scene import ObjectShading
 from illuminet.runtime.shadow import RECEIVER_FS, RECEIVER_VS, ShadowCaster, dominant_light
@@ -736,6 +736,7 @@ class Compositor:
                  contact_shadow: float = 0.75, response_lut: np.ndarray | None = None, antialias: str = "edge"):
         import moderngl
 
+        make_current(ctx)
         self.ctx = ctx
         self.mesh = mesh
         if antialias not in ANTIALIAS:
@@ -922,6 +923,7 @@ class Compositor:
             raise ValueError(f"exposure_scale must be a finite number >= 0, got {exposure_scale!r}")
         if depth is not None and depth.shape != (hgt, wid):
             raise ValueError(f"depth {depth.shape} must be aligned to colour {(hgt, wid)}")
+        make_current(self.ctx)
         self._t_mark = self.profile_clock()
         if out is None:
             out = color.copy()
@@ -1071,6 +1073,7 @@ class Compositor:
     def release(self) -> None:
         """Free every GPU object; safe to call twice."""
         if getattr(self, "_vbo", None) is not None:
+            make_current(self.ctx)
             park(self.ctx)
         for obj in list(self._fbos.values()) + list(self._ofbos.values()):
             obj.release()

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from illuminet.runtime.gl import park
+from illuminet.runtime.gl import make_current, park
 from illuminet.runtime.scene import ObjectShading
 
 #: Rec.709 luminance weights: the light's "amount" when colours must be summed to one number
@@ -314,6 +314,7 @@ class ShadowCaster:
 
         if size < 16 or size > 8192:
             raise ValueError(f"[render] shadow_map: expected 16..8192 pixels, got {size}")
+        make_current(ctx)
         self.ctx = ctx
         v = np.ascontiguousarray(vertices, dtype=np.float32)
         f = np.ascontiguousarray(faces, dtype=np.uint32)
@@ -488,6 +489,7 @@ class ShadowCaster:
     def release(self) -> None:
         """Free the GPU objects; safe to call twice."""
         if getattr(self, "_vbo", None) is not None:
+            make_current(self.ctx)
             park(self.ctx)
         for name in ("_depth_vao", "_depth_prog", "_shadow_fbo", "shadow_tex", "_vis_vao", "_vis_prog",
                      "_vis_fbo", "vis_tex", "ao_tex", "_quad", "_vbo", "_ibo"):
