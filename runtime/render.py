@@ -1308,6 +1308,10 @@ class RenderStage(Stage):
             s["shadow_redraws"] = self.comp.shadow.redraws if self.comp.shadow is not None else 0
         if self._crop_px:
             s["crop_px_median"] = int(np.median(self._crop_px))
+        d, share = self._light
+        if d is not None:  # the (smoothed) dominant light of the last frame, object frame
+            s["light_dir"] = [round(float(x), 2) for x in d]
+            s["light_share"] = round(float(share), 2)
         return s
 
 
