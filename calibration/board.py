@@ -92,6 +92,7 @@ class BoardSpec:
 
     @property
     def square_m(self) -> float:
+        """Square side in metres (the unit of board coordinates and stereo translations)."""
         return self.square_mm / 1000.0
 
     @property
@@ -105,6 +106,7 @@ class BoardSpec:
         return (self.squares_x * self.square_mm, self.squares_y * self.square_mm)
 
     def cv_dictionary(self):
+        """The OpenCV ``aruco.Dictionary`` named by :attr:`dictionary`."""
         return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
 
     def cv_board(self) -> "cv2.aruco.CharucoBoard":
@@ -123,14 +125,17 @@ class BoardSpec:
         return pts
 
     def to_dict(self) -> dict:
+        """Plain dict (JSON-ready), the inverse of :meth:`from_dict`."""
         return asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> "BoardSpec":
+        """Board from a dict written by :meth:`to_dict` (unknown keys ignored, checks applied)."""
         return cls(**{k: d[k] for k in ("squares_x", "squares_y", "square_mm", "marker_mm", "dictionary", "legacy", "aspect")
                       if k in d})
 
     def describe(self) -> str:
+        """One line for messages: squares, sizes, dictionary, layout."""
         return (f"ChArUco {self.squares_x}x{self.squares_y} squares of {self.square_mm:g} mm, markers "
                 f"{self.marker_mm:g} mm, {self.dictionary}{' (legacy layout)' if self.legacy else ''}"
                 f"{f', aspect {self.aspect:g}' if self.aspect != 1.0 else ''}")

@@ -113,6 +113,7 @@ class CameraCalib:
         return replace(self, width=int(width), height=int(height), K=K)
 
     def to_dict(self) -> dict:
+        """The ``cameras.NAME`` object of the file format."""
         d = {
             "width": int(self.width), "height": int(self.height), "model": self.model,
             "K": np.asarray(self.K, float).tolist(), "dist": np.asarray(self.dist, float).ravel().tolist(),
@@ -153,6 +154,7 @@ class StereoCalib:
         return float(np.linalg.norm(self.T))
 
     def to_dict(self) -> dict:
+        """The ``stereo`` object of the file format."""
         d: dict[str, Any] = {
             "left": self.left, "right": self.right,
             "R": np.asarray(self.R, float).tolist(), "T": np.asarray(self.T, float).ravel().tolist(),
@@ -286,6 +288,7 @@ class Calibration:
 
     # -- serialisation ------------------------------------------------------------------------------
     def to_dict(self) -> dict:
+        """The whole file as a JSON-ready dict (format name and version first)."""
         d: dict[str, Any] = {
             "format": FORMAT_NAME,
             "version": FORMAT_VERSION,

@@ -64,6 +64,7 @@ class IntrinsicsResult:
     std: dict[str, float] = field(default_factory=dict)
 
     def summary(self) -> str:
+        """One line: model, size, K, distortion, RMS, fixed groups, standard deviations."""
         K = self.camera.K
         s = (f"{self.camera.model} {self.camera.width}x{self.camera.height}: fx={K[0, 0]:.2f} fy={K[1, 1]:.2f} "
              f"cx={K[0, 2]:.2f} cy={K[1, 2]:.2f} dist={np.round(self.camera.dist, 5).tolist()} "

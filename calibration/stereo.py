@@ -48,6 +48,7 @@ class StereoResult:
     per_pair_rms: list[float]
 
     def summary(self) -> str:
+        """One line: baseline, T, rotation angle, RMS, number of pairs."""
         T = np.asarray(self.stereo.T).ravel()
         ang = float(np.degrees(np.linalg.norm(cv2.Rodrigues(np.asarray(self.stereo.R))[0])))
         return (f"stereo {self.stereo.left}->{self.stereo.right}: baseline {self.stereo.baseline_m * 1000:.2f} mm, "
@@ -200,6 +201,7 @@ class Rectification:
         return float(-self.P2[0, 3] / self.P2[0, 0])
 
     def as_dict(self) -> dict[str, np.ndarray]:
+        """``{"R1", "R2", "P1", "P2", "Q"}`` as stored in :attr:`StereoCalib.rectification`."""
         return {"R1": self.R1, "R2": self.R2, "P1": self.P1, "P2": self.P2, "Q": self.Q}
 
 

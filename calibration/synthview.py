@@ -41,6 +41,7 @@ class TexturedPlane:
 
     @property
     def normal(self) -> np.ndarray:
+        """Unit normal u x v."""
         n = np.cross(self.u, self.v)
         return n / np.linalg.norm(n)
 
@@ -167,18 +168,22 @@ class StereoScene:
 
 
 def stereo_scene(width: int = 640, height: int = 400, fx: float = 400.0, baseline_m: float = 0.075,
-                 seed: int = 0, noise: float = 1.5) -> StereoScene:
+                 seed: int = 0, noise: float = 1.5, fisheye: bool = False) -> StereoScene:
     """A room-like scene (back wall at 3 m, floor, a tilted panel at ~1.2 m) seen by a slightly
     imperfect stereo pair (distortion, small rotation, different principal points), like a cheap
-    V4L2 stereo camera, with blur and sensor noise added."""
+    V4L2 stereo camera, with blur and sensor noise added. ``fisheye`` uses ``cv2.fisheye`` lenses."""
     from illuminet.calibration.calibfile import Calibration, StereoCalib
 
     K = np.array([[fx, 0, (width - 1) / 2 + 2.3], [0, fx * 1.001, (height - 1) / 2 - 1.7], [0, 0, 1.0]])
-    left = CameraCalib(width, height, K, np.array([-0.05, 0.01, 0.0002, -0.0001, 0.0]))
     K2 = K.copy()
     K2[0, 2] += 4.0
     K2[1, 2] -= 2.0
-    right = CameraCalib(width, height, K2, np.array([-0.045, 0.008, -0.0001, 0.0002, 0.0]))
+    if fisheye:
+        left = CameraCalib(width, height, K, np.array([-0.02, -0.008, 0.008, -0.004]), "fisheye")
+        right = CameraCalib(width, height, K2, np.array([-0.025, 0.01, -0.016, 0.006]), "fisheye")
+    else:
+        left = CameraCalib(width, height, K, np.array([-0.05, 0.01, 0.0002, -0.0001, 0.0]))
+        right = CameraCalib(width, height, K2, np.array([-0.045, 0.008, -0.0001, 0.0002, 0.0]))
     R = cv2.Rodrigues(np.array([0.002, -0.008, 0.003]))[0]
     T = np.array([-baseline_m, 0.0004, 0.001])
     calib = Calibration({"left": left, "right": right}, StereoCalib("left", "right", R, T))

@@ -67,6 +67,7 @@ def _camera_ref(ref: str):
 
 
 def cmd_board(args, cfg) -> int:
+    """``calibrate board``: write the board PDF/PNG and its ``.json`` description."""
     from illuminet.calibration.board import board_image, write_pdf, write_png
 
     spec = _spec(args)
@@ -88,6 +89,7 @@ def cmd_board(args, cfg) -> int:
 
 
 def cmd_capture(args, cfg) -> int:
+    """``calibrate capture``: open the source URL and keep diverse board views."""
     from illuminet.calibration.capture import capture_views
     from illuminet.hw import SourceError, open_source
 
@@ -123,6 +125,7 @@ def _write(calib, path: str) -> None:
 
 
 def cmd_intrinsics(args, cfg) -> int:
+    """``calibrate intrinsics``: one camera from images; optional comparison with a reference."""
     from illuminet.calibration.calibfile import Calibration
     from illuminet.calibration.charuco import detect_files
     from illuminet.calibration.intrinsics import calibrate_intrinsics, evaluate_intrinsics
@@ -158,6 +161,7 @@ def cmd_intrinsics(args, cfg) -> int:
 
 
 def cmd_stereo(args, cfg) -> int:
+    """``calibrate stereo``: both cameras (or given intrinsics) plus their pose and rectification."""
     from illuminet.calibration.calibfile import Calibration
     from illuminet.calibration.charuco import detect_files
     from illuminet.calibration.intrinsics import calibrate_intrinsics
@@ -190,6 +194,7 @@ def cmd_stereo(args, cfg) -> int:
 
 
 def cmd_photometric(args, cfg) -> int:
+    """``calibrate photometric``: Debevec response LUT from an exposure bracket."""
     from dataclasses import replace
 
     from illuminet.calibration.calibfile import load_calibration, save_calibration
@@ -214,6 +219,7 @@ def cmd_photometric(args, cfg) -> int:
 
 
 def cmd_import_depthai(args, cfg) -> int:
+    """``calibrate import-depthai``: DepthAI calibration JSON -> our file."""
     from illuminet.calibration.depthai_import import import_depthai
 
     cal = import_depthai(args.json, args.left_socket, args.right_socket)
@@ -231,6 +237,7 @@ def cmd_import_depthai(args, cfg) -> int:
 
 
 def register(sub) -> None:
+    """Add ``calibrate`` and its subcommands to the ``illuminet`` parser."""
     p = sub.add_parser("calibrate", help="camera calibration: board, capture, intrinsics, stereo, photometric, import-depthai",
                        description="Camera calibration with a ChArUco board; see docs/calibration.md.")
     csub = p.add_subparsers(dest="calibrate_command", metavar="SUBCOMMAND")

@@ -63,7 +63,7 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "response_curve": _f(str, "", "camera response curve from `illuminet calibrate photometric` ('' = sRGB)"),
     },
     "planes": {
-        "method": _f(str, "ransac", "plane segmentation", choices=("ransac", "region", "opencv")),
+        "method": _f(str, "region", "plane segmentation (docs/planes.md compares them)", choices=("ransac", "region", "opencv")),
         "redetect_every": _f(int, 30, "full re-detection every N frames (tracking in between)"),
         "max_planes": _f(int, 4, "most planes kept per frame"),
         "min_area_m2": _f(float, 0.02, "smallest plane kept, square metres"),
@@ -80,6 +80,8 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "extent_m": _f(float, 1.0, "side of the square plane patch around the anchor, metres"),
         "fusion": _f(float, 0.9, "temporal fusion weight of the previous estimate, 0 = none"),
         "assumed_albedo": _f(float, 0.5, "mean albedo assumed for the plane (radiance -> irradiance)"),
+        "smoothing_cells": _f(float, 1.5, "masked Gaussian over the grid against coarse albedo texture, sigma in cells (0 = off)"),
+        "extra_planes": _f(int, 0, "also measure up to N more planes (walls first) as further PlaneLight slices"),
     },
     "model": {
         "bundle": _f(str, "builtin:vase", "object bundle: builtin:NAME or a bundle folder"),

@@ -10,7 +10,19 @@ import pytest
 os.environ.setdefault("DEPTHAI_TELEMETRY", "0")
 
 REPO = Path(__file__).resolve().parent.parent
-SHARED_DATA = REPO.parent / "shared" / "data"
+
+def _shared_data_dir() -> Path:
+    """../shared/data beside the checkout; ILLUMINET_SHARED_DATA overrides (e.g. for git worktrees)."""
+    env = os.environ.get("ILLUMINET_SHARED_DATA")
+    if env:
+        return Path(env)
+    for base in (REPO.parent, REPO.parent.parent):  # a checkout, or a worktree one level deeper
+        if (base / "shared" / "data").is_dir():
+            return base / "shared" / "data"
+    return REPO.parent / "shared" / "data"
+
+
+SHARED_DATA = _shared_data_dir()
 
 
 @pytest.fixture(scope="session")

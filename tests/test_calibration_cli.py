@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import zlib
 
 import cv2
 import numpy as np
@@ -53,6 +54,17 @@ def test_board_png_and_pdf(tmp_path, capsys):
     m = re.search(rb"q ([\d.]+) 0 0 ([\d.]+) [\d.]+ [\d.]+ cm /Im0 Do Q", data)
     assert m and float(m.group(1)) == pytest.approx(220 / 25.4 * 72, abs=1e-3)
     assert float(m.group(2)) == pytest.approx(160 / 25.4 * 72, abs=1e-3)
+    # a well-formed file: every xref offset points at its object, and the embedded image is the board
+    xref_at = int(data[data.rindex(b"startxref") + 9:].split()[0])
+    rows = data[xref_at:].split(b"\n")[3:3 + 6]
+    for k, row in enumerate(rows, start=1):
+        off = int(row.split()[0])
+        assert data[off:].startswith(f"{k} 0 obj".encode())
+    im = re.search(rb"/Width (\d+) /Height (\d+) .*?/Length (\d+) >>\nstream\n", data, re.S)
+    w, h, n = (int(g) for g in im.groups())
+    pixels = np.frombuffer(zlib.decompress(data[im.end():im.end() + n]), np.uint8).reshape(h, w)
+    assert len(detect(cv2.copyMakeBorder(pixels, 40, 40, 40, 40, cv2.BORDER_CONSTANT, value=255),
+                      BoardSpec())) == BoardSpec().n_corners
     assert main(["calibrate", "board", "--square-mm", "40", "--marker-mm", "30", "-o", str(pdf)]) == 2
     assert "does not fit on a4" in capsys.readouterr().err
 
@@ -171,3 +183,44 @@ def test_capture_cli_from_replay_then_intrinsics(tmp_path, capsys):
     rc = main(["calibrate", "intrinsics", str(views), *args, "-o", str(tmp_path / "cam.json")])
     assert rc == 0, capsys.readouterr().err
     assert abs(load_calibration(tmp_path / "cam.json").camera("left").K[0, 0] / 450.0 - 1) < 0.01
+
+
+class _SbsBoardSource(Source):
+    """Side-by-side stereo frames (left|right) of the board: a UVC stereo camera's format."""
+
+    R = cv2.Rodrigues(np.array([0.002, -0.01, 0.003]))[0]
+    T = np.array([-0.06, 0.0004, 0.001])
+
+    def __init__(self, poses):
+        self._poses = poses
+        self._plane = board_plane(SPEC)
+        self._rays = pixel_rays(CAM.scaled_to(1280, 800))
+        self._i = 0
+
+    def read(self):
+        if self._i >= len(self._poses):
+            return None
+        Rb, tb = self._poses[self._i]
+        left, _ = render(CAM, Rb, tb, [self._plane], background=128, rays=self._rays)
+        right, _ = render(CAM, self.R @ Rb, self.R @ tb + self.T, [self._plane], background=128, rays=self._rays)
+        sbs = degrade(np.hstack([left, right]), 0.7, 2.0, self._i)
+        self._i += 1
+        return Frame(self._i, self._i, self._i, cv2.cvtColor(sbs, cv2.COLOR_BGR2RGB), None,
+                     Intrinsics(450, 451, 322.3, 197.6, 1280, 400))
+
+
+def test_sbs_capture_then_stereo_cli(tmp_path, capsys):
+    poses = board_poses(SPEC, 12, seed=31, distance=(0.45, 0.7), shift=(0.06, 0.05))
+    res = capture_views(_SbsBoardSource(poses), tmp_path / "cap", SPEC, views=50, split="sbs", min_novelty=0.03)
+    left = sorted((tmp_path / "cap" / "left").glob("*.png"))
+    right = sorted((tmp_path / "cap" / "right").glob("*.png"))
+    assert len(left) == len(right) >= 8 and [p.name for p in left] == [p.name for p in right]
+    assert len(res.files) == 2 * len(left)
+    out = tmp_path / "rig.json"
+    rc = main(["calibrate", "stereo", str(tmp_path / "cap" / "left"), str(tmp_path / "cap" / "right"),
+               "--squares", "9x6", "--square-mm", "30", "--marker-mm", "22", "--dictionary", "DICT_4X4_50",
+               "-o", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    c = load_calibration(out)
+    assert abs(c.stereo.baseline_m / np.linalg.norm(_SbsBoardSource.T) - 1) < 0.01
+    assert c.stereo.rectification is not None and c.color_camera == "left"

@@ -90,3 +90,25 @@ def test_exposure_and_white_balance_normalisation():
     assert np.allclose(out, [0.2, 0.2, 0.2])
     with pytest.raises(ValueError, match="wb_gains must be 3 positive numbers"):
         undo_white_balance(lin, (1.0, 0.0, 1.0))
+
+
+def test_photometric_cli(tmp_path, capsys):
+    from illuminet.calibration.calibfile import Calibration, CameraCalib, save_calibration
+    from illuminet.cli import main
+
+    bracket = tmp_path / "bracket"
+    bracket.mkdir()
+    for img, t in zip(_bracket(), TIMES):
+        cv2.imwrite(str(bracket / f"shot_{t * 1e6:.0f}us.png"), img)
+    cal = save_calibration(Calibration({"left": CameraCalib(160, 120, np.eye(3), np.zeros(5))}), tmp_path / "c.json")
+    out = tmp_path / "resp.npy"
+    assert main(["calibrate", "photometric", str(bracket), "-o", str(out), "--calibration", str(cal)]) == 0
+    assert "7 exposures" in capsys.readouterr().out
+    lut = load_response_lut(out)
+    assert abs(lut[128, 1] - (128 / 255) ** 2.2) < 0.03
+    from illuminet.calibration.calibfile import load_calibration
+
+    assert load_calibration(cal).response_lut_path() == out.resolve()
+    (bracket / "unnamed.png").write_bytes((bracket / "shot_2500us.png").read_bytes())
+    assert main(["calibrate", "photometric", str(bracket), "-o", str(out)]) == 2
+    assert "unnamed.png: exposure time unknown" in capsys.readouterr().err
