@@ -698,10 +698,11 @@ _OVER_EDGE_FS = """
 #version 330
 uniform sampler2D u_obj;
 uniform ivec2 u_offset;
+uniform ivec2 u_hi;  // last texel of this frame's layer (the texture is larger; beyond is stale)
 out vec4 f_color;
 void main() {
     ivec2 p = ivec2(gl_FragCoord.xy) - u_offset;
-    ivec2 hi = textureSize(u_obj, 0) - 1;
+    ivec2 hi = u_hi;
     vec4 c = texelFetch(u_obj, p, 0);
     if (c.a < 0.5 && c.r > 0.5) discard;  // hidden behind real geometry: the picture stays exact
     // most pixels are plainly inside or outside: four neighbours tell, and outside draws nothing
@@ -1102,6 +1103,8 @@ class Compositor:
             o["layer"].use(0)
             self._over_prog["u_obj"].value = 0
             self._over_prog["u_offset"].value = (ox0 - x0, oy0 - y0)
+            if "u_hi" in self._over_prog:
+                self._over_prog["u_hi"].value = (ow - 1, oh - 1)
             self._over_vao.render(moderngl.TRIANGLE_STRIP)
             ctx.disable(moderngl.BLEND)
 

@@ -7,10 +7,13 @@ What this module owns
   else the irradiance-weighted mean of its OI vectors, else a first-order fit of irradiance against
   the vertex normals).
 * :class:`ShadowCaster`: the GPU side. A depth **shadow map** of the object seen from the dominant
-  light (orthographic: the light is distant), redrawn only when the direction moves; a **contact
-  map** (ambient-occlusion-like darkening under the object's base), computed once per mesh from a
-  height map of the object's underside seen from below; and the **receiver program** that draws the
-  plane patch under the object into the compositing framebuffer, multiplying the camera picture by
+  light (orthographic: the light is distant) and, from it, the **visible fraction** of that light
+  over the plane patch under the object (16-tap Poisson PCF into a small texture in plane
+  coordinates), both redrawn only when the direction moves by more than
+  :attr:`ShadowCaster.REDRAW_DEG`; a **contact map** (ambient-occlusion-like darkening under the
+  object's base), computed once per mesh from a height map of the object's underside seen from
+  below. The **receiver program** (:data:`RECEIVER_VS` / :data:`RECEIVER_FS`, drawn by
+  :mod:`illuminet.runtime.render`) looks both up per pixel and multiplies the camera picture by
 
       f = share * visible_fraction(PCF) + (1 - share) * (1 - contact_strength * ao)
 
