@@ -307,6 +307,9 @@ class ShadowCaster:
         (half the triangles, and no self-shadow acne on the lit side).
     """
 
+    #: contact strength the visible extent of the contact shadow is judged at (1 = full strength)
+    CONTACT_VISIBLE_SCALE = 1.0
+
     #: the shadow is redrawn when the light direction moves more than this (degrees); the stage
     #: smooths the direction, so a still light redraws nothing and a turning one every few frames
     REDRAW_DEG = 1.0
@@ -406,6 +409,14 @@ class ShadowCaster:
             ao = np.clip(ao / max(peak, 0.5), 0.0, 1.0)
         ao[[0, -1], :] = 0.0  # the edges of the map clamp outwards: keep them at zero
         ao[:, [0, -1]] = 0.0
+        # the receiver draws only where the darkening is visible at all (the blur's far tail is not)
+        rows, cols = np.nonzero(ao * self.CONTACT_VISIBLE_SCALE > 0.01)
+        sx, sz = (rect[2] - rect[0]) / res, (rect[3] - rect[1]) / res
+        if len(rows):
+            self.ao_draw_rect = np.array([rect[0] + (cols.min() - 1) * sx, rect[1] + (rows.min() - 1) * sz,
+                                          rect[0] + (cols.max() + 2) * sx, rect[1] + (rows.max() + 2) * sz])
+        else:
+            self.ao_draw_rect = np.array([self.center[0], self.center[2], self.center[0], self.center[2]])
         ao_tex = ctx.texture((res, res), 1, ao.astype(np.float32).tobytes(), dtype="f4")
         ao_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
         ao_tex.repeat_x = ao_tex.repeat_y = False
@@ -477,7 +488,7 @@ class ShadowCaster:
         use = direction is not None and direction[1] > MIN_ELEVATION_SIN and share > 0.0 and self._dir is not None
         # long shadows of a low light fade in over the last few degrees instead of popping
         fade = 0.0 if direction is None else float(np.clip((direction[1] - MIN_ELEVATION_SIN) / 0.1, 0.0, 1.0))
-        draw = self.ao_rect.copy()
+        draw = self.ao_draw_rect.copy()
         if use and self.cast_rect is not None:
             c = self.cast_rect
             draw = np.array([min(draw[0], c[0]), min(draw[1], c[1]), max(draw[2], c[2]), max(draw[3], c[3])])
