@@ -1,11 +1,16 @@
 """``illuminet demo``: the whole pipeline on a built-in default scene, to a video file, with figures.
 
-One command shows what the project does without any hardware: the synthetic RGB-D camera
-(``synthetic://indoor``, 1280x800, the camera orbiting the spot where the object stands) ->
-planes -> anchor -> plane light -> shading (the learned model of the bundle when it loads, else
-the SH baseline fitted to the RGB-D frame; the demo prints which one drove the shading) ->
+One command shows what the project does without any hardware: the built-in default session (a
+small recording of the synthetic RGB-D camera that ships with the package, ``illuminet/data/
+demo_session``: a room lit by a near lamp, 1280x800 colour, depth stored at the stereo resolution
+640x400, the camera orbiting the spot where the object stands; replayed as fast as possible, in a
+loop) -> planes -> anchor -> plane light -> shading (the learned model of the bundle when it loads,
+else the SH baseline fitted to the RGB-D frame; the demo prints which one drove the shading) ->
 render (shadow, occlusion) -> ``out/demo.mp4`` plus a PNG still of the middle frame. At the end it
 prints the per-stage timing table, each stage's counters and the peak resident memory.
+
+This module also owns the default session: :func:`make_default_session` generates it
+(``illuminet demo --make-default-session DIR [--seed N]``), deterministically per seed.
 
 Exit codes: 0 done, 1 the source or an output failed, 2 configuration error.
 """
@@ -28,8 +33,34 @@ from illuminet.runtime.stage import Sink, Stage
 
 log = logging.getLogger("illuminet.demo")
 
-#: the built-in default: a synthetic room at the OAK-D's mono resolution, the camera orbiting
-DEFAULT_SOURCE = "synthetic://indoor?seed=0&frames={frames}&size=1280x800&path=orbit"
+#: the committed default session (package data), made by ``illuminet demo --make-default-session``
+DEFAULT_SESSION = Path(__file__).resolve().parent / "data" / "demo_session"
+#: what the default session records: a near lamp (clear shading gradient and shadow direction),
+#: 1280x800 colour, the camera orbiting the object once (so a looped replay has no jump)
+DEFAULT_SESSION_SCENE = "lamp"
+DEFAULT_SESSION_SEED = 3
+DEFAULT_SESSION_FRAMES = 32
+DEFAULT_SESSION_SIZE = (1280, 800)
+#: depth stored at 1/2 of the colour size (640x400, the OAK-D's stereo resolution; format version 2)
+DEFAULT_SESSION_DEPTH_SCALE = 2
+#: colour JPEG quality of the default session (the committed folder stays small)
+DEFAULT_SESSION_JPEG_QUALITY = 85
+#: the synthetic camera the demo used before the default session existed (still accepted via --source)
+SYNTHETIC_SOURCE = "synthetic://indoor?seed=0&frames={frames}&size=1280x800&path=orbit"
+
+
+def default_session_source_url(seed: int = DEFAULT_SESSION_SEED, frames: int = DEFAULT_SESSION_FRAMES) -> str:
+    """The ``synthetic://`` URL the default session records (see :func:`make_default_session`)."""
+    w, h = DEFAULT_SESSION_SIZE
+    return f"synthetic://{DEFAULT_SESSION_SCENE}?seed={int(seed)}&frames={int(frames)}&size={w}x{h}&path=orbit"
+
+
+def default_source_url(session: Path | None = None) -> str:
+    """``replay://`` URL of the default session, looped (the demo runs more frames than it holds)."""
+    from urllib.parse import quote
+
+    path = Path(session) if session is not None else DEFAULT_SESSION
+    return f"replay://{quote(str(path.resolve()))}?loop=1"
 
 #: peak resident memory the demo should stay under (MB); above it the demo says so
 RSS_TARGET_MB = 600.0
@@ -52,7 +83,13 @@ def register(sub) -> None:
                    help="PNG still of the middle frame (default: next to the video, NAME_still.png; "
                         "'' for none)")
     p.add_argument("--source", metavar="URL",
-                   help="frame source instead of the built-in scene (e.g. replay://SESSION, oakd://)")
+                   help="frame source instead of the built-in default session (e.g. replay://SESSION, "
+                        "synthetic://indoor?size=1280x800, oakd://)")
+    p.add_argument("--make-default-session", metavar="DIR",
+                   help="(re)generate the built-in default session into the new folder DIR and exit "
+                        "(deterministic per --seed; the shipped one is illuminet/data/demo_session)")
+    p.add_argument("--seed", type=int, default=DEFAULT_SESSION_SEED,
+                   help=f"seed of --make-default-session (default {DEFAULT_SESSION_SEED}, the shipped session)")
     p.add_argument("--stats-json", metavar="PATH", help="write the per-step timing statistics as JSON")
     p.add_argument("--strict", action="store_true", help="stop at the first failing frame with a traceback")
     p.set_defaults(func=cmd_demo)
@@ -149,6 +186,52 @@ class SHFallbackShading(Stage):
         return {"mode": "sh (demo fallback: no bundle)", "frames": self.frames, "fits": self.fits}
 
 
+def make_default_session(path: str | Path, *, seed: int = DEFAULT_SESSION_SEED,
+                         frames: int = DEFAULT_SESSION_FRAMES) -> Path:
+    """Generate the demo's default session into the new folder ``path``, deterministically per seed.
+
+    Records :func:`default_session_source_url` (the synthetic camera's lamp scene at 1280x800, one
+    orbit) with JPEG colour (quality :data:`DEFAULT_SESSION_JPEG_QUALITY`) and depth stored at half
+    the colour size (640x400 16-bit PNG, zlib level 9; session format version 2). The depth is the
+    one the same synthetic scene gives at 640x400 (same seed: same room, lights and camera path;
+    disparity noise and steps of a 640x400 stereo pair, as an OAK-D computes it), not a subsample of
+    the 1280x800 depth, whose finer disparity noise would double the files. Host timestamps are
+    the device ones (a synthetic frame has no host clock), so the frame files and the index are the
+    same bytes for the same seed; only the manifest's ``created``/``closed`` times differ. The
+    manifest's ``meta`` records the command and the seed.
+
+    Raises
+    ------
+    SessionError
+        When ``path`` already holds a session.
+    """
+    from illuminet.hw import open_source
+    from illuminet.runtime.config import defaults
+    from illuminet.runtime.session import SessionWriter
+
+    import cv2
+
+    url = default_session_source_url(seed, frames)
+    w, h = DEFAULT_SESSION_SIZE
+    k = DEFAULT_SESSION_DEPTH_SCALE
+    stereo_url = url.replace(f"size={w}x{h}", f"size={w // k}x{h // k}")
+    meta = {"generated_by": f"illuminet demo --make-default-session DIR --seed {int(seed)}",
+            "seed": int(seed), "source": url, "frames": int(frames),
+            "color_jpeg_quality": DEFAULT_SESSION_JPEG_QUALITY, "depth_scale": DEFAULT_SESSION_DEPTH_SCALE}
+    meta["depth_source"] = stereo_url
+    with open_source(url, defaults()) as src, open_source(stereo_url, defaults()) as stereo, SessionWriter(
+            path, source=url, color="jpeg", jpeg_quality=DEFAULT_SESSION_JPEG_QUALITY, fsync=False,
+            depth_scale=k, depth_png_compression=9, meta=meta) as wr:
+        while True:
+            f, d = src.read(), stereo.read()
+            if f is None or d is None:
+                break
+            # nearest-neighbour up to colour size: the writer's 1/k subsample gives back exactly these samples
+            depth = cv2.resize(d.depth, (w, h), interpolation=cv2.INTER_NEAREST)
+            wr.append(f.replace(depth=depth, t_host_ns=f.t_device_ns))
+    return Path(path)
+
+
 def demo_stages(cfg: Config) -> list[Stage]:
     """The standard chain (:func:`illuminet.pipeline.build_stages`), with the SH baseline for shading
     when the bundle ``[model] bundle`` cannot be loaded (a built-in object is then drawn from its
@@ -212,11 +295,28 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
     from illuminet.runtime.loop import LoopStats, run_loop
     from illuminet.runtime.sinks import SinkError
 
+    from illuminet.runtime.session import SessionError
+
+    if args.make_default_session:
+        try:
+            out = make_default_session(args.make_default_session, seed=args.seed)
+        except (SourceError, SessionError, OSError) as e:
+            print(f"illuminet demo: --make-default-session: {e}", file=sys.stderr)
+            return 1
+        print(f"default session: {out} ({default_session_source_url(args.seed)}, seed {args.seed})")
+        return 0
     if args.frames < 1:
         print(f"illuminet demo: --frames must be at least 1, got {args.frames}", file=sys.stderr)
         return 2
     cfg = demo_config(args, cfg)
-    url = args.source or DEFAULT_SOURCE.format(frames=args.frames)
+    if args.source:
+        url = args.source
+    elif (DEFAULT_SESSION / "manifest.json").is_file():
+        url = default_source_url()
+    else:  # an install without the package data: the synthetic camera still gives a demo
+        print(f"demo: the default session {DEFAULT_SESSION} is missing; using the synthetic camera "
+              f"(slow: it renders every frame)")
+        url = SYNTHETIC_SOURCE.format(frames=args.frames)
     if args.still is not None:
         still = args.still
     elif not args.no_video:
