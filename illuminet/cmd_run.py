@@ -163,6 +163,16 @@ def cmd_run(args: argparse.Namespace, cfg: Config) -> int:
     return _execute(cfg, args.source_url or cfg.source.url, with_stages=True)
 
 
+def _depth_summary(reader) -> str:
+    """How a session stores depth, for ``replay --check``."""
+    if not reader.has_depth:
+        return "none"
+    k = reader.depth_scale
+    if k == 1:
+        return "16-bit PNG mm"
+    return f"16-bit PNG mm at {reader.width // k}x{reader.height // k} (1/{k}, upsampled nearest on replay)"
+
+
 def cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
     cfg = config_with_flags(args, cfg)
     if args.check:
@@ -174,7 +184,7 @@ def cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
         problems = reader.check()
         m = reader.manifest
         print(f"{args.session}: {m['format']} v{m['version']}, {reader.width}x{reader.height}, colour "
-              f"{reader.color_encoding}, depth {'16-bit PNG mm' if reader.has_depth else 'none'}, "
+              f"{reader.color_encoding}, depth {_depth_summary(reader)}, "
               f"{len(reader)} intact frames, {'finalised' if reader.finalized else 'NOT finalised'}, "
               f"source {m.get('source') or '?'}")
         for p in problems:
