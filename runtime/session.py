@@ -742,11 +742,12 @@ class SessionReader:
                     f"{where}: depth {e.depth}: size mismatch: image is {mm.shape[1]}x{mm.shape[0]}, "
                     f"the manifest says {self.width}x{self.height}{scaled}"
                 )
+            depth = np.multiply(mm, np.float32(1e-3), dtype=np.float32)  # = depth_from_mm, in one pass
             if k > 1:
                 # nearest neighbour by an exact integer factor: every stored sample fills its k x k block
-                # (0 = invalid stays 0; no depth is interpolated across an edge)
-                mm = cv2.resize(mm, (self.width, self.height), interpolation=cv2.INTER_NEAREST)
-            depth = np.multiply(mm, np.float32(1e-3), dtype=np.float32)  # = depth_from_mm, in one pass
+                # (0 = invalid stays 0; no depth is interpolated across an edge). Converting to metres
+                # first touches k^2 fewer pixels: ~1 ms less per 1280x800 frame, same values
+                depth = cv2.resize(depth, (self.width, self.height), interpolation=cv2.INTER_NEAREST)
         return Frame(
             seq=e.seq, t_device_ns=e.t_device_ns, t_host_ns=e.t_host_ns, color=color, depth=depth,
             intrinsics=e.intrinsics or self.intrinsics, exposure=e.exposure, gravity=e.gravity, imu=e.imu,
