@@ -327,10 +327,13 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
     probe = StillSink(still, index=args.frames // 2)
     stats = LoopStats()
     try:
+        if cfg.output.video:
+            # the default out/demo.mp4 must work in a fresh checkout: the video sink does not make folders
+            Path(cfg.output.video).parent.mkdir(parents=True, exist_ok=True)
         source = open_source(url, cfg)
         stages = demo_stages(cfg)
         sinks = build_sinks(cfg, stats=stats.snapshot, source_url=url) + [probe]
-    except (SourceError, SinkError, ValueError) as e:
+    except (SourceError, SinkError, ValueError, OSError) as e:
         print(f"illuminet demo: {e}", file=sys.stderr)
         return 1
     print(f"demo: source {url}")

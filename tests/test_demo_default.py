@@ -58,13 +58,13 @@ def test_committed_session_is_what_the_command_makes(tmp_path):
 
 @pytest.mark.gl
 def test_demo_runs_the_default_session(tmp_path, capsys, gl):
-    out = tmp_path / "demo.mp4"
+    out = tmp_path / "new" / "demo.mp4"  # a folder that does not exist yet (as out/ in a fresh checkout)
     rc = main(["demo", "--frames", "6", "--out", str(out), "--strict"])
     text = capsys.readouterr().out
     assert rc == 0, text
     assert "demo: source replay://" in text and "demo_session" in text
     assert out.is_file() and out.stat().st_size > 1000
-    still = tmp_path / "demo_still.png"
+    still = tmp_path / "new" / "demo_still.png"
     img = cv2.imread(str(still))
     assert img is not None and img.shape == (800, 1280, 3)
     assert "shading: " in text and ("learned model" in text or "baseline" in text)
