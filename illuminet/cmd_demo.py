@@ -306,6 +306,10 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
             return 1
         print(f"default session: {out} ({default_session_source_url(args.seed)}, seed {args.seed})")
         return 0
+    if args.seed != DEFAULT_SESSION_SEED:
+        print(f"illuminet demo: --seed {args.seed} only applies with --make-default-session DIR "
+              f"(the demo replays the shipped session, seed {DEFAULT_SESSION_SEED})", file=sys.stderr)
+        return 2
     if args.frames < 1:
         print(f"illuminet demo: --frames must be at least 1, got {args.frames}", file=sys.stderr)
         return 2

@@ -72,3 +72,8 @@ def test_demo_runs_the_default_session(tmp_path, capsys, gl):
         assert stage in text
     assert "failed frames 0" in text and "render: drawn=6" in text
     assert "peak resident memory:" in text
+
+
+def test_seed_without_make_default_session_is_refused(capsys):
+    assert main(["demo", "--seed", "4", "--no-video", "--still", ""]) == 2
+    assert "--seed 4 only applies with --make-default-session" in capsys.readouterr().err
