@@ -3,7 +3,7 @@
 One command shows what the project does without any hardware: the synthetic RGB-D camera
 (``synthetic://indoor``, 1280x800, the camera orbiting the spot where the object stands) ->
 planes -> anchor -> plane light -> shading (the learned model of the bundle when it loads, else
-the baseline ``[model] shading`` falls back to; the demo prints which one drove the shading) ->
+the SH baseline fitted to the RGB-D frame; the demo prints which one drove the shading) ->
 render (shadow, occlusion) -> ``out/demo.mp4`` plus a PNG still of the middle frame. At the end it
 prints the per-stage timing table, each stage's counters and the peak resident memory.
 
@@ -24,7 +24,7 @@ import numpy as np
 
 from illuminet.runtime.config import Config, apply_overrides
 from illuminet.runtime.frame import Frame
-from illuminet.runtime.stage import Sink
+from illuminet.runtime.stage import Sink, Stage
 
 log = logging.getLogger("illuminet.demo")
 
@@ -91,6 +91,89 @@ class StillSink(Sink):
         return {"frames": self.frames, "composited": self.composited, "shading": dict(self.methods)}
 
 
+class SHFallbackShading(Stage):
+    """The demo's shading when the object's bundle cannot load: the classic SH baseline from RGB-D.
+
+    Second-order spherical harmonics fitted to the shading of the frame's pixels
+    (:func:`illuminet.runtime.baselines.fit_sh_from_rgbd`: normals from depth, irradiance =
+    pi x radiance / assumed albedo), evaluated at the drawn object's own vertex normals (the
+    renderer draws the same generated object then, one value per render vertex). The fit runs on a
+    320-pixel-wide copy of the frame every ``every`` frames and is smoothed like the learned
+    shading (``[model] temporal_smoothing``). Writes ``results["shading"]`` with method ``"sh"``.
+    """
+
+    name = "shading"
+
+    def __init__(self, cfg: Config, normals: np.ndarray, every: int = 3):
+        self.cfg = cfg
+        self.normals = np.asarray(normals, dtype=np.float64)
+        self.every = int(every)
+        self.alpha = float(cfg.model.temporal_smoothing)
+        self._coef: np.ndarray | None = None
+        self.frames = 0
+        self.fits = 0
+
+    def process(self, frame: Frame) -> Frame:
+        import cv2
+
+        from illuminet.runtime.baselines import fit_sh_from_rgbd
+        from illuminet.runtime.physics import linearize
+        from illuminet.runtime.scene import ObjectShading
+        from illuminet.runtime.stage import FrameError
+
+        anchor, pl = frame.results.get("anchor"), frame.results.get("plane_light")
+        if anchor is None or pl is None or frame.depth is None:
+            raise FrameError("the SH baseline needs an anchor, the plane light and depth")
+        if self._coef is None or self.frames % self.every == 0:
+            w, h = frame.size
+            sw, sh = 320, max(2, int(round(320 * h / w)))
+            col = cv2.resize(frame.color, (sw, sh), interpolation=cv2.INTER_AREA)
+            dep = cv2.resize(frame.depth, (sw, sh), interpolation=cv2.INTER_NEAREST)
+            intr = frame.intrinsics.scaled(sw, sh)
+            try:
+                coef = fit_sh_from_rgbd(linearize(col), dep, intr, self.cfg.plane_light.assumed_albedo,
+                                        R_obj_cam=anchor.R.T, exposure_scale=max(pl.exposure_scale, 1e-12),
+                                        stride=1, step=2)
+            except ValueError as e:
+                raise FrameError(f"SH baseline: {e}") from None
+            a = self.alpha if self._coef is not None else 0.0
+            self._coef = coef if a == 0.0 else a * self._coef + (1.0 - a) * coef
+            self.fits += 1
+        self.frames += 1
+        from illuminet.runtime.transfer import sh_eval
+
+        irr = sh_eval(self._coef, self.normals)
+        return frame.with_result(self.name, ObjectShading(irradiance=irr, method="sh"))
+
+    def stats(self) -> dict[str, Any]:
+        return {"mode": "sh (demo fallback: no bundle)", "frames": self.frames, "fits": self.fits}
+
+
+def demo_stages(cfg: Config) -> list[Stage]:
+    """The standard chain (:func:`illuminet.pipeline.build_stages`), with the SH baseline for shading
+    when the bundle ``[model] bundle`` cannot be loaded (a built-in object is then drawn from its
+    generator; see :class:`SHFallbackShading`)."""
+    from illuminet.pipeline import build_stages
+    from illuminet.runtime.bundle import load_bundle
+
+    stages = build_stages(cfg)
+    spec = cfg.model.bundle
+    if cfg.model.shading not in ("auto", "model"):
+        return stages
+    try:
+        load_bundle(spec, verify=False)
+    except ValueError as e:
+        if not str(spec).startswith("builtin:"):
+            raise
+        from illuminet.runtime.objects import load_object
+        from illuminet.runtime.render import load_render_mesh
+
+        print(f"demo: the learned model is not available ({e}); the SH baseline drives the shading")
+        normals = load_render_mesh(load_object(spec)).normals
+        stages = [SHFallbackShading(cfg, normals) if st.name == "shading" else st for st in stages]
+    return stages
+
+
 def peak_rss_mb() -> float:
     """Peak resident set size of this process so far, MB (Linux reports ru_maxrss in KiB)."""
     r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -102,7 +185,7 @@ def describe_shading(methods: collections.Counter, cfg: Config) -> str:
     if not methods:
         return "no frames"
     main, n = methods.most_common(1)[0]
-    names = {"sh": "SH baseline (2nd-order spherical harmonics fitted to the plane light)",
+    names = {"sh": "SH baseline (2nd-order spherical harmonics fitted to the RGB-D shading)",
              "ambient": "ambient baseline (the plane's mean irradiance; the learned model did not load)",
              "constant": "constant-prior baseline", "none": "none (no plane light yet)"}
     what = f"learned model ({main.split(':', 1)[1]} ONNX)" if main.startswith("model") else names.get(main, main)
@@ -125,7 +208,7 @@ def demo_config(args: argparse.Namespace, cfg: Config) -> Config:
 
 def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
     from illuminet.hw import SourceError, open_source
-    from illuminet.pipeline import build_sinks, build_stages
+    from illuminet.pipeline import build_sinks
     from illuminet.runtime.loop import LoopStats, run_loop
     from illuminet.runtime.sinks import SinkError
 
@@ -145,7 +228,7 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
     stats = LoopStats()
     try:
         source = open_source(url, cfg)
-        stages = build_stages(cfg)
+        stages = demo_stages(cfg)
         sinks = build_sinks(cfg, stats=stats.snapshot, source_url=url) + [probe]
     except (SourceError, SinkError, ValueError) as e:
         print(f"illuminet demo: {e}", file=sys.stderr)

@@ -101,7 +101,7 @@ SCHEMA: dict[str, dict[str, Field]] = {
                         choices=("edge", "msaa", "off")),
         "msaa": _f(int, 4, "samples per pixel when antialias = \"msaa\" (0 = off)"),
         "shadow_softness": _f(float, 0.05, "shadow penumbra radius as a fraction of the object's size"),
-        "contact_shadow": _f(float, 0.6, "strength of the contact shadow under the object's base, 0..1"),
+        "contact_shadow": _f(float, 0.75, "strength of the contact shadow under the object's base, 0..1"),
         "depth_tolerance_m": _f(float, 0.03, "real depth this much nearer (at 1 m; grows with z^2) hides the object"),
         "gl_backend": _f(str, "egl", "OpenGL context: headless EGL, or the platform default (needs a display)",
                          choices=("egl", "default")),

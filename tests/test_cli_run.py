@@ -65,7 +65,11 @@ def test_record_then_replay_end_to_end(tmp_path, capsys):
     assert rc == 0
     pngs = sorted((tmp_path / "png").glob("*.png"))
     assert len(pngs) == 9
-    assert np.array_equal(cv2.imread(str(pngs[4]))[..., ::-1], src[4].color)
+    # the output is the input picture with the object composited where it stands (build_stages
+    # runs the full chain): same size, and unchanged away from the object and its shadow
+    png = cv2.imread(str(pngs[4]))[..., ::-1]
+    assert png.shape == src[4].color.shape
+    assert (png == src[4].color).all(axis=-1).mean() > 0.7
     st = json.loads((tmp_path / "replay.json").read_text())
     assert st["frames"] == 9 and st["dropped"] == 0 and st["end_reason"] == "end of stream"
     assert {"source", "sink:png", "sink:video", "total"} <= set(st["steps"])
