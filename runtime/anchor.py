@@ -182,7 +182,13 @@ def _nearest_inlier_pixel(p: Plane, u: float, v: float) -> tuple[float, float] |
 class AnchorStage(Stage):
     """Chooses where the object stands; writes ``results["anchor"]`` (:class:`Anchor`).
 
-    Reads ``results["planes"]`` (from :class:`~illuminet.runtime.planes.PlaneStage`). The anchor origin
+    Reads ``results["planes"]`` (from :class:`~illuminet.runtime.planes.PlaneStage`).
+
+    ``[anchor] lock = "world"`` (default): the object is placed once and carried by the camera
+    odometry (module docstring); ``results["odometry"]``
+    (:class:`~illuminet.runtime.odometry.OdometryResult`) is written as well, and :meth:`stats`
+    has ``placements``, ``carried_frames`` and the odometry's own stats (``state``, ``lost_frames``,
+    ``resets``, ``inliers``). ``lock = "camera"``: the anchor is chosen every frame and its origin
     is smoothed over frames with ``[planes] smoothing`` (jumps over 10 cm are taken at once).
     """
 
