@@ -38,6 +38,8 @@ def register(sub) -> None:
     p.add_argument("--ablation", action="store_true", help="also run the loss ablation (retrains the GAN stage)")
     p.add_argument("--ablation-epochs", type=int, default=8, help="GAN epochs per ablation variant (default 8)")
     p.add_argument("--no-figure", action="store_true", help="skip the rendered PNG figure")
+    p.add_argument("--camera-scenes", type=int, default=8,
+                   help="scenes per kind for the end-to-end synthetic-camera suite (0 = skip; default 8)")
     p.add_argument("--update-bundle", action="store_true", help="store the figures in the bundle")
     p.set_defaults(func=run)
 
@@ -100,6 +102,14 @@ def run(args: argparse.Namespace, cfg) -> int:
     report = ev.run(args.cases, args.flicker_scenes, smoothing=cfg.model.temporal_smoothing, seed=args.seed,
                     progress=Progress("eval", 1))
     report = finish(report)
+    if args.camera_scenes > 0:
+        from illuminet.models.eval import run_camera
+
+        try:
+            report["camera"] = run_camera(ev, cfg, n_scenes=args.camera_scenes, seed=args.seed,
+                                          progress=Progress("camera", 1))
+        except ImportError as e:  # a build without the planes stages or the synthetic camera
+            print(f"illuminet eval: synthetic-camera suite skipped: {e}", file=sys.stderr)
     report["eval_wall_s"] = round(time.time() - t0, 1)
     out = Path(args.out or Path("eval") / ev.bundle.name)
     out.mkdir(parents=True, exist_ok=True)

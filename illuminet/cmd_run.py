@@ -84,8 +84,9 @@ def register(sub) -> None:
     )
     p.add_argument("source_url", metavar="SOURCE_URL", help="frame source to record")
     p.add_argument("out", metavar="OUT", help="new session folder")
-    p.add_argument("--color", choices=("png", "jpeg", "raw"),
-                   help="colour encoding: lossless PNG, JPEG, or raw bytes ([output] record_color)")
+    p.add_argument("--color", choices=("raw", "png", "jpeg"),
+                   help="colour encoding: raw bytes (lossless, least CPU; default), PNG (lossless, ~40%% smaller), "
+                        "JPEG (lossy) ([output] record_color)")
     p.add_argument("--jpeg-quality", type=int, metavar="Q", help="JPEG quality 1..100 ([output] record_jpeg_quality)")
     p.add_argument("--no-fsync", action="store_true",
                    help="do not fsync each frame (faster; still safe against kill -9, not against power loss)")

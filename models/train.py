@@ -85,10 +85,10 @@ PRESETS: dict[str, dict] = {
     "tiny": dict(n_train=48, n_val=16, n_proxy=64, epochs_gae=1, epochs_colour=1, epochs_gan=1, batch=16,
                  unroll=1, hdr_share=0.0, epochs_finetune=1),
     # what the shipped bundles use: ~15-25 min on a 2-core CPU
-    "small": dict(n_train=3000, n_val=300, n_proxy=400, epochs_gae=50, epochs_colour=4, epochs_gan=25, batch=64,
+    "small": dict(n_train=3000, n_val=300, n_proxy=400, epochs_gae=50, epochs_colour=4, epochs_gan=15, batch=64,
                   epochs_finetune=25),
     # the default for `illuminet train`: the same (within 30 min on a quiet 2-core CPU)
-    "default": dict(n_train=3000, n_val=300, n_proxy=400, epochs_gae=50, epochs_colour=4, epochs_gan=25, batch=64,
+    "default": dict(n_train=3000, n_val=300, n_proxy=400, epochs_gae=50, epochs_colour=4, epochs_gan=15, batch=64,
                     epochs_finetune=25),
     # close to the paper's schedule; for a GPU (jax[cuda]) or a many-core machine
     "gpu": dict(n_train=10000, n_val=1000, n_proxy=800, epochs_gae=400, epochs_colour=100, epochs_gan=100,

@@ -63,9 +63,10 @@ class RelightResult:
 def _stage_classes():
     """The project's plane / anchor / plane-light stages, when this build has them."""
     try:
-        from .planes import AnchorStage, PlaneStage  # type: ignore
-        from .plane_light import PlaneLightStage  # type: ignore
-    except ImportError:
+        from .anchor import AnchorStage
+        from .plane_light import PlaneLightStage
+        from .planes import PlaneStage
+    except ImportError:  # a stripped-down build: use the local fallback
         return None
     return PlaneStage, AnchorStage, PlaneLightStage
 
@@ -172,11 +173,18 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
         over.append(("model", "bundle", bundle))
     if precision is not None:
         over.append(("model", "precision", precision))
-    if cfg.model.shading not in ("model", "auto"):
+    if cfg.model.shading == "auto":
+        over.append(("model", "shading", "model"))  # a missing bundle is an error here, not a fallback
+    else:
         log.info("relight uses [model] shading = %s", cfg.model.shading)
     cfg = apply_overrides(cfg, over)
     frame = Frame(seq=0, t_device_ns=0, t_host_ns=0, color=color, depth=depth, intrinsics=intrinsics,
                   exposure=exposure or Exposure())
+    response_lut = None
+    if cfg.source.response_curve:
+        from .plane_light import load_response_lut
+
+        response_lut = load_response_lut(cfg.source.response_curve)
     shading_stage = ShadingStage(apply_overrides(cfg, [("model", "temporal_smoothing", 0.0)]))
     shading_stage.open()
     b = shading_stage.bundle
@@ -185,7 +193,7 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
     classes = _stage_classes()
     if classes is not None:
         f = frame
-        stages = [cls(cfg) for cls in classes]
+        stages = [classes[0](cfg), classes[1](cfg), classes[2](cfg, response_lut=response_lut)]
         for st in stages:
             st.open()
         try:
@@ -194,11 +202,16 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
         finally:
             for st in stages:
                 st.close()
+        if "anchor" not in f.results or "plane_light" not in f.results:
+            raise ValueError(f"no plane found under the anchor pixel ({anchor_px[0]}, {anchor_px[1]}): "
+                             "the depth there does not belong to a detected plane")
         anchor, pl, source = f.results["anchor"], f.results["plane_light"], "stages"
+        if anchor.synthetic or not np.any(pl.mask):
+            raise ValueError(f"no real plane observed under the anchor pixel ({anchor_px[0]}, {anchor_px[1]}); "
+                             "relight needs the plane under the object to be visible in the image")
     else:
-        lut = None
         anchor, pl = fallback_plane_light(frame, anchor_px, cfg.plane_light.grid, cfg.plane_light.extent_m,
-                                          cfg.plane_light.assumed_albedo, lut)
+                                          cfg.plane_light.assumed_albedo, response_lut)
         source = "fallback"
     sh = shading_stage.predict(pl)
     shading_stage.close()

@@ -47,3 +47,17 @@ def test_tiny_training_to_bundle_and_relight(tmp_path):
     res = relight(color, depth, K, (160, 130), defaults(), bundle=str(out))
     assert res.radiance.shape == (len(b.vertices), 3) and np.isfinite(res.radiance).all()
     assert path.name == "bundle.json"
+
+
+def test_eval_metrics_and_oracle():
+    from illuminet.models.eval import case_metrics, sh_oracle
+    from illuminet.runtime.transfer import sh_eval
+
+    t = np.full((10, 3), 1.0)
+    m = case_metrics(t * 2, t, k=np.pi * 0.2)  # intensities 0.4 vs 0.2
+    assert m["mae"] == pytest.approx(0.2) and m["rmse"] == pytest.approx(0.2)
+    assert m["si_rmse"] == pytest.approx(0.0, abs=1e-9)  # a pure gain error is scale-invariant
+    # oracle SH of one distant light overhead: brightest facing up, zero facing down
+    coef = sh_oracle(np.array([[0.0, 50.0, 0.0]]), np.array([[2500.0, 2500.0, 2500.0]]), np.zeros(3))
+    e = sh_eval(coef, np.array([[0, 1.0, 0], [1.0, 0, 0], [0, -1.0, 0]]))
+    assert e[0, 0] == pytest.approx(1.0, abs=0.1) and e[0, 0] > e[1, 0] > e[2, 0] - 1e-6
