@@ -265,3 +265,37 @@ def test_tracking_holds_on_real_oakd_frames(shared_data):
             assert o.inliers >= 100 or o.tracked == 0
             assert np.linalg.norm(o.T_cam_world[:3, 3]) < 0.01, f"{dev.name}/{d.name}"
         assert an.stats()["placements"] == 1
+
+
+def test_object_is_carried_while_its_plane_is_not_seen(orbit):
+    """No plane for a few frames (e.g. the floor is covered): the object is carried by the odometry alone."""
+    cfg = defaults()
+    ps, an = PlaneStage(cfg), AnchorStage(cfg)
+    poses, states = [], []
+    for i, f in enumerate(orbit[:24]):
+        f = ps.process(f)
+        if 8 <= i < 14:
+            f = f.with_result("planes", ())
+        f = an.process(f)
+        states.append(an.state)
+        poses.append(invert(f.results["synthetic_gt"]["T_cam_world"]) @ f.results["anchor"].T_cam_obj)
+        assert not f.results["anchor"].synthetic
+    assert states[8:14] == ["carried"] * 6 and states[14:] == ["plane"] * 10
+    assert an.stats()["carried_frames"] == 6
+    d, yaw = _drift(poses)
+    assert d <= 0.02 and yaw <= 2.0
+
+
+def test_odometry_reports_unusable_frames_once_and_holds_the_pose(static, caplog):
+    od = Odometry()
+    f = static[0]
+    assert od.update(f).state == "ok"
+    with caplog.at_level(logging.WARNING):
+        bad = [f.replace(depth=None), f.replace(depth=None), f.replace(color=f.color[:20, :20], depth=f.depth[:20, :20])]
+        res = [od.update(b) for b in bad]
+    assert all(r.state == "lost" and r.reason for r in res)
+    assert all(np.array_equal(r.T_cam_world, np.eye(4)) for r in res)
+    assert od.stats()["warnings"] == {"no_rgbd": 2, "tiny": 1}
+    assert caplog.text.count("no colour or no depth") == 1
+    r = od.update(static[1])  # and the next good frame is tracked from the last good one
+    assert r.state == "ok" and r.inliers > 100 and np.linalg.norm(r.T_cam_world[:3, 3]) < 0.003
