@@ -337,7 +337,7 @@ class Odometry:
         if self._grey is None or len(self._pts) < 3:
             self._start(grey, depth, intr)
             return self._result("ok", 0, 0, False)
-        # 1. track the landmarks from the last good image, forwards and backwards
+        # 1. track the landmarks from the last good image
         if GAIN_COMPENSATION:
             # auto exposure changes the brightness from frame to frame; LK assumes it constant
             m0, m1 = float(self._grey[::4, ::4].mean()), float(grey[::4, ::4].mean())
@@ -358,7 +358,7 @@ class Odometry:
             p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._grey, grey_lk, p0, None, **_LK)
         good = st1.ravel() == 1
         if FB_CHECK:
-            p0b, st2, _ = cv2.calcOpticalFlowPyrLK(grey, self._grey, p1, None, **_LK)
+            p0b, st2, _ = cv2.calcOpticalFlowPyrLK(grey_lk, self._grey, p1, None, **_LK)
             fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
             good &= (st2.ravel() == 1) & (fb < FB_MAX_PX)
         p1 = p1.reshape(-1, 2)
