@@ -299,3 +299,13 @@ def test_odometry_reports_unusable_frames_once_and_holds_the_pose(static, caplog
     assert caplog.text.count("no colour or no depth") == 1
     r = od.update(static[1])  # and the next good frame is tracked from the last good one
     assert r.state == "ok" and r.inliers > 100 and np.linalg.norm(r.T_cam_world[:3, 3]) < 0.003
+
+
+def test_bench_drift_figures(orbit):
+    """The figures `illuminet bench odometry` prints come from this function."""
+    from illuminet.bench_odometry import anchor_drift
+
+    world = anchor_drift(orbit, defaults())
+    camera = anchor_drift(orbit, apply_overrides(defaults(), [("anchor", "lock", "camera")]))
+    assert world["max_drift_m"] <= 0.02 and world["max_yaw_deg"] <= 2.0 and world["lost_frames"] == 0
+    assert camera["max_drift_m"] > 0.05 and world["stage"]["median_ms"] > 0
