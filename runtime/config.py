@@ -74,6 +74,8 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "mode": _f(str, "auto", "where the object stands", choices=("auto", "pixel", "point")),
         "pixel": _f(list, [320, 300], "mode=pixel: colour-image pixel (x, y)", length=2),
         "point": _f(list, [0.0, 0.3, 1.5], "mode=point: 3D point in camera coordinates, metres", length=3),
+        "lock": _f(str, "world", "world: placed once, then held in the room by camera odometry; camera: follows the camera",
+                   choices=("world", "camera")),
     },
     "plane_light": {
         "grid": _f(int, 32, "plane OI grid is grid x grid vertices"),

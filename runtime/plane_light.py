@@ -24,7 +24,11 @@ What this module owns
       the running estimate (luminance) is rejected as an outlier (specular highlight, a passing
       shadow); a cell that stays an outlier for 5 frames, or more than half the cells at once
       (the light changed), resets to the new value. The state resets when the anchor has moved by
-      more than half a cell or turned by more than 2 degrees since the last reset.
+      more than half a cell or turned by more than 2 degrees since the last reset. With a
+      world-locked anchor (``results["odometry"]`` present, ``[anchor] lock = "world"``) this is
+      measured on the anchor's *world* pose ``T_world_cam @ T_cam_obj``: a camera moving around a
+      placed object keeps the fused grid (its cells are fixed in the room), while a re-placement
+      of the object still restarts it.
 
 The representation (:class:`~illuminet.runtime.scene.PlaneLight`) concatenates planes via
 ``plane_slices``; the anchor plane is the first slice. With ``[plane_light] extra_planes = N``
@@ -254,6 +258,17 @@ def _moved(T_prev: np.ndarray, T: np.ndarray, cell_m: float) -> bool:
     return dt > cell_m / 2.0 or np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0))) > 2.0
 
 
+def _world_pose(odo: Any, T_cam_obj: np.ndarray) -> np.ndarray | None:
+    """``T_world_obj`` from a frame's odometry result (``results["odometry"]``), or None without one."""
+    T_cw = getattr(odo, "T_cam_world", None)
+    if T_cw is None:
+        return None
+    R, t = T_cw[:3, :3], T_cw[:3, 3]
+    T_wc = np.eye(4)
+    T_wc[:3, :3], T_wc[:3, 3] = R.T, -R.T @ t
+    return T_wc @ T_cam_obj
+
+
 class PlaneLightStage(Stage):
     """Measures the anchor plane's illumination; writes ``results["plane_light"]`` (:class:`PlaneLight`).
 
@@ -303,7 +318,8 @@ class PlaneLightStage(Stage):
         self.vertices = grid_vertices(self.grid, self.extent)
         self.normals = np.tile(np.array([0.0, 1.0, 0.0]), (self.grid * self.grid, 1))
         self.fusion = CellFusion(self.grid * self.grid, float(pl.fusion))
-        self._T_ref: np.ndarray | None = None  # anchor pose at the last restart of the fusion
+        self._T_ref: np.ndarray | None = None  # anchor pose (camera frame) at the last restart of the fusion
+        self._T_ref_world: np.ndarray | None = None  # the same in the odometry's world frame, when known
         self._scale_rel: float | None = None
         self._warn = LogOnce(log, "plane_light")
         self._last: PlaneLight | None = None
@@ -311,8 +327,13 @@ class PlaneLightStage(Stage):
         self.anchor_resets = 0
         self.observed_cells = 0
 
-    def _moved(self, T: np.ndarray) -> bool:
-        return self._T_ref is None or _moved(self._T_ref, T, self.extent / (self.grid - 1))
+    def _moved(self, T: np.ndarray, T_world: np.ndarray | None = None) -> bool:
+        """Whether the grid must restart: the anchor moved since the last restart (in the world when
+        both poses are known there, so that camera motion alone does not count)."""
+        cell = self.extent / (self.grid - 1)
+        if T_world is not None and self._T_ref_world is not None:
+            return _moved(self._T_ref_world, T_world, cell)
+        return self._T_ref is None or _moved(self._T_ref, T, cell)
 
     def process(self, frame: Frame) -> Frame:
         self.frames += 1
@@ -328,6 +349,7 @@ class PlaneLightStage(Stage):
         if anchor.synthetic:
             self.fusion.reset()
             self._T_ref = None
+            self._T_ref_world = None
             lin = np.zeros((P, 3), np.float32)
             observed = np.zeros(P, bool)
             coverage = np.zeros(P, np.float32)
@@ -336,10 +358,13 @@ class PlaneLightStage(Stage):
             # drift (a moving camera re-anchoring a little each frame) also restarts the grid once
             # it adds up to half a cell. The relative exposure scale is kept: moving is no reason
             # for the exposure to have changed.
-            if self._moved(anchor.T_cam_obj):
+            odo = frame.results.get("odometry")
+            T_world = _world_pose(odo, anchor.T_cam_obj)
+            if self._moved(anchor.T_cam_obj, T_world):
                 if self._T_ref is not None:
                     self.anchor_resets += 1
                 self.fusion.reset()
+                self._T_ref_world = T_world
                 self._T_ref = anchor.T_cam_obj.copy()
             lin, observed, coverage = measure_cells(frame, anchor.T_cam_obj, self.grid, self.extent, self.thr,
                                                     self.lut)
