@@ -99,7 +99,6 @@ class ReplaySource(Source):
             raise SourceError(f"replay {self.path}: no intact frame to replay ({detail})")
         e = self.session.entries
         self._first_t = e[0].t_device_ns
-        self._first_seq = e[0].seq
         gaps = np.diff([x.t_device_ns for x in e])
         self._period = int(np.median(gaps)) if gaps.size else 33_333_333
         # a loop round lasts the recording plus one frame period, so the restart keeps the frame rate

@@ -196,6 +196,8 @@ class SyntheticPlane:
     albedo_tile: np.ndarray
     albedo_period_m: float
     irradiance_grid: np.ndarray | None = None  # (nu, nv, 3)
+    shadow_edge: np.ndarray | None = None  # (nu, nv) bool: cells along hard shadow edges of strong lights
+    strong_lights: np.ndarray | None = None  # indices of the lights whose shadow edges are exact
     grid_lo: np.ndarray | None = None
     grid_cell_m: float = 0.01
 
@@ -234,10 +236,11 @@ class Occluder:
             return cross
         with np.errstate(divide="ignore", invalid="ignore"):
             s = pa / (pa - qa)
-        x = p + s[..., None] * (q - p)
         a, b = self.axes
-        inside = (x[..., a] >= self.lo[0]) & (x[..., a] <= self.hi[0]) & (x[..., b] >= self.lo[1]) & (x[..., b] <= self.hi[1])
-        return cross & inside
+        # only the two in-plane coordinates of the crossing point are needed
+        xa = p[..., a] + s * (q[..., a] - p[..., a])
+        xb = p[..., b] + s * (q[..., b] - p[..., b])
+        return cross & (xa >= self.lo[0]) & (xa <= self.hi[0]) & (xb >= self.lo[1]) & (xb <= self.hi[1])
 
 
 def _room_planes(rng, lo, hi, floor_kind):
@@ -349,6 +352,29 @@ class SyntheticScene:
         Tw = self.poses[frame % len(self.poses)]
         pw = pts @ Tw[:3, :3].T + Tw[:3, 3]
         return L.irradiance(pts, nrm, self.lights_cam(frame), self.occlusion(pw))
+
+    def albedo_at(self, points_cam: np.ndarray, frame: int = 0, tol: float = 0.01) -> np.ndarray:
+        """True linear albedo (P, 3) at camera-frame points on the scene's planes; NaN off every plane.
+
+        A point belongs to the first plane within ``tol`` metres of it and inside its bounds.
+        """
+        pts = np.asarray(points_cam, float).reshape(-1, 3)
+        Tw = self.poses[frame % len(self.poses)]
+        pw = pts @ Tw[:3, :3].T + Tw[:3, 3]
+        out = np.full((pts.shape[0], 3), np.nan)
+        todo = np.ones(pts.shape[0], bool)
+        for p in self.planes:
+            on = todo & (np.abs(pw[:, p.axis] - p.coord) <= tol) & p.contains(pw)
+            if not on.any():
+                continue
+            S = p.albedo_tile.shape[0]
+            k = S / p.albedo_period_m
+            a, b = p.axes
+            ia = np.floor(pw[on, a] * k).astype(np.int64) % S
+            ib = np.floor(pw[on, b] * k).astype(np.int64) % S
+            out[on] = p.albedo_tile[ia, ib]
+            todo &= ~on
+        return out
 
     def object_lights(self, T_cam_obj: np.ndarray, frame: int = 0) -> L.PointLights:
         """The scene lights in the object frame of an object at ``T_cam_obj`` (seen in ``frame``)."""
@@ -583,21 +609,26 @@ def _bake_irradiance(scene: SyntheticScene, p: SyntheticPlane, poses) -> None:
     mv = np.broadcast_to((np.arange(nv, dtype=np.float32) / step)[None, :], (nu, nv))
     big = cv2.remap(e.astype(np.float32), np.ascontiguousarray(mv), np.ascontiguousarray(mu), cv2.INTER_LINEAR,
                     borderMode=cv2.BORDER_REPLICATE)
-    # shadow edges are not smooth: where the visibility of a light that matters (> 2 % of the
+    # shadow edges are not smooth: where the visibility of a light that matters (> 5 % of the
     # plane's brightest irradiance) changes between lattice nodes, evaluate every fine cell exactly
     # (only a band along those edges, so it stays cheap)
     lp = scene.lights.positions
     d = lp[None, :, :] - pts[:, None, :]
     r2 = (d * d).sum(-1)
     per_light = np.maximum((d @ p.normal) / r2**1.5, 0).max(0) * (scene.lights.intensities @ L._LUMA)
-    strong = per_light > 0.02 * max(float(e.reshape(-1, 3).max(0) @ L._LUMA), 1e-12)
+    strong = per_light > 0.05 * max(float(e.reshape(-1, 3).max(0) @ L._LUMA), 1e-12)
     vs = vis[..., strong]
     edge = np.zeros((cu - 1, cv_ - 1), bool)
     for a, b in ((0, 1), (1, 0), (1, 1)):
         edge |= np.any(vs[:-1, :-1] != vs[a : cu - 1 + a, b : cv_ - 1 + b], axis=2)
     ia = np.minimum(np.arange(nu) // step, cu - 2)
     ib = np.minimum(np.arange(nv) // step, cv_ - 2)
-    fine = np.argwhere(edge[ia][:, ib])
+    edge_fine = edge[ia][:, ib]
+    # the renderer computes the light exactly at pixels in these cells: sharp shadow edges
+    # instead of a staircase of cells
+    p.shadow_edge = edge_fine
+    p.strong_lights = np.flatnonzero(strong)
+    fine = np.argwhere(edge_fine)
     normal = p.normal
     for s in range(0, fine.shape[0], 20000):
         f = fine[s : s + 20000]
@@ -640,6 +671,9 @@ class _Renderer:
                 lo=p.lo.astype(np.float32), hi=p.hi.astype(np.float32),
                 S=S, k=np.float32(S / p.albedo_period_m), albedo=p.albedo_tile.reshape(-1, 3),
                 grid=(p.irradiance_grid / np.float32(np.pi)).astype(np.float32).reshape(-1, 3),
+                edge=p.shadow_edge.reshape(-1) if p.shadow_edge is not None and p.shadow_edge.any() else None,
+                strong=L.PointLights(scene.lights.positions[p.strong_lights], scene.lights.intensities[p.strong_lights])
+                if p.strong_lights is not None and len(p.strong_lights) else None,
                 gshape=p.irradiance_grid.shape[:2], glo=p.grid_lo.astype(np.float32),
                 ginv=np.float32(1.0 / p.grid_cell_m),
             ))
@@ -704,12 +738,32 @@ class _Renderer:
             xb = o[b] + t * d[b, sel]
             S = p["S"]
             m = S - 1
-            ti = ((xa * p["k"]).astype(np.int32) & m) * S + ((xb * p["k"]).astype(np.int32) & m)
+            # floor, not truncation: texel -1 is S - 1 (a tile repeats the same on both sides of 0)
+            ti = (np.floor(xa * p["k"]).astype(np.int32) & m) * S + (np.floor(xb * p["k"]).astype(np.int32) & m)
             alb = np.take(p["albedo"], ti, axis=0)
             gu, gv = p["gshape"]
-            ga = np.clip(((xa - p["glo"][0]) * p["ginv"] + np.float32(0.5)).astype(np.int32), 0, gu - 1)
-            gb = np.clip(((xb - p["glo"][1]) * p["ginv"] + np.float32(0.5)).astype(np.int32), 0, gv - 1)
-            e = np.take(p["grid"], ga * gv + gb, axis=0)
+            fa = (xa - p["glo"][0]) * p["ginv"]
+            fb = (xb - p["glo"][1]) * p["ginv"]
+            ga = np.clip((fa + np.float32(0.5)).astype(np.int32), 0, gu - 1)
+            gb = np.clip((fb + np.float32(0.5)).astype(np.int32), 0, gv - 1)
+            flat = ga * gv + gb
+            e = np.take(p["grid"], flat, axis=0)
+            if p["edge"] is not None:
+                sharp = np.flatnonzero(np.take(p["edge"], flat))
+                if sharp.size and p["strong"] is not None:
+                    # a hard shadow edge crosses the cell: move the strong lights' contribution
+                    # from the cell's node (where the grid is exact) to the pixel itself
+                    nrm = np.zeros(3)
+                    nrm[p["axis"]] = p["sign"]
+                    q = np.empty((2 * sharp.size, 3), np.float64)
+                    q[:, p["axis"]] = p["coord"]
+                    q[: sharp.size, a] = xa[sharp]
+                    q[: sharp.size, b] = xb[sharp]
+                    q[sharp.size :, a] = p["glo"][0] + ga[sharp] / p["ginv"]
+                    q[sharp.size :, b] = p["glo"][1] + gb[sharp] / p["ginv"]
+                    vis = self.scene.occlusion(q + 1e-4 * nrm, p["strong"])
+                    es = L.irradiance(q, np.broadcast_to(nrm, q.shape), p["strong"], vis)
+                    e[sharp] += ((es[: sharp.size] - es[sharp.size :]) / np.pi).astype(np.float32)
             alb *= e
             rad[sel] = alb
         miss = order[: bounds[1]]
@@ -794,7 +848,9 @@ class SyntheticSource(Source):
         x = x + sigma * self._bank[off : off + x.size].reshape(x.shape)
         q = np.clip(x * np.float32(_SRGB_LUT_SIZE - 1) + np.float32(0.5), 0, _SRGB_LUT_SIZE - 1).astype(np.int32)
         color = self._lut[q].reshape(H, W, 3)
-        depth_img = _stereo_depth(depth.reshape(H, W), intr.fx, rng, self._bank, off)
+        # its own window of the bank, so depth noise is independent of the colour noise
+        off_d = int(rng.integers(0, self._bank.size - H * W))
+        depth_img = _stereo_depth(depth.reshape(H, W), intr.fx, rng, self._bank, off_d)
         down = T_wc[:3, :3].T @ np.array([0.0, -1.0, 0.0])
         frame = Frame(
             seq=i,
@@ -829,7 +885,7 @@ def _stereo_depth(z: np.ndarray, fx: float, rng: np.random.Generator, bank: np.n
     valid = (z > MIN_DEPTH_M) & (z < MAX_DEPTH_M)
     with np.errstate(divide="ignore"):
         disp = np.where(valid, fb / np.maximum(z, 1e-6), 0).astype(np.float32)
-    noise = bank[off + 17 : off + 17 + z.size].reshape(z.shape)
+    noise = bank[off : off + z.size].reshape(z.shape)
     disp = np.round((disp + np.float32(DISPARITY_NOISE_PX) * noise) / np.float32(DISPARITY_STEP_PX)) * np.float32(DISPARITY_STEP_PX)
     # holes where depth jumps (occlusion / matching failure at edges), dilated a few pixels
     jump = np.zeros_like(valid)

@@ -2,8 +2,8 @@
 
 The scene is made here, without the synthetic camera, so that the figure is the renderer's alone:
 a textured 1280x800 floor picture with its depth, the built-in vase 1.0 m from the camera, lit by
-a directional light plus ambient whose direction turns a little every frame (so the shadow map is
-redrawn as often as a jittering prediction would make it), the full
+a directional light plus ambient whose predicted direction jitters by about a degree per frame
+(the shadow is redrawn when the smoothed direction has moved more than 1 degree), the full
 :class:`~illuminet.runtime.render.RenderStage` (carry, dominant light, shadow, occlusion test, MSAA,
 read-back, paste into a copy of the frame). Prints wall-clock and CPU-time median / p99 per frame
 (CPU time includes llvmpipe's worker threads, and is the steadier figure on a shared machine).
@@ -65,9 +65,9 @@ def run(args, cfg) -> dict:
     pl = PlaneLight(vertices=np.zeros((1, 3)), normals=np.zeros((1, 3)), irradiance=np.zeros((1, 3)),
                     mask=np.ones(1, bool), confidence=np.ones(1), grid=1, exposure_scale=0.25)
     frames = []
-    for i in range(16):  # a light that wobbles by a few degrees, as a prediction does
-        ang = np.radians(40.0 + 3.0 * np.sin(i))
-        d = np.array([-np.cos(ang), np.sin(ang), 0.3 * np.cos(i)])
+    rng = np.random.default_rng(1)
+    for i in range(16):  # a light whose predicted direction jitters by ~1 degree, as a prediction does
+        d = np.array([-np.cos(np.radians(40.0)), np.sin(np.radians(40.0)), 0.3]) + rng.normal(0, 0.015, 3)
         d /= np.linalg.norm(d)
         irr = (2.0 * np.maximum(normals @ d, 0.0)[:, None] * np.array([1.0, 0.95, 0.85]) + 0.4).astype(np.float32)
         f = Frame(seq=i, t_device_ns=i, t_host_ns=i, color=color, depth=depth, intrinsics=intr)
@@ -88,11 +88,12 @@ def run(args, cfg) -> dict:
     st.close()
     w, c = wall.summary(), cpu.summary()
     print(f"renderer: {renderer_name(get_context())}; object builtin:vase ({st_vertices(mesh)} vertices), "
-          f"msaa {cfg.render.msaa}, shadow map {cfg.render.shadow_map}, crop {info.crop[2]}x{info.crop[3]} px")
+          f"antialias {stats.get('antialias')}, shadow map {cfg.render.shadow_map}, crop {info.crop[2]}x{info.crop[3]} px")
     print(f"render+composite 1280x800: wall median {w['median_ms']:.2f} ms, p99 {w['p99_ms']:.2f} ms; "
           f"CPU median {c['median_ms']:.2f} ms, p99 {c['p99_ms']:.2f} ms  (target <= {TARGET_MS:.0f} ms median; "
           f"{n} frames, shadow redraws {stats.get('shadow_redraws')})")
-    return {"wall": w, "cpu": c, "crop": list(info.crop), "frames": n, "msaa": cfg.render.msaa,
+    return {"wall": w, "cpu": c, "crop": list(info.crop), "frames": n, "antialias": stats.get("antialias"),
+            "shadow_redraws": stats.get("shadow_redraws"),
             "shadow_map": cfg.render.shadow_map, "target_ms": TARGET_MS}
 
 

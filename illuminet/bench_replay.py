@@ -92,7 +92,7 @@ def _frames(n: int, cfg: Config, width: int, height: int) -> tuple[str, Iterator
     return "numpy_rgbd_frames(seed=0)", numpy_rgbd_frames(n, width, height)
 
 
-def record_session(path: Path, n: int, cfg: Config, color: str = "png", width: int = WIDTH,
+def record_session(path: Path, n: int, cfg: Config, color: str = "raw", width: int = WIDTH,
                    height: int = HEIGHT) -> dict:
     """Write a benchmark session of ``n`` frames at ``path``; returns what was recorded and how fast."""
     origin, frames = _frames(n, cfg, width, height)
@@ -107,10 +107,14 @@ def record_session(path: Path, n: int, cfg: Config, color: str = "png", width: i
 
 
 def run(args, cfg: Config) -> dict:
-    """``illuminet bench replay``: 300 frames, 5 runs, PNG then raw colour (``--quick``: 60 frames, 3 runs, PNG)."""
+    """``illuminet bench replay``: 300 frames, 5 runs, the configured colour encoding (``[output]
+    record_color``, raw by default) then the other lossless one for comparison (``--quick``: 60 frames,
+    3 runs, configured encoding only)."""
     quick = bool(getattr(args, "quick", False))
     n, runs = (60, 3) if quick else (300, 5)
-    return measure(n, runs, cfg, colors=("png",) if quick else ("png", "raw"))
+    first = cfg.output.record_color
+    other = tuple(c for c in ("raw", "png") if c != first)[:1]
+    return measure(n, runs, cfg, colors=(first,) if quick else (first, *other))
 
 
 def _replay_runs(path: Path, runs: int) -> tuple[list[float], list[float], Any]:
@@ -127,11 +131,11 @@ def _replay_runs(path: Path, runs: int) -> tuple[list[float], list[float], Any]:
 
 
 def measure(n: int, runs: int, cfg: Config, width: int = WIDTH, height: int = HEIGHT,
-            colors: tuple[str, ...] = ("png",)) -> dict:
+            colors: tuple[str, ...] = ("raw",)) -> dict:
     """Record ``n`` frames per colour encoding, replay each asap through a null sink ``runs`` times.
 
-    Prints and returns the figures; the top-level keys are those of the first encoding (the default
-    PNG), ``by_color`` has every encoding's.
+    Prints and returns the figures; the top-level keys are those of the first encoding, ``by_color``
+    has every encoding's.
     """
     tmp = Path(tempfile.mkdtemp(prefix="illuminet-bench-replay-"))
     try:

@@ -21,6 +21,7 @@ BENCHES: dict[str, str] = {
     "mjpeg": "loop throughput with two MJPEG clients attached vs none (ratio)",
     "synthetic": "synthetic camera: render time of a 640x400 RGB-D frame; visibility precomputation",
     "planes": "plane detection + tracking + plane illumination per 640x400 frame",
+    "odometry": "RGB-D camera odometry per 640x400 frame; drift of the world-locked anchor over an orbit",
     "render": "render + composite at 1280x800 (moderngl)",
     "transfer": "the int8 ONNX chain per frame (plane OI -> object shading)",
     "stereo": "host stereo depth (SGBM + WLS) per 640x400 pair",

@@ -40,22 +40,25 @@ class Check:
 
 
 def check_gl() -> Check:
-    """A headless OpenGL 3.3+ context through EGL, as the renderer creates it."""
+    """A headless OpenGL 3.3+ context through EGL, exactly as the renderer gets it.
+
+    Uses the runtime's process-wide context (``illuminet.runtime.gl.get_context``) rather than a
+    second one: a new moderngl context becomes current, and releasing it would leave the shared one
+    (used by the renderer later in the same process) not current.
+    """
     fix = ("install Mesa's EGL and drivers: sudo apt-get install libegl1 libgl1-mesa-dri libgles2 "
            "(software llvmpipe works everywhere; for a GPU, pass /dev/dri into the container)")
     try:
-        import moderngl
+        import moderngl  # noqa: F401  (a clearer message than the GL module's when it is missing)
     except ImportError as e:
         return Check("OpenGL (EGL)", MISSING, f"moderngl not importable: {e}", "pip install moderngl", True)
+    from illuminet.runtime.gl import GLError, get_context
     try:
-        ctx = moderngl.create_standalone_context(backend="egl", require=330)
-    except Exception as e:  # no libEGL, no driver, no device
+        ctx = get_context("egl")
+    except GLError as e:  # no libEGL, no driver, no device, or a shared context of another backend
         return Check("OpenGL (EGL)", MISSING, f"no EGL context: {e}", fix, True)
-    try:
-        info = ctx.info
-        renderer, version, vendor = info["GL_RENDERER"], info["GL_VERSION"], info["GL_VENDOR"]
-    finally:
-        ctx.release()
+    info = ctx.info
+    renderer, version, vendor = info["GL_RENDERER"], info["GL_VERSION"], info["GL_VENDOR"]
     note = " (software rendering: fine for 640x400; a GPU renders larger frames faster)" \
         if "llvmpipe" in renderer.lower() or "softpipe" in renderer.lower() else ""
     return Check("OpenGL (EGL)", OK, f"{renderer}; OpenGL {version}; {vendor}{note}", essential=True)
@@ -201,6 +204,9 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace, cfg) -> int:
+    if getattr(args, "json", False):
+        # DepthAI prints its warnings to stdout when it is imported; keep the JSON parseable
+        os.environ.setdefault("DEPTHAI_LEVEL", "error")
     checks = run_checks(cfg.imu.url if cfg is not None else "")
     if getattr(args, "json", False):
         print(json.dumps([asdict(c) for c in checks], indent=2))

@@ -84,8 +84,9 @@ def register(sub) -> None:
     )
     p.add_argument("source_url", metavar="SOURCE_URL", help="frame source to record")
     p.add_argument("out", metavar="OUT", help="new session folder")
-    p.add_argument("--color", choices=("png", "jpeg", "raw"),
-                   help="colour encoding: lossless PNG, JPEG, or raw bytes ([output] record_color)")
+    p.add_argument("--color", choices=("raw", "png", "jpeg"),
+                   help="colour encoding: raw bytes (lossless, least CPU; default), PNG (lossless, ~40%% smaller), "
+                        "JPEG (lossy) ([output] record_color)")
     p.add_argument("--jpeg-quality", type=int, metavar="Q", help="JPEG quality 1..100 ([output] record_jpeg_quality)")
     p.add_argument("--no-fsync", action="store_true",
                    help="do not fsync each frame (faster; still safe against kill -9, not against power loss)")
@@ -162,6 +163,16 @@ def cmd_run(args: argparse.Namespace, cfg: Config) -> int:
     return _execute(cfg, args.source_url or cfg.source.url, with_stages=True)
 
 
+def _depth_summary(reader) -> str:
+    """How a session stores depth, for ``replay --check``."""
+    if not reader.has_depth:
+        return "none"
+    k = reader.depth_scale
+    if k == 1:
+        return "16-bit PNG mm"
+    return f"16-bit PNG mm at {reader.width // k}x{reader.height // k} (1/{k}, upsampled nearest on replay)"
+
+
 def cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
     cfg = config_with_flags(args, cfg)
     if args.check:
@@ -173,7 +184,7 @@ def cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
         problems = reader.check()
         m = reader.manifest
         print(f"{args.session}: {m['format']} v{m['version']}, {reader.width}x{reader.height}, colour "
-              f"{reader.color_encoding}, depth {'16-bit PNG mm' if reader.has_depth else 'none'}, "
+              f"{reader.color_encoding}, depth {_depth_summary(reader)}, "
               f"{len(reader)} intact frames, {'finalised' if reader.finalized else 'NOT finalised'}, "
               f"source {m.get('source') or '?'}")
         for p in problems:

@@ -22,6 +22,24 @@ What this module owns
       along gravity (or along the camera's +y when there is no gravity), with the origin 1.5 m in
       front of the camera (the optical axis projected on that floor); ``Anchor.synthetic`` is True,
       ``plane_id`` is -1 and :meth:`AnchorStage.stats` counts these frames.
+    * The lock, by ``[anchor] lock``:
+
+      ``world``  (default) the anchor is chosen once (by ``mode``, on the first frame with a
+                 usable plane), stored in world coordinates, and carried by the camera odometry
+                 (:class:`~illuminet.runtime.odometry.Odometry`) every frame: ``T_cam_obj =
+                 T_cam_world @ T_world_obj``. It is then re-snapped onto the tracked anchor plane
+                 (origin projected along the plane normal, +Y = the tracked normal, +Z = the
+                 carried +Z projected onto the plane), so it never floats or sinks, and its yaw
+                 stays fixed in the world. The anchor plane's tracked normal and offset also pin
+                 roll, pitch and height in the odometry. When the plane is not seen the carried
+                 pose is used as is; when tracking is lost the last pose is held (the object stays
+                 where it was relative to the camera, on the plane when the plane is seen) and
+                 tracking restarts from there. Until the first real plane is found, the synthetic
+                 plane is used camera-relative as in ``camera`` mode. :meth:`AnchorStage.reanchor`
+                 asks for a new placement on the next frame. ``results["odometry"]``
+                 (:class:`~illuminet.runtime.odometry.OdometryResult`) is written every frame.
+      ``camera`` the anchor is chosen again every frame in camera coordinates (sticky plane
+                 choice, smoothed origin): the object follows the camera (no odometry).
 """
 
 from __future__ import annotations
@@ -33,6 +51,7 @@ import numpy as np
 
 from illuminet.runtime.config import Config
 from illuminet.runtime.frame import Frame
+from illuminet.runtime.odometry import Odometry, invert
 from illuminet.runtime.planes import LogOnce
 from illuminet.runtime.scene import Anchor, Plane
 from illuminet.runtime.stage import Stage
@@ -45,6 +64,11 @@ SYNTHETIC_DISTANCE_M = 1.5
 #: Plane ID of the synthetic plane.
 SYNTHETIC_ID = -1
 HORIZONTAL = ("floor", "table")
+LOCKS = ("world", "camera")
+#: World lock: a tracked plane is taken as the anchor plane when its normal is within this angle of
+#: the carried object's up axis and the carried origin is this close to it (when its ID changed).
+MATCH_DEG = 10.0
+MATCH_M = 0.08
 
 
 def object_frame(normal: np.ndarray, origin: np.ndarray) -> np.ndarray:
@@ -69,6 +93,28 @@ def object_frame(normal: np.ndarray, origin: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, o
     return T
+
+
+def snap_to_plane(T_cam_obj: np.ndarray, plane: Plane) -> np.ndarray:
+    """``T_cam_obj`` moved onto ``plane``: origin projected along the normal, +Y = the normal, +Z = the
+    old +Z projected onto the plane (so the yaw is kept), X = Y x Z."""
+    y = np.asarray(plane.normal, np.float64)
+    y = y / np.linalg.norm(y)
+    o = T_cam_obj[:3, 3] - float(plane.distance(T_cam_obj[:3, 3])) * y
+    z = T_cam_obj[:3, 2] - (T_cam_obj[:3, 2] @ y) * y
+    if np.linalg.norm(z) < 1e-6:  # the carried frame lies on its side: fall back to facing the camera
+        return object_frame(y, o)
+    z /= np.linalg.norm(z)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = np.cross(y, z), y, z, o
+    return T
+
+
+def plane_to_world(normal: np.ndarray, offset: float, T_cam_world: np.ndarray) -> tuple[np.ndarray, float]:
+    """A camera-frame plane ``n . x + d = 0`` in world coordinates (``x_cam = R x_world + t``)."""
+    n = np.asarray(normal, np.float64)
+    R, t = T_cam_world[:3, :3], T_cam_world[:3, 3]
+    return R.T @ n, float(offset + n @ t)
 
 
 def synthetic_plane(gravity: np.ndarray | None) -> tuple[Plane, np.ndarray]:
@@ -136,7 +182,13 @@ def _nearest_inlier_pixel(p: Plane, u: float, v: float) -> tuple[float, float] |
 class AnchorStage(Stage):
     """Chooses where the object stands; writes ``results["anchor"]`` (:class:`Anchor`).
 
-    Reads ``results["planes"]`` (from :class:`~illuminet.runtime.planes.PlaneStage`). The anchor origin
+    Reads ``results["planes"]`` (from :class:`~illuminet.runtime.planes.PlaneStage`).
+
+    ``[anchor] lock = "world"`` (default): the object is placed once and carried by the camera
+    odometry (module docstring); ``results["odometry"]``
+    (:class:`~illuminet.runtime.odometry.OdometryResult`) is written as well, and :meth:`stats`
+    has ``placements``, ``carried_frames`` and the odometry's own stats (``state``, ``lost_frames``,
+    ``resets``, ``inliers``). ``lock = "camera"``: the anchor is chosen every frame and its origin
     is smoothed over frames with ``[planes] smoothing`` (jumps over 10 cm are taken at once).
     """
 
@@ -156,8 +208,17 @@ class AnchorStage(Stage):
         self._origin: np.ndarray | None = None
         self.frames = 0
         self.synthetic_frames = 0
-        self.state = "none"  # "plane" or "synthetic"
+        self.state = "none"  # "plane" or "synthetic" ("carried" in world lock when the plane is not seen)
         self.plane: Plane | None = None  # the anchor plane of the last frame (synthetic one included)
+        lock = getattr(a, "lock", "world")
+        if lock not in LOCKS:
+            raise ValueError(f"[anchor] lock: expected one of {', '.join(LOCKS)}, got {lock!r}")
+        self.lock = lock
+        self.odometry: Odometry | None = Odometry() if lock == "world" else None
+        self._T_world_obj: np.ndarray | None = None  # world lock: the placed object
+        self._plane_world: tuple[np.ndarray, float] | None = None  # world lock: its plane, world frame
+        self.placements = 0
+        self.carried_frames = 0
 
     # -- choosing the plane and the point
     def _choose(self, frame: Frame, planes: tuple[Plane, ...]) -> tuple[Plane, np.ndarray] | None:
@@ -199,6 +260,12 @@ class AnchorStage(Stage):
             x = np.asarray(p.centroid, np.float64) - p.distance(p.centroid) * p.normal
         return p, x
 
+    def reanchor(self) -> None:
+        """World lock: place the object again (by ``[anchor] mode``) on the next frame."""
+        self._T_world_obj = None
+        self._plane_world = None
+        self._plane_id = None
+
     def process(self, frame: Frame) -> Frame:
         self.frames += 1
         planes = frame.results.get("planes")
@@ -206,14 +273,75 @@ class AnchorStage(Stage):
             self._warn("no_planes", "frame has no results['planes']; put PlaneStage before AnchorStage "
                                     "(placing a synthetic plane)")
             planes = ()
-        chosen = self._choose(frame, tuple(planes))
+        if self.odometry is not None:
+            return self._process_world(frame, tuple(planes))
+        return self._process_camera(frame, tuple(planes))
+
+    def _synthetic(self, frame: Frame) -> tuple[Plane, np.ndarray]:
+        plane, origin = synthetic_plane(frame.gravity)
+        self.synthetic_frames += 1
+        if self.state != "synthetic":
+            log.info("anchor: no usable %s plane; using a synthetic floor %.1f m below the camera",
+                     "horizontal" if self.mode == "auto" else "", SYNTHETIC_HEIGHT_M)
+        self.state = "synthetic"
+        return plane, origin
+
+    def _process_world(self, frame: Frame, planes: tuple[Plane, ...]) -> Frame:
+        """World lock (module docstring): place once, then carry by odometry and re-snap onto the plane."""
+        tracked = [p for p in planes if p.id == self._plane_id] if self._T_world_obj is not None else []
+        plane_cam = (tracked[0].normal, tracked[0].offset) if tracked and self._plane_world is not None else None
+        odo = self.odometry.update(frame, plane_cam, self._plane_world if plane_cam is not None else None)
+        T_cw = odo.T_cam_world
+        if self._T_world_obj is None:
+            chosen = self._choose(frame, planes)
+            if chosen is None:
+                plane, origin = self._synthetic(frame)
+                self.plane = plane
+                anchor = Anchor(T_cam_obj=object_frame(plane.normal, origin), plane_id=plane.id, synthetic=True)
+                return frame.with_result(self.name, anchor).with_result("odometry", odo)
+            plane, origin = chosen
+            T_cam_obj = object_frame(plane.normal, origin)
+            self._T_world_obj = invert(T_cw) @ T_cam_obj
+            self._plane_world = plane_to_world(plane.normal, plane.offset, T_cw)
+            self.placements += 1
+            log.info("anchor: placed on plane %d (%s) at %s m (camera frame), locked to the world",
+                     plane.id, plane.label, np.array2string(origin, precision=2))
+        else:
+            T_pred = T_cw @ self._T_world_obj
+            plane = tracked[0] if tracked else self._match(planes, T_pred)
+            if plane is None:
+                # the plane is not seen: keep the carried pose (it is on the plane up to the odometry drift)
+                self.carried_frames += 1
+                self.state = "carried"
+                anchor = Anchor(T_cam_obj=T_pred, plane_id=self._plane_id if self._plane_id is not None else -1)
+                return frame.with_result(self.name, anchor).with_result("odometry", odo)
+            if plane.id != self._plane_id:
+                # the tracker gave the plane a new ID: take its world parameters from the current pose
+                self._plane_world = plane_to_world(plane.normal, plane.offset, T_cw)
+            T_cam_obj = snap_to_plane(T_pred, plane)
+        self._plane_id = plane.id
+        self.state = "plane"
+        self.plane = plane
+        anchor = Anchor(T_cam_obj=T_cam_obj, plane_id=plane.id, synthetic=False)
+        return frame.with_result(self.name, anchor).with_result("odometry", odo)
+
+    def _match(self, planes: tuple[Plane, ...], T_pred: np.ndarray) -> Plane | None:
+        """The tracked plane the carried object stands on: normal near its up axis, origin near the plane."""
+        up, o = T_pred[:3, 1], T_pred[:3, 3]
+        best, best_d = None, MATCH_M
+        for p in planes:
+            if float(np.dot(p.normal, up)) < np.cos(np.radians(MATCH_DEG)):
+                continue
+            d = abs(float(p.distance(o)))
+            if d < best_d:
+                best, best_d = p, d
+        return best
+
+    def _process_camera(self, frame: Frame, planes: tuple[Plane, ...]) -> Frame:
+        """Camera lock: choose the anchor again every frame, in camera coordinates."""
+        chosen = self._choose(frame, planes)
         if chosen is None:
-            plane, origin = synthetic_plane(frame.gravity)
-            self.synthetic_frames += 1
-            if self.state != "synthetic":
-                log.info("anchor: no usable %s plane; using a synthetic floor %.1f m below the camera",
-                         "horizontal" if self.mode == "auto" else "", SYNTHETIC_HEIGHT_M)
-            self.state = "synthetic"
+            plane, origin = self._synthetic(frame)
             self._plane_id = None
             self._origin = None
             synthetic = True
@@ -239,5 +367,9 @@ class AnchorStage(Stage):
             "state": self.state,
             "synthetic_frames": self.synthetic_frames,
             "plane_id": self._plane_id if self._plane_id is not None else SYNTHETIC_ID,
+            "lock": self.lock,
+            "placements": self.placements,
+            "carried_frames": self.carried_frames,
+            "odometry": self.odometry.stats() if self.odometry is not None else None,
             "warnings": dict(self._warn.counts),
         }

@@ -99,6 +99,7 @@ def get_context(backend: str | None = None):
                 f"the shared GL context was created with backend {_shared_backend!r}; "
                 f"cannot switch to {backend!r} in the same process"
             )
+        make_current(_shared)
         return _shared
 
 
@@ -114,6 +115,17 @@ def release_context() -> None:
 def renderer_name(ctx) -> str:
     """``"llvmpipe (LLVM 15...) / 4.5 (Core Profile) Mesa ..."``: what actually draws (for reports)."""
     return f"{ctx.info.get('GL_RENDERER', '?')} / {ctx.info.get('GL_VERSION', '?')}"
+
+
+def make_current(ctx) -> None:
+    """Make ``ctx`` the calling thread's current GL context.
+
+    Another standalone context created and released in the same process (``illuminet doctor``'s
+    probe, a library) can leave none or a dead one current, after which every GL call fails with
+    GL_INVALID_OPERATION. The renderer therefore makes its context current at each entry point;
+    it costs well under a microsecond when it already is.
+    """
+    ctx.__enter__()
 
 
 def park(ctx) -> None:

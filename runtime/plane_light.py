@@ -12,7 +12,9 @@ What this module owns
       the image, has valid depth that agrees with the plane (within 3 inlier thresholds: nearer
       means occluded, e.g. a person; farther means the plane is not there), and is not saturated.
       A cell is observed when at least half its samples count; its value is the mean of their
-      linear colour (area averaging suppresses albedo texture and noise).
+      linear colour (area averaging suppresses albedo texture and noise). Texture coarser than a
+      cell is further reduced by a masked Gaussian over the grid (:func:`smooth_cells`,
+      ``[plane_light] smoothing_cells``).
     * Units: linear (``physics.linearize`` with the camera's response LUT when given), divided by
       the exposure scale (from ``Frame.exposure`` when known; otherwise estimated from the plane
       itself, see :class:`PlaneLightStage`), converted to irradiance ``E = pi * radiance / albedo``
@@ -21,11 +23,17 @@ What this module owns
       ``[plane_light] fusion`` for the previous estimate; an observation more than 35 % away from
       the running estimate (luminance) is rejected as an outlier (specular highlight, a passing
       shadow); a cell that stays an outlier for 5 frames, or more than half the cells at once
-      (the light changed), resets to the new value. The state resets when the anchor moves by more
-      than half a cell or turns by more than 2 degrees.
+      (the light changed), resets to the new value. The state resets when the anchor has moved by
+      more than half a cell or turned by more than 2 degrees since the last reset. With a
+      world-locked anchor (``results["odometry"]`` present, ``[anchor] lock = "world"``) this is
+      measured on the anchor's *world* pose ``T_world_cam @ T_cam_obj``: a camera moving around a
+      placed object keeps the fused grid (its cells are fixed in the room), while a re-placement
+      of the object still restarts it.
 
 The representation (:class:`~illuminet.runtime.scene.PlaneLight`) concatenates planes via
-``plane_slices``; this stage measures the anchor plane (the first and only slice for now).
+``plane_slices``; the anchor plane is the first slice. With ``[plane_light] extra_planes = N``
+the stage also measures up to N other tracked planes (walls first: they see light the floor
+cannot), each on a grid of the same size, as further slices in the same object frame.
 """
 
 from __future__ import annotations
@@ -37,6 +45,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from illuminet.runtime.anchor import object_frame
 from illuminet.runtime.config import Config
 from illuminet.runtime.frame import Frame
 from illuminet.runtime.physics import linearize
@@ -162,6 +171,24 @@ def _lut_table(response_lut: np.ndarray | None) -> np.ndarray:
     return table
 
 
+def smooth_cells(values: np.ndarray, observed: np.ndarray, grid: int, sigma_cells: float) -> np.ndarray:
+    """Masked Gaussian smoothing of per-cell values over the grid (observed cells only).
+
+    Light varies smoothly over a floor except at shadow edges, while albedo texture coarser than
+    a cell (tiles, grout, planks) does not average out inside one cell; a small kernel trades a
+    little shadow-edge sharpness for less texture. Unobserved cells neither contribute nor get a
+    value. ``sigma_cells <= 0`` returns ``values`` unchanged.
+    """
+    if sigma_cells <= 0 or not observed.any():
+        return values
+    w = observed.reshape(grid, grid).astype(np.float32)
+    x = values.reshape(grid, grid, 3).astype(np.float32) * w[..., None]
+    num = cv2.GaussianBlur(x, (0, 0), sigma_cells, borderType=cv2.BORDER_CONSTANT)
+    den = cv2.GaussianBlur(w, (0, 0), sigma_cells, borderType=cv2.BORDER_CONSTANT)
+    out = num / np.maximum(den, 1e-6)[..., None]
+    return np.where(observed[:, None], out.reshape(-1, 3), 0.0).astype(np.float32)
+
+
 class CellFusion:
     """Robust per-cell temporal fusion of irradiance (module docstring).
 
@@ -224,6 +251,24 @@ class CellFusion:
         return self.nobs > 0
 
 
+def _moved(T_prev: np.ndarray, T: np.ndarray, cell_m: float) -> bool:
+    """Whether a grid frame moved by more than half a cell or turned by more than 2 degrees."""
+    dt = np.linalg.norm(T[:3, 3] - T_prev[:3, 3])
+    cosang = (np.trace(T_prev[:3, :3].T @ T[:3, :3]) - 1.0) / 2.0
+    return dt > cell_m / 2.0 or np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0))) > 2.0
+
+
+def _world_pose(odo: Any, T_cam_obj: np.ndarray) -> np.ndarray | None:
+    """``T_world_obj`` from a frame's odometry result (``results["odometry"]``), or None without one."""
+    T_cw = getattr(odo, "T_cam_world", None)
+    if T_cw is None:
+        return None
+    R, t = T_cw[:3, :3], T_cw[:3, 3]
+    T_wc = np.eye(4)
+    T_wc[:3, :3], T_wc[:3, 3] = R.T, -R.T @ t
+    return T_wc @ T_cam_obj
+
+
 class PlaneLightStage(Stage):
     """Measures the anchor plane's illumination; writes ``results["plane_light"]`` (:class:`PlaneLight`).
 
@@ -259,6 +304,13 @@ class PlaneLightStage(Stage):
         self.grid = int(pl.grid)
         self.extent = float(pl.extent_m)
         self.albedo = float(pl.assumed_albedo)
+        self.sigma = float(pl.smoothing_cells)
+        self.n_extra = int(pl.extra_planes)
+        if self.n_extra < 0:
+            raise ValueError(f"[plane_light] extra_planes: expected an int >= 0, got {pl.extra_planes!r}")
+        self._extra_state: dict[int, tuple[CellFusion, np.ndarray]] = {}
+        if self.sigma < 0:
+            raise ValueError(f"[plane_light] smoothing_cells: expected a number >= 0, got {pl.smoothing_cells!r}")
         self.thr = float(cfg.planes.inlier_threshold_m)
         if response_lut is None and cfg.source.response_curve:
             response_lut = load_response_lut(cfg.source.response_curve)
@@ -266,7 +318,8 @@ class PlaneLightStage(Stage):
         self.vertices = grid_vertices(self.grid, self.extent)
         self.normals = np.tile(np.array([0.0, 1.0, 0.0]), (self.grid * self.grid, 1))
         self.fusion = CellFusion(self.grid * self.grid, float(pl.fusion))
-        self._T_prev: np.ndarray | None = None
+        self._T_ref: np.ndarray | None = None  # anchor pose (camera frame) at the last restart of the fusion
+        self._T_ref_world: np.ndarray | None = None  # the same in the odometry's world frame, when known
         self._scale_rel: float | None = None
         self._warn = LogOnce(log, "plane_light")
         self._last: PlaneLight | None = None
@@ -274,14 +327,13 @@ class PlaneLightStage(Stage):
         self.anchor_resets = 0
         self.observed_cells = 0
 
-    def _moved(self, T: np.ndarray) -> bool:
-        if self._T_prev is None:
-            return True
-        h = self.extent / (self.grid - 1)
-        dt = np.linalg.norm(T[:3, 3] - self._T_prev[:3, 3])
-        cosang = (np.trace(self._T_prev[:3, :3].T @ T[:3, :3]) - 1.0) / 2.0
-        ang = np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
-        return dt > h / 2.0 or ang > 2.0
+    def _moved(self, T: np.ndarray, T_world: np.ndarray | None = None) -> bool:
+        """Whether the grid must restart: the anchor moved since the last restart (in the world when
+        both poses are known there, so that camera motion alone does not count)."""
+        cell = self.extent / (self.grid - 1)
+        if T_world is not None and self._T_ref_world is not None:
+            return _moved(self._T_ref_world, T_world, cell)
+        return self._T_ref is None or _moved(self._T_ref, T, cell)
 
     def process(self, frame: Frame) -> Frame:
         self.frames += 1
@@ -296,33 +348,92 @@ class PlaneLightStage(Stage):
         P = self.grid * self.grid
         if anchor.synthetic:
             self.fusion.reset()
-            self._T_prev = None
-            self._scale_rel = None
+            self._T_ref = None
+            self._T_ref_world = None
             lin = np.zeros((P, 3), np.float32)
             observed = np.zeros(P, bool)
             coverage = np.zeros(P, np.float32)
         else:
-            if self._moved(anchor.T_cam_obj):
-                if self._T_prev is not None:
+            # Compared with the pose at the last restart, not the previous frame, so that slow
+            # drift (a moving camera re-anchoring a little each frame) also restarts the grid once
+            # it adds up to half a cell. The relative exposure scale is kept: moving is no reason
+            # for the exposure to have changed.
+            odo = frame.results.get("odometry")
+            T_world = _world_pose(odo, anchor.T_cam_obj)
+            if self._moved(anchor.T_cam_obj, T_world):
+                if self._T_ref is not None:
                     self.anchor_resets += 1
                 self.fusion.reset()
-                self._scale_rel = None
-            self._T_prev = anchor.T_cam_obj.copy()
+                self._T_ref_world = T_world
+                self._T_ref = anchor.T_cam_obj.copy()
             lin, observed, coverage = measure_cells(frame, anchor.T_cam_obj, self.grid, self.extent, self.thr,
                                                     self.lut)
+            lin = smooth_cells(lin, observed, self.grid, self.sigma)
         self.observed_cells = int(observed.sum())
         scale, source = self._exposure(frame, lin, observed)
         E = (np.pi / self.albedo) * lin / np.float32(scale)
         self.fusion.update(E.astype(np.float32), observed, coverage)
         has = self.fusion.has_value
-        irr = np.where(has[:, None], self.fusion.est, 0.0).astype(np.float32)
+        parts = [(self.vertices, self.normals, np.where(has[:, None], self.fusion.est, 0.0), has.copy(),
+                  np.where(has, self.fusion.conf, 0.0), observed, label)]
+        if self.n_extra and not anchor.synthetic:
+            parts += self._extra(frame, anchor, scale)
+        elif self._extra_state:
+            self._extra_state.clear()
         self._last = PlaneLight(
-            vertices=self.vertices, normals=self.normals, irradiance=irr, mask=has.copy(),
-            confidence=np.where(has, self.fusion.conf, 0.0).astype(np.float32), grid=self.grid,
-            exposure_scale=float(scale), plane_slices=(slice(0, P),), labels=(label,),
-            observed=observed, exposure_source=source,
+            vertices=np.concatenate([p[0] for p in parts]) if len(parts) > 1 else self.vertices,
+            normals=np.concatenate([p[1] for p in parts]) if len(parts) > 1 else self.normals,
+            irradiance=np.concatenate([p[2] for p in parts]).astype(np.float32),
+            mask=np.concatenate([p[3] for p in parts]),
+            confidence=np.concatenate([p[4] for p in parts]).astype(np.float32), grid=self.grid,
+            exposure_scale=float(scale), plane_slices=tuple(slice(k * P, (k + 1) * P) for k in range(len(parts))),
+            labels=tuple(p[6] for p in parts), observed=np.concatenate([p[5] for p in parts]),
+            exposure_source=source,
         )
         return frame.with_result(self.name, self._last)
+
+    def _extra(self, frame: Frame, anchor: Anchor, scale: float) -> list[tuple]:
+        """Measure up to ``[plane_light] extra_planes`` more planes (walls first, then by area).
+
+        Each gets a grid of the same size on its own plane, centred on the anchor origin projected
+        onto it and lifted by half the extent along the anchor's up direction (so a wall's grid
+        stands on the floor rather than reaching under it). Vertices and normals are expressed in
+        the anchor's object frame; each plane has its own fusion, reset when its grid moves.
+        """
+        planes = [p for p in frame.results.get("planes", ()) if p.id != anchor.plane_id]
+        planes.sort(key=lambda p: (p.label != "wall", -p.area_m2))
+        R_a, t_a = anchor.R, anchor.t
+        up = R_a[:, 1]
+        out, keep = [], set()
+        P = self.grid * self.grid
+        for p in planes[: self.n_extra]:
+            n = np.asarray(p.normal, np.float64)
+            o = t_a - p.distance(t_a) * n
+            lift = up - (up @ n) * n
+            if np.linalg.norm(lift) > 1e-6:
+                o = o + (self.extent / 2.0) * lift / np.linalg.norm(lift)
+            T = object_frame(n, o)
+            fusion, T_ref = self._extra_state.get(p.id, (None, None))
+            if fusion is None:
+                fusion = CellFusion(P, self.fusion.f)
+            if T_ref is None or _moved(T_ref, T, self.extent / (self.grid - 1)):
+                fusion.reset()
+                T_ref = T
+            lin, obs, cov = measure_cells(frame, T, self.grid, self.extent, self.thr, self.lut)
+            lin = smooth_cells(lin, obs, self.grid, self.sigma)
+            fusion.update(((np.pi / self.albedo) * lin / np.float32(scale)).astype(np.float32), obs, cov)
+            self._extra_state[p.id] = (fusion, T_ref)
+            keep.add(p.id)
+            has = fusion.has_value
+            v_cam = self.vertices @ T[:3, :3].T + T[:3, 3]
+            v_obj = (v_cam - t_a) @ R_a
+            n_obj = np.tile(R_a.T @ n, (P, 1))
+            out.append((v_obj, n_obj, np.where(has[:, None], fusion.est, 0.0), has.copy(),
+                        np.where(has, fusion.conf, 0.0), obs, p.label))
+        for pid in list(self._extra_state):
+            if pid not in keep:
+                del self._extra_state[pid]
+        return out
 
     def _exposure(self, frame: Frame, lin: np.ndarray, observed: np.ndarray) -> tuple[float, str]:
         s = frame.exposure.scale
@@ -334,7 +445,7 @@ class PlaneLightStage(Stage):
             rad = (self.fusion.est[both] @ _LUMA) * (self.albedo / np.pi)
             ratio = lum[both] / np.maximum(rad, 1e-9)
             self._scale_rel = float(np.median(ratio))
-        elif observed.any():
+        elif self._scale_rel is None and observed.any():
             self._scale_rel = float(np.median(lum[observed])) / REFERENCE_RADIANCE
         if not self._scale_rel or not np.isfinite(self._scale_rel) or self._scale_rel <= 0:
             self._scale_rel = 1.0

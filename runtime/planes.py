@@ -202,17 +202,17 @@ class Cloud:
         return self.ray_grid
 
     def moments(self) -> np.ndarray:
-        """(h*w, 18) float64 per-point terms whose masked sums give every plane fit in one product.
+        """(h*w, 19) float32 per-point terms whose masked sums give every plane fit in one product.
 
         Columns: 1, x, y, x^2, xy, y^2 (ray coordinates x = X/Z, y = Y/Z), q, xq, yq (q = 1/Z), then
-        X, Y, Z, XX, XY, XZ, YY, YZ, ZZ (the points). float32: sums over ~10^4 points stay within
+        X, Y, Z, XX, XY, XZ, YY, YZ, ZZ (the points), q^2 (fit residuals). float32: sums over ~10^4 points stay within
         1e-5 relative, far below the noise. Rows of invalid points are not zero (masks never
         include them). A fit on any mask is then ``mask @ moments`` (one matrix-vector product, no
         gathering of points).
         """
         if self._moments is None:
             h, w = self.shape
-            F = np.empty((h * w, 18), np.float32)
+            F = np.empty((h * w, 19), np.float32)
             F[:, :6] = _ray_moments(self.rays())
             q = np.zeros(h * w, np.float32)
             Z = self.points[..., 2].reshape(-1)
@@ -223,6 +223,7 @@ class Cloud:
             F[:, 9], F[:, 10], F[:, 11] = X, Y, Z
             F[:, 12], F[:, 13], F[:, 14] = X * X, X * Y, X * Z
             F[:, 15], F[:, 16], F[:, 17] = Y * Y, Y * Z, Z * Z
+            F[:, 18] = q * q
             self._moments = F
         return self._moments
 
@@ -363,7 +364,8 @@ class PlaneFit:
     area_m2: float
     extent_m: tuple[float, float]
     axes: np.ndarray  # (2, 3) in-plane principal directions
-    view_cos: float = 1.0  # median |cos| between the normal and the viewing rays of the inliers
+    view_cos: float = 1.0  # mean |cos| between the normal and the viewing rays of the inliers
+    offset_se: float = 0.0  # standard error of the offset from the fit residuals, metres
 
 
 #: Largest inlier distance, metres. Far away the z^2 growth would accept the bottom of a wall as
@@ -514,10 +516,17 @@ def refine(cloud: Cloud, n: np.ndarray, d: float, thr_1m: float, allowed: np.nda
     area = float(np.dot(mf, ndotr ** -3)) * d * d * pix
     # Extent along the in-plane principal axes (a uniform rectangle has variance L^2 / 12).
     ext = np.sqrt(12.0 * np.maximum(evals[1:], 0.0))
+    # Standard error of the offset (for the tracker's motion gate): residual spread of the
+    # inverse-depth fit, sigma_q, over sqrt(N), scaled by d^2 (d = 1/|abc|, so dd = d^2 d|abc|).
+    abc = -np.asarray(n, np.float64) / d
+    rss = S[18] - 2.0 * (abc[0] * S[7] + abc[1] * S[8] + abc[2] * S[6]) + abc @ np.array(
+        [[S[3], S[4], S[1]], [S[4], S[5], S[2]], [S[1], S[2], S[0]]]) @ abc
+    sigma_q = np.sqrt(max(rss, 0.0) / max(cnt - 3, 1))
+    offset_se = float(d * d * sigma_q / np.sqrt(cnt))
     return PlaneFit(
         normal=np.asarray(n, np.float64), offset=float(d), mask=mask, n_inliers=cnt, centroid=c,
         area_m2=area, extent_m=(float(ext[1]), float(ext[0])), axes=evecs[:, [2, 1]].T.copy(),
-        view_cos=view_cos,
+        view_cos=view_cos, offset_se=offset_se,
     )
 
 
@@ -628,7 +637,14 @@ def detect_region(cloud: Cloud, params: DetectParams, rng: np.random.Generator |
         region = (labels == lab) & remaining
         if region.sum() < params.min_points:
             continue
-        n, d, *_ = fit_plane(P[region])
+        # seed plane: orthogonal regression (PCA) of the region's points, from the moments
+        S = (region.reshape(-1).view(np.uint8).astype(np.float32) @ cloud.moments()).astype(np.float64)
+        c = S[9:12] / S[0]
+        M2 = np.array([[S[12], S[13], S[14]], [S[13], S[15], S[16]], [S[14], S[16], S[17]]]) / S[0]
+        n = np.linalg.eigh(M2 - np.outer(c, c))[1][:, 0]
+        d = -float(n @ c)
+        if d < 0:
+            n, d = -n, -d
         fit = refine(cloud, n, d, params.inlier_threshold_m, remaining)
         if not _accept(fits, fit, params):
             continue
@@ -686,7 +702,7 @@ def detect_opencv(cloud: Cloud, params: DetectParams, rng: np.random.Generator |
 DETECTORS = {"ransac": detect_ransac, "region": detect_region, "opencv": detect_opencv}
 
 
-def detect_planes(cloud: Cloud, params: DetectParams, method: str = "ransac",
+def detect_planes(cloud: Cloud, params: DetectParams, method: str = "region",
                   rng: np.random.Generator | None = None) -> list[PlaneFit]:
     """Segment ``cloud`` into up to ``params.max_planes`` planes, largest first."""
     try:
@@ -769,6 +785,7 @@ class Track:
     fit: PlaneFit
     ref_inliers: int  # inlier count at the last full detection (loss test)
     age: int = 0
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(4))  # per-frame change of (n, d)
 
 
 class PlaneTracker:
@@ -782,16 +799,20 @@ class PlaneTracker:
     redetect_every : int
         Full detection every N frames (1 = every frame).
     smoothing : float
-        Exponential smoothing of normal and offset in [0, 1). A jump larger than the noise (more
-        than 3 degrees, or more than the inlier threshold at the plane's centroid) is taken as
-        camera motion and not smoothed, so the planes do not lag behind a moving camera.
+        Smoothing of normal and offset in [0, 1): an alpha-beta filter with alpha = 1 - smoothing
+        (exponential smoothing plus a velocity term). It only smooths noise: a change larger than
+        :attr:`MOTION_GATE_DEG` or max(:attr:`MOTION_GATE_M`, 10 standard errors of the fit) is
+        camera motion and is taken at once.
     """
 
     #: association gates (degrees, metres at 1 m scaled like the inlier threshold)
     MATCH_DEG = 10.0
     MATCH_OFFSET_M = 0.05
+    #: smoothing applies only to changes below these (and below 10 standard errors of the fit)
+    MOTION_GATE_M = 0.002
+    MOTION_GATE_DEG = 0.3
 
-    def __init__(self, params: DetectParams, method: str = "ransac", redetect_every: int = 30,
+    def __init__(self, params: DetectParams, method: str = "region", redetect_every: int = 30,
                  smoothing: float = 0.8, seed: int = 0):
         if method not in DETECTORS:
             raise ValueError(f"[planes] method: expected one of {', '.join(DETECTORS)}, got {method!r}")
@@ -856,15 +877,28 @@ class PlaneTracker:
         return True
 
     def _smooth_into(self, t: Track, fit: PlaneFit) -> None:
+        # Alpha-beta filter on (normal, offset): alpha = 1 - smoothing weighs the new fit, and a
+        # velocity term (beta = alpha^2 / (2 - alpha), Benedict-Bordner) follows slow drift
+        # without the lag of plain exponential smoothing. A change beyond the noise (more than
+        # 0.3 deg, or more than max(2 mm, 10 standard errors of the fitted offset) from the
+        # prediction) is camera motion: taken at once, velocity cleared, so planes never lag.
         s = self.smoothing
-        ang = np.degrees(np.arccos(np.clip(fit.normal @ t.normal, -1.0, 1.0)))
-        thr = float(inlier_threshold(np.float64(fit.centroid[2]), self.params.inlier_threshold_m))
-        if s > 0 and ang < 3.0 and abs(fit.offset - t.offset) < thr:
-            n = s * t.normal + (1.0 - s) * fit.normal
-            n /= np.linalg.norm(n)
-            d = s * t.offset + (1.0 - s) * fit.offset
+        x_new = np.append(fit.normal, fit.offset)
+        pred = np.append(t.normal, t.offset) + t.velocity
+        ang = np.degrees(np.arccos(np.clip(fit.normal @ (pred[:3] / np.linalg.norm(pred[:3])), -1.0, 1.0)))
+        # motion gate: a change well beyond the fit's own noise is the camera moving, not noise
+        gate_d = max(self.MOTION_GATE_M, 10.0 * fit.offset_se)
+        if s > 0 and ang < self.MOTION_GATE_DEG and abs(fit.offset - pred[3]) < gate_d:
+            a = 1.0 - s
+            b = a * a / (2.0 - a)
+            r = x_new - pred
+            x = pred + a * r
+            t.velocity = t.velocity + b * r
+            n = x[:3] / np.linalg.norm(x[:3])
+            d = float(x[3])
         else:
             n, d = fit.normal, fit.offset
+            t.velocity = np.zeros(4)
         t.normal, t.offset, t.fit = n, float(d), fit
         t.age += 1
 

@@ -37,7 +37,7 @@ from typing import Any, Callable
 import numpy as np
 
 from illuminet.runtime.frame import Frame
-from illuminet.runtime.gl import check_gl, park
+from illuminet.runtime.gl import check_gl, make_current, park
 from illuminet.runtime.physics import srgb_to_linear
 from illuminet.runtime.scene import ObjectShading
 from illuminet.runtime.shadow import RECEIVER_FS, RECEIVER_VS, ShadowCaster, dominant_light
@@ -555,7 +555,7 @@ _DECODE_LUT = """vec3 decode(vec3 c) {
 def _with_transfer(src: str, custom: bool) -> str:
     """Insert the encode/decode functions into a shader source at its //ENCODE// and //DECODE// marks."""
     return src.replace("//ENCODE//", _ENCODE_LUT if custom else _ENCODE_SRGB).replace(
-        "//DECODE//", _DECODE_LUT if custom else _DECODE_SRGB)
+        "//DECODE//", _DECODE_LUT if custom else _DECODE_SRGB).replace("//OCCLUSION//", _OCCLUSION_GLSL)
 
 
 def _mat(m: np.ndarray) -> bytes:
@@ -577,7 +577,13 @@ out vec4 f_color;
 void main() { f_color = vec4(texelFetch(u_bg, ivec2(gl_FragCoord.xy), 0).rgb, 1.0); }
 """
 
-_OBJ_VS = """
+# Two object programs. Textured parts: albedo from the texture per fragment, then encoded per
+# fragment. Untextured parts (the common case: built-in objects, vertex colours): the colour is
+# computed and encoded per vertex and interpolated -- the shading is per-vertex (Gouraud) anyway
+# and the render mesh's triangles are a few pixels wide, so interpolating encoded instead of linear
+# values changes nothing visible, while the fragment shader shrinks to the occlusion test (llvmpipe
+# spends most of the object's time in fragment work; this saves ~30 % of it).
+_OBJ_VS_TEX = """
 #version 330
 uniform mat4 u_clip_from_obj;
 uniform mat4 u_cam_from_obj;
@@ -597,44 +603,82 @@ void main() {
     gl_Position = u_clip_from_obj * vec4(in_pos, 1.0);
 }
 """
-_OBJ_FS = """
+_OBJ_VS_PLAIN = """
 #version 330
-uniform sampler2D u_tex;
-uniform sampler2D u_real_depth;
+uniform mat4 u_clip_from_obj;
+uniform mat4 u_cam_from_obj;
 uniform sampler2D u_enc_lut;
-uniform float u_has_tex;
 uniform vec3 u_base;
 uniform float u_radiance_scale;  // exposure_scale / pi
+in vec3 in_pos;
+in vec3 in_albedo;
+in vec3 in_irr;
+out vec3 v_color;
+out float v_zcam;
+//ENCODE//
+void main() {
+    v_color = encode(u_base * in_albedo * max(in_irr, vec3(0.0)) * u_radiance_scale);
+    v_zcam = (u_cam_from_obj * vec4(in_pos, 1.0)).z;
+    gl_Position = u_clip_from_obj * vec4(in_pos, 1.0);
+}
+"""
+
+# shared by both fragment programs: real geometry nearer than this fragment (beyond the depth
+# noise) stays in front; a hidden fragment leaves a mark (transparent, red set) so that the edge
+# filter keeps the occluder's outline exact, or nothing at all
+_OCCLUSION_GLSL = """
+uniform sampler2D u_real_depth;
 uniform float u_occlusion;
 uniform float u_depth_tol;
 uniform ivec2 u_offset;          // this framebuffer's origin inside the crop (depth texture)
 uniform float u_mark_occluded;
+bool hidden(float zcam) {
+    if (u_occlusion < 0.5) return false;
+    float d = texelFetch(u_real_depth, ivec2(gl_FragCoord.xy) + u_offset, 0).r;
+    return d > 0.0 && d < zcam - u_depth_tol * max(zcam * zcam, 1.0);
+}
+"""
+
+_OBJ_FS_TEX = """
+#version 330
+uniform sampler2D u_tex;
+uniform sampler2D u_enc_lut;
+uniform vec3 u_base;
+uniform float u_radiance_scale;
 in vec2 v_uv;
 in vec3 v_albedo;
 in vec3 v_irr;
 in float v_zcam;
 out vec4 f_color;
-
+//OCCLUSION//
 vec3 srgb_decode(vec3 c) {
     return mix(c / 12.92, pow((c + 0.055) / 1.055, vec3(2.4)), step(0.04045, c));
 }
 //ENCODE//
 void main() {
-    if (u_occlusion > 0.5) {
-        // real geometry nearer than this fragment (beyond the depth noise) stays in front
-        float d = texelFetch(u_real_depth, ivec2(gl_FragCoord.xy) + u_offset, 0).r;
-        if (d > 0.0 && d < v_zcam - u_depth_tol * max(v_zcam * v_zcam, 1.0)) {
-            // hidden: leave a mark (transparent, red channel set) so that the edge filter keeps
-            // the occluder's outline exact, or nothing at all
-            if (u_mark_occluded > 0.5) { f_color = vec4(1.0, 0.0, 0.0, 0.0); return; }
-            discard;
-        }
+    if (hidden(v_zcam)) {
+        if (u_mark_occluded > 0.5) { f_color = vec4(1.0, 0.0, 0.0, 0.0); return; }
+        discard;
     }
-    vec3 albedo = u_base * v_albedo;
-    if (u_has_tex > 0.5) albedo *= srgb_decode(texture(u_tex, v_uv).rgb);
+    vec3 albedo = u_base * v_albedo * srgb_decode(texture(u_tex, v_uv).rgb);
     f_color = vec4(encode(albedo * v_irr * u_radiance_scale), 1.0);
 }
 """
+_OBJ_FS_PLAIN = """
+#version 330
+in vec3 v_color;
+in float v_zcam;
+out vec4 f_color;
+//OCCLUSION//
+void main() {
+    if (hidden(v_zcam)) {
+        if (u_mark_occluded > 0.5) { f_color = vec4(1.0, 0.0, 0.0, 0.0); return; }
+        discard;
+    }
+    f_color = vec4(v_color, 1.0);
+}
+"""
+
 
 # the resolved object layer (premultiplied by its coverage) over the picture
 _OVER_FS = """
@@ -654,12 +698,20 @@ _OVER_EDGE_FS = """
 #version 330
 uniform sampler2D u_obj;
 uniform ivec2 u_offset;
+uniform ivec2 u_hi;  // last texel of this frame's layer (the texture is larger; beyond is stale)
 out vec4 f_color;
 void main() {
     ivec2 p = ivec2(gl_FragCoord.xy) - u_offset;
-    ivec2 hi = textureSize(u_obj, 0) - 1;
+    ivec2 hi = u_hi;
     vec4 c = texelFetch(u_obj, p, 0);
     if (c.a < 0.5 && c.r > 0.5) discard;  // hidden behind real geometry: the picture stays exact
+    // most pixels are plainly inside or outside: four neighbours tell, and outside draws nothing
+    float a4 = texelFetch(u_obj, clamp(p + ivec2(1, 0), ivec2(0), hi), 0).a
+             + texelFetch(u_obj, clamp(p - ivec2(1, 0), ivec2(0), hi), 0).a
+             + texelFetch(u_obj, clamp(p + ivec2(0, 1), ivec2(0), hi), 0).a
+             + texelFetch(u_obj, clamp(p - ivec2(0, 1), ivec2(0), hi), 0).a;
+    if (a4 < 0.5 && c.a < 0.5) discard;
+    if (a4 > 3.5 && c.a > 0.5) { f_color = c; return; }
     vec4 sum = vec4(0.0);
     float amin = 1.0, amax = 0.0;
     bool near_occluder = false;
@@ -733,9 +785,10 @@ class Compositor:
 
     def __init__(self, ctx, mesh: RenderMesh, msaa: int = 4, shadow: bool = True, shadow_map: int = 1024,
                  occlusion: bool = True, depth_tolerance_m: float = 0.03, shadow_softness: float = 0.05,
-                 contact_shadow: float = 0.6, response_lut: np.ndarray | None = None, antialias: str = "msaa"):
+                 contact_shadow: float = 0.75, response_lut: np.ndarray | None = None, antialias: str = "edge"):
         import moderngl
 
+        make_current(ctx)
         self.ctx = ctx
         self.mesh = mesh
         if antialias not in ANTIALIAS:
@@ -775,13 +828,14 @@ class Compositor:
         self._ibo = ctx.buffer(mesh.faces.astype(np.uint32).tobytes())
         self._irr = ctx.buffer(reserve=n * 12, dynamic=True)
         custom = response_lut is not None
-        self._obj_prog = ctx.program(vertex_shader=_OBJ_VS, fragment_shader=_with_transfer(_OBJ_FS, custom))
-        self._obj_vao = ctx.vertex_array(
-            self._obj_prog,
-            [(self._vbo, "3f 2f 3f", "in_pos", "in_uv", "in_albedo"), (self._irr, "3f", "in_irr")],
-            self._ibo,
-        )
-        self._white = ctx.texture((1, 1), 3, bytes([255, 255, 255]))
+        attrs = [(self._vbo, "3f 2f 3f", "in_pos", "in_uv", "in_albedo"), (self._irr, "3f", "in_irr")]
+        self._obj_progs = {}
+        for textured, (vs, fs) in ((False, (_OBJ_VS_PLAIN, _OBJ_FS_PLAIN)), (True, (_OBJ_VS_TEX, _OBJ_FS_TEX))):
+            if textured and all(p.texture is None for p in mesh.parts):
+                continue
+            prog = ctx.program(vertex_shader=_with_transfer(vs, custom), fragment_shader=_with_transfer(fs, custom))
+            # the plain program has no in_uv: moderngl skips attributes a program does not use
+            self._obj_progs[textured] = (prog, ctx.vertex_array(prog, attrs, self._ibo, skip_errors=True))
         self._part_tex = []
         for p in mesh.parts:
             if p.texture is None:
@@ -922,6 +976,7 @@ class Compositor:
             raise ValueError(f"exposure_scale must be a finite number >= 0, got {exposure_scale!r}")
         if depth is not None and depth.shape != (hgt, wid):
             raise ValueError(f"depth {depth.shape} must be aligned to colour {(hgt, wid)}")
+        make_current(self.ctx)
         self._t_mark = self.profile_clock()
         if out is None:
             out = color.copy()
@@ -1013,26 +1068,27 @@ class Compositor:
                 ctx.front_face = "cw"
                 ctx.cull_face = "back"
                 ctx.enable(moderngl.CULL_FACE)
-            prog = self._obj_prog
             f["depth_in"].use(1)
             self._enc_lut.use(3)
-            prog["u_tex"].value = 0
-            prog["u_real_depth"].value = 1
-            if "u_enc_lut" in prog:
-                prog["u_enc_lut"].value = 3
-            prog["u_offset"].value = (ox0 - x0, oy0 - y0)
             oclip = crop_projection(K, (ox0, oy0, ow, oh), near, far) @ cam_from_obj
-            prog["u_clip_from_obj"].write(_mat(oclip))
-            prog["u_cam_from_obj"].write(_mat(cam_from_obj))
-            prog["u_radiance_scale"].value = float(exposure_scale) / np.pi
-            prog["u_occlusion"].value = 1.0 if (self.occlusion and depth is not None) else 0.0
-            prog["u_mark_occluded"].value = 1.0 if self.antialias == "edge" else 0.0
-            prog["u_depth_tol"].value = self.depth_tol
+            common = {
+                "u_tex": 0, "u_real_depth": 1, "u_enc_lut": 3, "u_offset": (ox0 - x0, oy0 - y0),
+                "u_radiance_scale": float(exposure_scale) / np.pi,
+                "u_occlusion": 1.0 if (self.occlusion and depth is not None) else 0.0,
+                "u_depth_tol": self.depth_tol, "u_mark_occluded": 1.0 if self.antialias == "edge" else 0.0,
+            }
+            for prog, _ in self._obj_progs.values():
+                for name, value in common.items():
+                    if name in prog:  # unused uniforms are compiled out
+                        prog[name].value = value
+                prog["u_clip_from_obj"].write(_mat(oclip))
+                prog["u_cam_from_obj"].write(_mat(cam_from_obj))
             for part, tex in zip(self.mesh.parts, self._part_tex):
-                (tex or self._white).use(0)
-                prog["u_has_tex"].value = 1.0 if tex is not None else 0.0
+                prog, vao = self._obj_progs[tex is not None]
+                if tex is not None:
+                    tex.use(0)
                 prog["u_base"].value = tuple(float(x) for x in part.base_color[:3])
-                self._obj_vao.render(moderngl.TRIANGLES, vertices=part.count, first=part.first)
+                vao.render(moderngl.TRIANGLES, vertices=part.count, first=part.first)
             ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
             ctx.front_face = "ccw"
             if self.msaa:
@@ -1047,6 +1103,8 @@ class Compositor:
             o["layer"].use(0)
             self._over_prog["u_obj"].value = 0
             self._over_prog["u_offset"].value = (ox0 - x0, oy0 - y0)
+            if "u_hi" in self._over_prog:
+                self._over_prog["u_hi"].value = (ow - 1, oh - 1)
             self._over_vao.render(moderngl.TRIANGLE_STRIP)
             ctx.disable(moderngl.BLEND)
 
@@ -1071,6 +1129,7 @@ class Compositor:
     def release(self) -> None:
         """Free every GPU object; safe to call twice."""
         if getattr(self, "_vbo", None) is not None:
+            make_current(self.ctx)
             park(self.ctx)
         for obj in list(self._fbos.values()) + list(self._ofbos.values()):
             obj.release()
@@ -1080,8 +1139,12 @@ class Compositor:
             if t is not None:
                 t.release()
         self._part_tex = []
-        for name in ("_obj_vao", "_obj_prog", "_bg_vao", "_bg_prog", "_over_vao", "_over_prog", "_rcv_vao", "_rcv_prog", "_vbo", "_ibo",
-                     "_irr", "_quad", "_white", "_dec_lut", "_enc_lut"):
+        for prog, vao in getattr(self, "_obj_progs", {}).values():
+            vao.release()
+            prog.release()
+        self._obj_progs = {}
+        for name in ("_bg_vao", "_bg_prog", "_over_vao", "_over_prog", "_rcv_vao", "_rcv_prog", "_vbo", "_ibo",
+                     "_irr", "_quad", "_dec_lut", "_enc_lut"):
             obj = getattr(self, name, None)
             if obj is not None:
                 obj.release()
@@ -1248,6 +1311,10 @@ class RenderStage(Stage):
             s["shadow_redraws"] = self.comp.shadow.redraws if self.comp.shadow is not None else 0
         if self._crop_px:
             s["crop_px_median"] = int(np.median(self._crop_px))
+        d, share = self._light
+        if d is not None:  # the (smoothed) dominant light of the last frame, object frame
+            s["light_dir"] = [round(float(x), 2) for x in d]
+            s["light_share"] = round(float(share), 2)
         return s
 
 

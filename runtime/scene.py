@@ -5,6 +5,7 @@
 =================  ==========================  ====================================================
 ``"planes"``       ``tuple[Plane, ...]``       plane detection + tracking
 ``"anchor"``       :class:`Anchor`             anchor selection (a synthetic plane when none found)
+``"odometry"``     ``OdometryResult``          camera motion (world-locked anchor, runtime/odometry.py)
 ``"plane_light"``  :class:`PlaneLight`         plane illumination (per-vertex plane OI)
 ``"shading"``      :class:`ObjectShading`      transfer (learned model) or a baseline
 ``"composite"``    ``np.ndarray`` HxWx3 uint8  renderer: the output picture (sinks fall back to

@@ -7,10 +7,13 @@ What this module owns
   else the irradiance-weighted mean of its OI vectors, else a first-order fit of irradiance against
   the vertex normals).
 * :class:`ShadowCaster`: the GPU side. A depth **shadow map** of the object seen from the dominant
-  light (orthographic: the light is distant), redrawn only when the direction moves; a **contact
-  map** (ambient-occlusion-like darkening under the object's base), computed once per mesh from a
-  height map of the object's underside seen from below; and the **receiver program** that draws the
-  plane patch under the object into the compositing framebuffer, multiplying the camera picture by
+  light (orthographic: the light is distant) and, from it, the **visible fraction** of that light
+  over the plane patch under the object (16-tap Poisson PCF into a small texture in plane
+  coordinates), both redrawn only when the direction moves by more than
+  :attr:`ShadowCaster.REDRAW_DEG`; a **contact map** (ambient-occlusion-like darkening under the
+  object's base), computed once per mesh from a height map of the object's underside seen from
+  below. The **receiver program** (:data:`RECEIVER_VS` / :data:`RECEIVER_FS`, drawn by
+  :mod:`illuminet.runtime.render`) looks both up per pixel and multiplies the camera picture by
 
       f = share * visible_fraction(PCF) + (1 - share) * (1 - contact_strength * ao)
 
@@ -27,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from illuminet.runtime.gl import park
+from illuminet.runtime.gl import make_current, park
 from illuminet.runtime.scene import ObjectShading
 
 #: Rec.709 luminance weights: the light's "amount" when colours must be summed to one number
@@ -304,6 +307,9 @@ class ShadowCaster:
         (half the triangles, and no self-shadow acne on the lit side).
     """
 
+    #: contact strength the visible extent of the contact shadow is judged at (1 = full strength)
+    CONTACT_VISIBLE_SCALE = 1.0
+
     #: the shadow is redrawn when the light direction moves more than this (degrees); the stage
     #: smooths the direction, so a still light redraws nothing and a turning one every few frames
     REDRAW_DEG = 1.0
@@ -314,6 +320,7 @@ class ShadowCaster:
 
         if size < 16 or size > 8192:
             raise ValueError(f"[render] shadow_map: expected 16..8192 pixels, got {size}")
+        make_current(ctx)
         self.ctx = ctx
         v = np.ascontiguousarray(vertices, dtype=np.float32)
         f = np.ascontiguousarray(faces, dtype=np.uint32)
@@ -365,8 +372,10 @@ class ShadowCaster:
         ctx = self.ctx
         height = float(self.bbox_max[1] - max(self.bbox_min[1], 0.0))
         foot = max(self.bbox_max[0] - self.bbox_min[0], self.bbox_max[2] - self.bbox_min[2])
-        h0 = 0.25 * max(height, 1e-3)  # undersides higher than this leave no contact shadow
-        sigma_m = 0.08 * foot + 0.02 * height
+        # undersides higher than h0 leave no contact shadow; the halo reaches about 2 sigma past
+        # the footprint, enough to show beyond a bulging body (a vase hides its own base)
+        h0 = 0.5 * max(height, 1e-3)
+        sigma_m = 0.10 * foot + 0.04 * height
         margin = 3.0 * sigma_m
         rect = np.array([self.bbox_min[0] - margin, self.bbox_min[2] - margin,
                          self.bbox_max[0] + margin, self.bbox_max[2] + margin])
@@ -400,6 +409,14 @@ class ShadowCaster:
             ao = np.clip(ao / max(peak, 0.5), 0.0, 1.0)
         ao[[0, -1], :] = 0.0  # the edges of the map clamp outwards: keep them at zero
         ao[:, [0, -1]] = 0.0
+        # the receiver draws only where the darkening is visible at all (the blur's far tail is not)
+        rows, cols = np.nonzero(ao * self.CONTACT_VISIBLE_SCALE > 0.01)
+        sx, sz = (rect[2] - rect[0]) / res, (rect[3] - rect[1]) / res
+        if len(rows):
+            self.ao_draw_rect = np.array([rect[0] + (cols.min() - 1) * sx, rect[1] + (rows.min() - 1) * sz,
+                                          rect[0] + (cols.max() + 2) * sx, rect[1] + (rows.max() + 2) * sz])
+        else:
+            self.ao_draw_rect = np.array([self.center[0], self.center[2], self.center[0], self.center[2]])
         ao_tex = ctx.texture((res, res), 1, ao.astype(np.float32).tobytes(), dtype="f4")
         ao_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
         ao_tex.repeat_x = ao_tex.repeat_y = False
@@ -471,7 +488,7 @@ class ShadowCaster:
         use = direction is not None and direction[1] > MIN_ELEVATION_SIN and share > 0.0 and self._dir is not None
         # long shadows of a low light fade in over the last few degrees instead of popping
         fade = 0.0 if direction is None else float(np.clip((direction[1] - MIN_ELEVATION_SIN) / 0.1, 0.0, 1.0))
-        draw = self.ao_rect.copy()
+        draw = self.ao_draw_rect.copy()
         if use and self.cast_rect is not None:
             c = self.cast_rect
             draw = np.array([min(draw[0], c[0]), min(draw[1], c[1]), max(draw[2], c[2]), max(draw[3], c[3])])
@@ -486,6 +503,7 @@ class ShadowCaster:
     def release(self) -> None:
         """Free the GPU objects; safe to call twice."""
         if getattr(self, "_vbo", None) is not None:
+            make_current(self.ctx)
             park(self.ctx)
         for name in ("_depth_vao", "_depth_prog", "_shadow_fbo", "shadow_tex", "_vis_vao", "_vis_prog",
                      "_vis_fbo", "vis_tex", "ao_tex", "_quad", "_vbo", "_ibo"):

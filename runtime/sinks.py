@@ -223,7 +223,7 @@ class SessionRecorderSink(Sink):
         path: str | os.PathLike,
         *,
         source: str = "",
-        color: str = "png",
+        color: str = "raw",
         jpeg_quality: int = 95,
         png_compression: int = DEFAULT_PNG_COMPRESSION,
         fsync: bool = True,

@@ -27,6 +27,7 @@ def frames(n: int, *, fps: float = 30.0, seed: int = 0, w: int = W, h: int = H) 
 def make_session(path: Path, n: int = 8, *, fps: float = 30.0, **writer_kw) -> list[Frame]:
     """Record ``n`` frames into a new session at ``path``; returns the frames written."""
     fs = frames(n, fps=fps)
+    writer_kw.setdefault("color", "png")  # most bad-session tests damage PNG files; raw is tested explicitly
     with SessionWriter(path, source="test://frames", **writer_kw) as w:
         for f in fs:
             w.append(f)
@@ -76,3 +77,13 @@ def wait_for_lines(index: Path, n: int, proc: subprocess.Popen, timeout: float =
         time.sleep(0.01)
     proc.kill()
     raise AssertionError(f"recording did not reach {n} frames in {timeout} s")
+
+
+def cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    """Run ``python -m illuminet ARGS`` in a fresh process (as a user would), capturing its output.
+
+    Commands that run the full pipeline open the renderer's own GL context; running them in a child
+    process keeps that context out of the test process (whose GL tests share one context).
+    """
+    return subprocess.run([sys.executable, "-m", "illuminet", *args], cwd=REPO, env=env(),
+                          capture_output=True, text=True, timeout=timeout)

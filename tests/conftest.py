@@ -49,6 +49,9 @@ def gl_ctx():
 @pytest.fixture
 def gl(gl_ctx):
     """The GL context, checked for GL errors before and after the test."""
+    from illuminet.runtime.gl import make_current
+
+    make_current(gl_ctx)  # another test may have created and released a context of its own
     assert gl_ctx.error == "GL_NO_ERROR", f"GL error left by an earlier test: {gl_ctx.error}"
     yield gl_ctx
     err = gl_ctx.error

@@ -13,10 +13,11 @@ import pytest
 
 from illuminet.cli import build_parser, main
 from illuminet.cmd_run import config_with_flags
+from illuminet.pipeline import build_stages
 from illuminet.runtime.config import defaults
 from illuminet.runtime.session import SessionReader
 
-from ._sessions import make_session, same_frame, spawn, wait_for_lines
+from ._sessions import cli, make_session, same_frame, spawn, wait_for_lines
 
 
 @pytest.mark.parametrize("cmd, flags", [
@@ -60,15 +61,20 @@ def test_record_then_replay_end_to_end(tmp_path, capsys):
     st = json.loads((tmp_path / "rec.json").read_text())
     assert st["frames"] == 9 and "sink:record" in st["steps"]
 
-    rc = main(["replay", str(rec), "--timing", "asap", "--png-dir", str(tmp_path / "png"),
-               "--video", str(tmp_path / "out.avi"), "--stats-json", str(tmp_path / "replay.json")])
-    assert rc == 0
+    p = cli("replay", str(rec), "--timing", "asap", "--png-dir", str(tmp_path / "png"),
+            "--video", str(tmp_path / "out.avi"), "--stats-json", str(tmp_path / "replay.json"))
+    assert p.returncode == 0, p.stderr
     pngs = sorted((tmp_path / "png").glob("*.png"))
-    assert len(pngs) == 9
-    assert np.array_equal(cv2.imread(str(pngs[4]))[..., ::-1], src[4].color)
+    assert [p.name for p in pngs] == [f"frame_{k:06d}.png" for k in range(9)]
+    # the output is the input picture with the object composited where it stands (build_stages
+    # runs the full chain): same size, and unchanged away from the object and its shadow
+    png = cv2.imread(str(pngs[4]))[..., ::-1]
+    assert png.shape == src[4].color.shape
+    assert (png == src[4].color).all(axis=-1).mean() > 0.7
     st = json.loads((tmp_path / "replay.json").read_text())
     assert st["frames"] == 9 and st["dropped"] == 0 and st["end_reason"] == "end of stream"
-    assert {"source", "sink:png", "sink:video", "total"} <= set(st["steps"])
+    stages = [f"stage:{s.name}" for s in build_stages(defaults())]
+    assert {"source", "sink:png", "sink:video", "total", *stages} <= set(st["steps"])
     assert (tmp_path / "out.avi").stat().st_size > 0
 
     rc = main(["replay", str(rec), "--check"])
@@ -77,16 +83,17 @@ def test_record_then_replay_end_to_end(tmp_path, capsys):
 
 def test_run_records_its_input_while_processing(tmp_path):
     src = make_session(tmp_path / "s", 6)
-    assert main(["run", f"replay://{tmp_path}/s?timing=asap", "--record", str(tmp_path / "rec"), "--no-mjpeg"]) == 0
+    p = cli("run", f"replay://{tmp_path}/s?timing=asap", "--record", str(tmp_path / "rec"), "--no-mjpeg")
+    assert p.returncode == 0, p.stderr
     r = SessionReader(tmp_path / "rec", strict=True)
     assert len(r) == 6 and all(same_frame(a, b) for a, b in zip(src, r))
 
 
 def test_run_with_loop_and_max_frames(tmp_path, capsys):
     make_session(tmp_path / "s", 4)
-    rc = main(["run", f"replay://{tmp_path}/s", "--timing", "asap", "--loop", "--max-frames", "10",
-               "--stats-json", str(tmp_path / "st.json")])
-    assert rc == 0
+    p = cli("run", f"replay://{tmp_path}/s", "--timing", "asap", "--loop", "--max-frames", "10",
+            "--stats-json", str(tmp_path / "st.json"))
+    assert p.returncode == 0, p.stderr
     st = json.loads((tmp_path / "st.json").read_text())
     assert st["frames"] == 10
 
@@ -112,8 +119,9 @@ def test_replay_check_lists_problems(tmp_path, capsys):
 def test_replay_of_a_damaged_session_plays_the_intact_part(tmp_path, capsys):
     make_session(tmp_path / "s", 5)
     (tmp_path / "s" / "frames" / "000002.depth.png").unlink()
-    rc = main(["replay", str(tmp_path / "s"), "--timing", "asap"])
-    assert rc == 0 and "4 frames in" in capsys.readouterr().out
+    p = cli("replay", str(tmp_path / "s"), "--timing", "asap")
+    assert p.returncode == 0 and "4 frames in" in p.stdout, p.stderr
+    assert "000002.depth.png" in p.stderr  # the warning names the damage
     rc = main(["replay", str(tmp_path / "s"), "--timing", "asap", "--strict"])
     assert rc == 1 and "invalid session" in capsys.readouterr().err
 
@@ -149,7 +157,9 @@ def test_cli_record_killed_with_sigkill_replays_complete_frames(tmp_path):
     src = list(SessionReader(tmp_path / "src"))
     for f in r:
         assert np.array_equal(f.color, src[f.seq % 10].color) and np.array_equal(f.depth, src[f.seq % 10].depth)
-    assert main(["replay", str(out), "--timing", "asap"]) == 0
+    p = cli("replay", str(out), "--timing", "asap", "--stats-json", str(tmp_path / "st.json"))
+    assert p.returncode == 0, p.stderr
+    assert json.loads((tmp_path / "st.json").read_text())["frames"] == n
 
 
 def test_bench_replay_reports_its_figures(capsys):

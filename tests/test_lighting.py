@@ -290,3 +290,16 @@ def test_visibility_field_is_close_to_exact_ray_casts():
     far = L.uniform_environment(1.0, n=16, distance=1e4)
     d = far.positions / np.linalg.norm(far.positions, axis=1, keepdims=True)
     np.testing.assert_allclose(field.lookup(d), field.lookup_lights(far), atol=0.05)
+
+
+def test_glb_scene_is_flattened_with_its_transforms(tmp_path):
+    scene = trimesh.Scene()
+    scene.add_geometry(trimesh.creation.box([1.0, 1.0, 1.0]))
+    scene.add_geometry(trimesh.creation.icosphere(radius=0.5),
+                       transform=trimesh.transformations.translation_matrix([0.0, 2.0, 0.0]))
+    path = tmp_path / "two.glb"
+    scene.export(path)
+    m = load_object(str(path))
+    assert len(m.vertices) > 600  # both parts
+    # 3 units tall (box from -0.5, sphere up to 2.5) -> 0.25 m: the sphere's offset was applied
+    np.testing.assert_allclose(m.bounds, [[-0.25 / 6, 0, -0.25 / 6], [0.25 / 6, 0.25, 0.25 / 6]], atol=1e-9)

@@ -298,3 +298,39 @@ def test_object_frame_when_looking_straight_down():
     T = object_frame(np.array([0, 0, -1.0]), np.array([0, 0, 1.0]))
     _check_frame(T)
     assert np.allclose(T[:3, 1], [0, 0, -1]) and np.allclose(T[:3, 2], [0, 1, 0])
+
+
+@pytest.mark.parametrize("lock", ["camera", "world"])
+def test_pixel_outside_the_image_falls_back_to_the_centre_once(scene, caplog, lock):
+    cfg = apply_overrides(defaults(), [("anchor", "mode", "pixel"), ("anchor", "pixel", [5000, 20]),
+                                       ("anchor", "lock", lock)])
+    ps, an = PlaneStage(cfg), AnchorStage(cfg)
+    caplog.set_level(logging.WARNING)
+    for k in range(3):
+        out = an.process(ps.process(scene.frame(k)))
+    floor = [p for p in out.results["planes"] if p.label == "floor"][0]
+    assert out.results["anchor"].plane_id == floor.id
+    assert caplog.text.count("outside the 640x400 image") == 1
+    # camera lock chooses (and checks the pixel) every frame; world lock places the object once
+    assert an.stats()["warnings"] == {"pixel_outside": 3 if lock == "camera" else 1}
+
+
+def test_anchor_stage_is_also_importable_from_the_planes_module():
+    from illuminet.runtime import planes
+
+    assert planes.AnchorStage is AnchorStage
+    with pytest.raises(AttributeError):
+        planes.NoSuchThing
+
+
+def test_smoothing_does_not_lag_behind_a_moving_camera():
+    """The camera rises 5 mm per frame: plain exponential smoothing at 0.8 would trail by ~2 cm."""
+    stage = PlaneStage(_cfg(smoothing=0.8, redetect_every=100))
+    errs = []
+    for k in range(8):
+        h = 1.5 + 0.005 * k
+        sc = AnalyticScene(seed=10 + k, cam_height_m=h, table=False, wall=False)
+        floor = stage.process(sc.frame(k)).results["planes"][0]
+        errs.append(abs(floor.offset - h))
+    assert max(errs) < 0.003, errs
+    assert stage.stats()["tracks_lost"] == 0

@@ -412,3 +412,38 @@ def test_edges_are_antialiased(gl, antialias):
     # (~2 pi r = 230 px around) gets in-between values
     assert ((off > 32) & (off < obj - 2)).sum() == 0
     assert ((on > 32) & (on < obj - 2)).sum() > 100
+
+
+def test_shading_on_a_proxy_is_carried_to_the_render_mesh(gl):
+    from types import SimpleNamespace
+
+    from illuminet.runtime.render import mesh_from_bundle
+
+    render = sphere_mesh()
+    proxy_index = np.arange(0, render.n_vertices, 7)  # a coarse lighting proxy: every 7th vertex
+    pv = render.vertices[proxy_index]
+    nearest = np.argmin(((render.vertices[:, None, :] - pv[None]) ** 2).sum(-1), axis=1)
+
+    # duck-typed like illuminet.runtime.bundle.Bundle: geometry arrays, metadata, carry()
+    bundle = SimpleNamespace(vertices=render.vertices, normals=render.normals, faces=render.faces,
+                             name="test", meta={"object": "builtin:sphere"},
+                             carry=lambda values: np.asarray(values)[nearest])
+    mesh = mesh_from_bundle(bundle)
+    assert mesh.n_vertices == render.n_vertices and mesh.parts[0].texture is None
+    cfg = C.defaults()
+    st = RenderStage(cfg, mesh=mesh, carry=bundle.carry, ctx=gl)
+    st.open()
+    try:
+        d = np.array([-1.0, 1.0, 0.0]) / np.sqrt(2)
+        full = directional_shading(render, d, with_oi=False).irradiance
+        sh = ObjectShading(irradiance=full[proxy_index], method="test")
+        carried = st.render_irradiance(sh)
+        assert carried.shape == (render.n_vertices, 3)
+        assert np.allclose(carried, full[proxy_index][nearest])
+        T = camera_pose()
+        out = st.process(make_frame(T, sh)).results["composite"]
+    finally:
+        st.close()
+    L = lum(out)
+    cu, cv = project(T, [0.0, 0.1, 0.0])
+    assert L[int(cv), int(cu) - 20] > 1.5 * L[int(cv), int(cu) + 20]  # still lit from the left

@@ -128,6 +128,22 @@ def test_corrupt_frame_is_skipped_and_counted(tmp_path, caplog):
     assert "000002.color.png is not a decodable PNG" in caplog.text
 
 
+def test_file_that_cannot_be_read_is_skipped(tmp_path, caplog):
+    make_session(tmp_path / "s", 4)
+    src = ReplaySource(tmp_path / "s", timing="asap", workers=1)
+    with src:
+        first = src.read()
+        # after validation, frame 3's colour becomes unreadable (here: a folder, an OSError as root too)
+        p = tmp_path / "s" / "frames" / "000003.color.png"
+        p.unlink()
+        p.mkdir()
+        rest = []
+        while (f := src.read()) is not None:
+            rest.append(f)
+    assert [first.seq] + [f.seq for f in rest] == [0, 1, 2] and src.stats()["corrupt"] == 1
+    assert "cannot read" in caplog.text and "000003.color.png" in caplog.text
+
+
 def test_session_with_nothing_intact(tmp_path):
     make_session(tmp_path / "s", 2)
     for p in (tmp_path / "s" / "frames").glob("*.color.png"):

@@ -50,7 +50,7 @@ def test_round_trip_is_bit_exact_with_all_metadata(tmp_path):
     fs[1] = fs[1].replace(imu=imu, exposure=Exposure(exposure_us=1000.0, iso=200.0, wb_gains=(1.9, 1.0, 1.6),
                                                      color_temperature_k=4200.0))
     fs[2] = fs[2].replace(depth=None, gravity=None)
-    with SessionWriter(tmp_path / "s", source="test://x") as w:
+    with SessionWriter(tmp_path / "s", source="test://x", color="png") as w:
         for f in fs:
             w.append(f)
     r = SessionReader(tmp_path / "s", strict=True)
@@ -70,6 +70,17 @@ def test_round_trip_is_bit_exact_with_all_metadata(tmp_path):
     assert np.array_equal(png[..., ::-1], fs[0].color)
     depth = cv2.imread(str(tmp_path / "s" / "frames" / "000000.depth.png"), cv2.IMREAD_UNCHANGED)
     assert depth.dtype == np.uint16 and np.array_equal(depth, np.rint(fs[0].depth * 1000).astype(np.uint16))
+
+
+def test_default_colour_encoding_is_raw_and_lossless(tmp_path):
+    fs = frames(3)
+    with SessionWriter(tmp_path / "s") as w:
+        for f in fs:
+            w.append(f)
+    r = SessionReader(tmp_path / "s", strict=True)
+    assert r.color_encoding == "raw" and r.manifest["color"] == {"encoding": "raw", "channels": "RGB"}
+    assert (tmp_path / "s" / "frames" / "000000.color.rgb").stat().st_size == W * H * 3
+    assert all(same_frame(a, b) for a, b in zip(fs, r))
 
 
 @pytest.mark.parametrize("color", ["raw", "jpeg"])
@@ -121,18 +132,18 @@ _WRITER = textwrap.dedent(
     import sys
     from illuminet.bench_replay import numpy_rgbd_frames
     from illuminet.runtime.session import SessionWriter
-    w = SessionWriter(sys.argv[1], source="test://kill", fsync=False)
+    w = SessionWriter(sys.argv[1], source="test://kill", fsync=False, color=sys.argv[2])
     for f in numpy_rgbd_frames(100000, 64, 48):   # records until killed
         w.append(f)
     """
 )
 
 
-@pytest.mark.parametrize("attempt", range(3))
-def test_kill_9_mid_recording_keeps_every_complete_frame(tmp_path, attempt):
+@pytest.mark.parametrize("attempt, color", [(0, "raw"), (1, "png"), (2, "raw")])
+def test_kill_9_mid_recording_keeps_every_complete_frame(tmp_path, attempt, color):
     """A REAL SIGKILL of a process appending frames: replay returns exactly the completed frames."""
     path = tmp_path / "s"
-    proc = spawn(["-c", _WRITER, str(path)])
+    proc = spawn(["-c", _WRITER, str(path), color])
     try:
         wait_for_lines(_index(path), 6 + 7 * attempt, proc)
     finally:
@@ -158,7 +169,7 @@ def test_kill_9_at_many_random_moments(tmp_path):
     rnd = random.Random(1)
     for k in range(25):
         path = tmp_path / f"s{k}"
-        proc = spawn(["-c", _WRITER.replace("fsync=False", "fsync=True"), str(path)])
+        proc = spawn(["-c", _WRITER.replace("fsync=False", "fsync=True"), str(path), ("raw", "png")[k % 2]])
         try:
             wait_for_lines(_index(path), 1, proc)
             time.sleep(rnd.uniform(0.0, 0.3))

@@ -58,6 +58,14 @@ def test_video_file_is_playable_with_all_frames(tmp_path, ext):
     assert not list(tmp_path.glob(".*probe*")), "the open() probe file is removed"
 
 
+def test_video_codec_fallback(tmp_path):
+    sink = VideoSink(tmp_path / "x.mp4", codecs=("NOPE", "mp4v"))
+    with sink:
+        for f in frames(3, w=160, h=120):
+            sink.write(f)
+    assert sink.codec == "mp4v" and _count_video(tmp_path / "x.mp4")[0] == 3
+
+
 def test_video_errors_are_clear(tmp_path):
     with pytest.raises(SinkError, match=r"unknown extension '.gif'"):
         VideoSink(tmp_path / "x.gif")
