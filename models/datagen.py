@@ -5,11 +5,13 @@ One sample is a lighting environment (32 RGB point lights in the object frame: o
 origin standing on the plane y = 0, +Y up) and everything derived from it:
 
 * the **plane** grid (``grid x grid`` vertices over ``extent x extent`` metres, vertex ``i*G+j`` at
-  ``(x_j, 0, z_i)``, the layout of the plane-light stage) with its true irradiance, including the
-  object's shadow on it;
+  ``(x_j, 0, z_i)``, the layout of the plane-light stage) with its true irradiance. The object is
+  *virtual*: it casts no shadow on the real plane and hides none of it from the camera, so neither
+  appears in the plane input (an earlier version simulated both, which taught the model a cue that
+  real frames never contain);
 * the same grid as the runtime *measures* it: textured albedo divided out with the wrong (mean)
-  albedo, sensor noise, 8-bit quantisation at an auto exposure, the object's footprint and random
-  holes / out-of-view regions masked;
+  albedo, sensor noise, 8-bit quantisation at an auto exposure, random holes and out-of-view
+  regions masked;
 * the object's **proxy** vertices' true OI ``(V, 3, 3)`` (vertex, channel, xyz) and shading, with
   self-visibility and the plane blocking light from below.
 
@@ -436,18 +438,14 @@ class Scene:
         self.extent = extent
         self.plane_v = plane_grid(grid, extent)
         self.plane_n = np.tile(np.array([[0, 1, 0]], np.float32), (len(self.plane_v), 1))
-        self.plane_vis = DirectionVisibility(mesh, self.plane_v, self.plane_n, n_dirs)
         self.obj_vis = DirectionVisibility(mesh, geom.proxy_vertices, geom.proxy_normals, n_dirs)
         self.render_vis = (DirectionVisibility(mesh, geom.vertices, geom.normals, n_dirs)
                            if render_vis else None)
-        # plane vertices under the object: hidden from any camera
-        r = np.linalg.norm(geom.vertices[:, [0, 2]], axis=1).max()
-        self.footprint = np.linalg.norm(self.plane_v[:, [0, 2]], axis=1) < r
 
     def truth(self, pos, rgb):
         """True plane irradiance (P, 3), proxy OI (V, 3, 3) and proxy shading (V, 3)."""
-        pv = self.plane_vis.lookup(self.plane_v, pos)
-        plane_oi = oi_point_lights(self.plane_v, self.plane_n, pos, rgb, pv)
+        # the virtual object does not shadow the real plane: no object visibility here
+        plane_oi = oi_point_lights(self.plane_v, self.plane_n, pos, rgb, None)
         e_plane = plane_oi[:, :, 1]  # normal is +Y: E = OI . n = y component
         g = self.geom
         ov = self.obj_vis.lookup(g.proxy_vertices, pos)
@@ -465,7 +463,8 @@ class Scene:
         """What the plane-light stage would report: (irradiance (P, 3), mask (P,)).
 
         The plane has a textured albedo that the stage does not know (it divides by the mean);
-        auto exposure puts the plane's mean at mid grey; noise then 8-bit sRGB quantisation.
+        auto exposure puts the plane's mean at mid grey; noise then 8-bit sRGB quantisation; half the
+        time part of the patch is out of view; random depth holes.
         """
         G = self.grid
         # smooth random albedo texture around 1 (relative), plus fine grain
@@ -483,13 +482,8 @@ class Scene:
         s = np.round(s * 255) / 255
         lin = np.where(s <= 0.04045, s / 12.92, ((s + 0.055) / 1.055) ** 2.4)
         meas = lin / k
-        mask = ~self.footprint.copy()
-        # the object hides the plane behind it from the camera: a wedge behind the footprint
-        az = rng.uniform(0, 2 * np.pi)
+        mask = np.ones(G * G, bool)  # the virtual object hides nothing of the real plane
         rel = self.plane_v[:, [0, 2]]
-        ang = np.arctan2(rel[:, 1], rel[:, 0]) - az
-        behind = (np.cos(ang) > np.cos(np.deg2rad(15))) & (np.linalg.norm(rel, axis=1) < self.extent * rng.uniform(0.2, 0.45))
-        mask &= ~behind
         if rng.random() < 0.5:  # part of the patch out of view / off the real plane
             nrm = rng.normal(0, 1, 2)
             nrm /= np.linalg.norm(nrm)
