@@ -29,12 +29,13 @@ randomly rotated and exposed) when HDR files are available.
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from illuminet.runtime.lighting import fibonacci_sphere, load_hdr, median_cut
+from illuminet.runtime.objects import load_object
 from illuminet.runtime.transfer import preprocess_plane
 
 log = logging.getLogger(__name__)
@@ -77,58 +78,18 @@ class ObjectGeometry:
         return self.normals[self.proxy_index]
 
 
-def _builtin_mesh_fallback(name: str):
-    """Procedural vase/bowl (used only when ``illuminet.runtime.objects`` is not available)."""
-    import trimesh
-
-    if name == "vase":
-        # lathe profile (radius, height) in metres: foot, belly, waist, flared lip = overhangs
-        prof = np.array([[0.0, 0.0], [0.06, 0.0], [0.065, 0.01], [0.10, 0.08], [0.105, 0.12],
-                         [0.07, 0.2], [0.045, 0.25], [0.05, 0.28], [0.075, 0.31], [0.07, 0.315],
-                         [0.04, 0.29], [0.0, 0.29]])
-        m = trimesh.creation.revolve(prof, sections=48)
-    elif name == "bowl":
-        t = np.linspace(0, np.pi / 2, 12)
-        outer = np.stack([0.13 * np.sin(t), 0.11 * (1 - np.cos(t))], 1)
-        inner = np.stack([0.12 * np.sin(t[::-1]), 0.02 + 0.10 * (1 - np.cos(t[::-1]))], 1)
-        prof = np.concatenate([[[0.0, 0.0]], outer[1:], [[0.13, 0.115]], inner[:-1], [[0.0, 0.02]]])
-        m = trimesh.creation.revolve(prof, sections=48)
-    else:
-        raise ValueError(f"unknown builtin object {name!r}; known: vase, bowl")
-    # revolve turns around +Z; the object frame is +Y up
-    m.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))
-    m.merge_vertices()
-    m.fix_normals()
-    return m
-
-
 def load_mesh(spec: str):
-    """``builtin:NAME`` or a mesh file -> trimesh.Trimesh standing on y = 0 at the origin, +Y up."""
-    import trimesh
+    """``builtin:NAME`` or a mesh file -> trimesh.Trimesh in the object frame (y = 0 base, +Y up).
 
-    try:  # the project's object loader (light-transport helper), when present
-        from illuminet.runtime.objects import load_object  # type: ignore
+    Thin wrapper over :func:`illuminet.runtime.objects.load_object` (render detail, files scaled
+    to its default height), kept so that training and evaluation name one entry point.
 
-        obj = load_object(spec)
-        m = obj if isinstance(obj, trimesh.Trimesh) else getattr(obj, "mesh", obj)
-        if isinstance(m, trimesh.Trimesh):
-            return m
-        v, f = np.asarray(obj.vertices), np.asarray(obj.faces)
-        return trimesh.Trimesh(v, f, process=True)
-    except ImportError:
-        pass
-    if spec.startswith("builtin:"):
-        return _builtin_mesh_fallback(spec.split(":", 1)[1])
-    p = Path(spec)
-    if not p.is_file():
-        raise FileNotFoundError(f"object mesh {spec!r}: file not found (expected builtin:NAME or a GLB/OBJ/PLY path)")
-    m = trimesh.load(p, force="mesh")
-    if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
-        raise ValueError(f"object mesh {spec!r}: no triangles found")
-    # normalise: stand on y = 0, centred in x/z, height 0.3 m
-    v = m.vertices - [m.bounds[:, 0].mean(), m.bounds[0, 1], m.bounds[:, 2].mean()]
-    v *= 0.3 / max(np.ptp(v[:, 1]), 1e-9)
-    return trimesh.Trimesh(v, m.faces, process=True)
+    Raises
+    ------
+    illuminet.runtime.objects.ObjectLoadError
+        Naming the spec or file when it is unknown, unreadable or holds no triangles.
+    """
+    return load_object(spec)
 
 
 def _farthest_points(x: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -178,11 +139,15 @@ def build_geometry(mesh, n_proxy: int = 400, k_graph: int = 6, seed: int = 0, na
 # --------------------------------------------------------------------------- visibility
 
 def fibonacci_directions(n: int) -> np.ndarray:
-    """``n`` near-uniform unit directions on the sphere."""
-    i = np.arange(n) + 0.5
-    phi = np.arccos(1 - 2 * i / n)
-    theta = np.pi * (1 + 5 ** 0.5) * i
-    return np.stack([np.cos(theta) * np.sin(phi), np.cos(phi), np.sin(theta) * np.sin(phi)], 1).astype(np.float32)
+    """``n`` near-uniform unit directions on the sphere, (n, 3) float32.
+
+    The runtime's :func:`~illuminet.runtime.lighting.fibonacci_sphere` lattice mirrored in z: this
+    module's lattice always spiralled the other way, and the visibility tables and the outdoor sky
+    of the shipped bundles' training data were built on it. For the sizes used here (1024 table
+    directions, 62 sky directions) the result is bit-identical to the former own implementation;
+    for other ``n`` it agrees to within float32 rounding (<= 1 ulp).
+    """
+    return (fibonacci_sphere(n) * (1.0, 1.0, -1.0)).astype(np.float32)
 
 
 class DirectionVisibility:
@@ -234,7 +199,13 @@ class DirectionVisibility:
 
 
 def oi_point_lights(points, normals, light_pos, light_rgb, vis=None) -> np.ndarray:
-    """OI (N, 3, 3) of point lights (see :mod:`illuminet.runtime.physics`): channel x xyz."""
+    """OI (N, 3, 3) of point lights (see :mod:`illuminet.runtime.physics`): channel x xyz.
+
+    Same formula and clamp (r^2 >= 1e-6) as :func:`illuminet.runtime.lighting.oi_point_lights`,
+    but computed in float32 on plain arrays. Kept on purpose rather than calling the runtime one:
+    that computes in float64, which changes the float32 training targets by ~1e-7 (relative) and
+    so would stop ``illuminet train`` from reproducing the shipped bundles bit for bit.
+    """
     d = light_pos[None, :, :] - points[:, None, :]  # N, L, 3
     r2 = np.maximum((d * d).sum(-1), 1e-6)
     w = d / np.sqrt(r2)[..., None]
@@ -326,65 +297,15 @@ def sample_lights(kind: str, rng: np.random.Generator, n: int = N_LIGHTS, hdr_li
 
 
 def median_cut_lights(env: np.ndarray, n: int = N_LIGHTS) -> tuple[np.ndarray, np.ndarray]:
-    """Median cut (Debevec 2008) of an equirectangular linear-RGB map -> n (direction, rgb) lights.
+    """Median cut of an equirectangular linear-RGB map -> n (direction, rgb) lights, float32.
 
-    Directions are in the object frame (+Y up; image top = up; u = 0 at -Z turning towards +X).
-    The rgb of a light is the total power of its region (solid-angle weighted), so that the
-    irradiance from a distant light of direction d is rgb * max(n.d, 0).
+    :func:`illuminet.runtime.lighting.median_cut` cast to float32: directions in the object frame
+    (+Y up, convention of :func:`~illuminet.runtime.lighting.equirect_directions`: image top =
+    up, centre column = -Z), rgb the region's integral of radiance over solid angle, so that a
+    distant light of direction d gives irradiance ``rgb * max(n.d, 0)``.
     """
-    try:
-        from illuminet.runtime.lighting import median_cut  # type: ignore  # light helper's version
-
-        out = median_cut(env, n)
-        if isinstance(out, tuple) and len(out) == 2:
-            return np.asarray(out[0], np.float32), np.asarray(out[1], np.float32)
-    except Exception:
-        pass
-    h, w, _ = env.shape
-    theta = (np.arange(h) + 0.5) / h * np.pi  # polar angle from +Y
-    sa = (np.sin(theta) * (np.pi / h) * (2 * np.pi / w))[:, None]  # solid angle per pixel
-    power = env * sa[..., None]
-    lum = power @ np.array([0.2126, 0.7152, 0.0722])
-    sat = lum.cumsum(0).cumsum(1)
-
-    def s(y0, y1, x0, x1):  # inclusive-exclusive sum via summed-area table
-        t = sat[y1 - 1, x1 - 1]
-        if y0 > 0:
-            t -= sat[y0 - 1, x1 - 1]
-        if x0 > 0:
-            t -= sat[y1 - 1, x0 - 1]
-        if y0 > 0 and x0 > 0:
-            t += sat[y0 - 1, x0 - 1]
-        return t
-
-    regions = [(0, h, 0, w)]
-    while len(regions) < n:
-        # split the region with the most energy along its longer (cos-latitude weighted) side
-        i = max(range(len(regions)), key=lambda k: s(*regions[k]) if (regions[k][1] - regions[k][0] > 1 or regions[k][3] - regions[k][2] > 1) else -1)
-        y0, y1, x0, x1 = regions.pop(i)
-        lat_w = (x1 - x0) * np.sin(theta[(y0 + y1) // 2])
-        tot = s(y0, y1, x0, x1)
-        if (lat_w > (y1 - y0) and x1 - x0 > 1) or y1 - y0 <= 1:
-            cut = x0 + 1
-            while cut < x1 - 1 and s(y0, y1, x0, cut) < tot / 2:
-                cut += 1
-            regions += [(y0, y1, x0, cut), (y0, y1, cut, x1)]
-        else:
-            cut = y0 + 1
-            while cut < y1 - 1 and s(y0, cut, x0, x1) < tot / 2:
-                cut += 1
-            regions += [(y0, cut, x0, x1), (cut, y1, x0, x1)]
-    dirs, rgbs = [], []
-    for y0, y1, x0, x1 in regions:
-        p = power[y0:y1, x0:x1]
-        l = lum[y0:y1, x0:x1]
-        yy, xx = np.mgrid[y0:y1, x0:x1]
-        wsum = l.sum() + 1e-12
-        cy, cx = (yy * l).sum() / wsum + 0.5, (xx * l).sum() / wsum + 0.5
-        th, ph = cy / h * np.pi, cx / w * 2 * np.pi
-        dirs.append([np.sin(th) * np.sin(ph), np.cos(th), -np.sin(th) * np.cos(ph)])
-        rgbs.append(p.reshape(-1, 3).sum(0))
-    return np.asarray(dirs, np.float32), np.asarray(rgbs, np.float32)
+    d, c = median_cut(env, n)
+    return d.astype(np.float32), c.astype(np.float32)
 
 
 def hdr_maps(folder: str | Path | None, split: str = "all") -> list[Path]:
@@ -408,11 +329,12 @@ def load_hdr_lights(folder: str | Path | None, n: int = N_LIGHTS, split: str = "
 
     out = []
     for p in hdr_maps(folder, split):
-        img = cv2.imread(str(p), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
-        if img is None:
-            log.warning("could not read HDR map %s; skipped", p)
+        try:
+            img = load_hdr(p)
+        except (OSError, ValueError) as e:  # one unreadable map should not stop training
+            log.warning("%s; skipped", e)
             continue
-        env = cv2.resize(img[..., ::-1].astype(np.float32), (256, 128), interpolation=cv2.INTER_AREA)
+        env = cv2.resize(img, (256, 128), interpolation=cv2.INTER_AREA)
         d, c = median_cut_lights(np.nan_to_num(env), n)
         c = c / max(float(c.sum(0).max()), 1e-9) * 3.0  # normalise total power; exposure is random later
         out.append((d, c))
