@@ -27,7 +27,8 @@ def build_stages(cfg: Config, *, render: bool = True) -> list[Stage]:
         for evaluation or benchmarks of the lighting stages alone).
     """
     from illuminet.runtime.anchor import AnchorStage
-    from illuminet.runtime.plane_light import PlaneLightStage, load_response_lut
+    from illuminet.runtime.physics import load_response_lut
+    from illuminet.runtime.plane_light import PlaneLightStage
     from illuminet.runtime.planes import PlaneStage
     from illuminet.runtime.transfer import ShadingStage
 

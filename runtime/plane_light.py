@@ -39,7 +39,6 @@ cannot), each on a grid of the same size, as further slices in the same object f
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 from typing import Any
 
 import cv2
@@ -48,7 +47,7 @@ import numpy as np
 from illuminet.runtime.anchor import object_frame
 from illuminet.runtime.config import Config
 from illuminet.runtime.frame import Frame
-from illuminet.runtime.physics import linearize
+from illuminet.runtime.physics import linearize, load_response_lut
 from illuminet.runtime.planes import LogOnce, inlier_threshold
 from illuminet.runtime.scene import Anchor, PlaneLight
 from illuminet.runtime.stage import Stage
@@ -79,19 +78,6 @@ def grid_vertices(grid: int, extent_m: float) -> np.ndarray:
     c = grid_coords(grid, extent_m)
     zz, xx = np.meshgrid(c, c, indexing="ij")
     return np.stack([xx.ravel(), np.zeros(grid * grid), zz.ravel()], axis=1)
-
-
-def load_response_lut(path: str) -> np.ndarray:
-    """A (256, 3) camera response LUT from ``.npy`` or text (256 rows of 3 numbers)."""
-    p = Path(path)
-    try:
-        lut = np.load(p) if p.suffix == ".npy" else np.loadtxt(p, delimiter=None if p.suffix != ".csv" else ",")
-    except FileNotFoundError:
-        raise FileNotFoundError(f"[source] response_curve = {path!r}: file not found") from None
-    lut = np.asarray(lut, np.float32)
-    if lut.shape != (256, 3):
-        raise ValueError(f"[source] response_curve = {path!r}: expected a (256, 3) LUT, got shape {lut.shape}")
-    return lut
 
 
 def measure_cells(frame: Frame, T_cam_obj: np.ndarray, grid: int, extent_m: float, inlier_threshold_m: float,

@@ -185,7 +185,7 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
                   exposure=exposure or Exposure())
     response_lut = None
     if cfg.source.response_curve:
-        from .plane_light import load_response_lut
+        from .physics import load_response_lut
 
         response_lut = load_response_lut(cfg.source.response_curve)
     shading_stage = ShadingStage(apply_overrides(cfg, [("model", "temporal_smoothing", 0.0)]))
