@@ -23,6 +23,21 @@ SCHEMES: dict[str, str] = {
 }
 
 
+#: spellings accepted for boolean URL query values (``?loop=1``, ``?reconnect=false``)
+URL_TRUE = ("1", "true", "yes", "on")
+URL_FALSE = ("0", "false", "no", "off")
+
+
+def url_bool(url: str, key: str, value: str) -> bool:
+    """A boolean URL query value; anything else is refused naming the URL, key and value."""
+    t = value.lower()
+    if t in URL_TRUE:
+        return True
+    if t in URL_FALSE:
+        return False
+    raise ValueError(f"{url}: {key}={value!r}: expected 0/1 (or true/false)")
+
+
 class SourceError(RuntimeError):
     """A source URL cannot be opened; the message says why and what to do."""
 

@@ -44,6 +44,7 @@ import cv2  # noqa: E402
 import depthai as dai  # noqa: E402
 import numpy as np  # noqa: E402
 
+from illuminet.hw import url_bool  # noqa: E402
 from illuminet.hw.serial_imu import ImuMatcher  # noqa: E402
 from illuminet.runtime.config import Config  # noqa: E402
 from illuminet.runtime.frame import Exposure, Frame, ImuSample, Intrinsics, depth_from_mm  # noqa: E402
@@ -137,15 +138,6 @@ def _size(url: str, key: str, v: str) -> tuple[int, int]:
     return w, h
 
 
-def _bool(url: str, key: str, v: str) -> bool:
-    t = v.lower()
-    if t in ("1", "true", "yes", "on"):
-        return True
-    if t in ("0", "false", "no", "off"):
-        return False
-    raise ValueError(f"{url}: {key}={v!r}: expected 0/1 (or true/false)")
-
-
 def parse_url(url: str) -> OakdOptions:
     """``oakd://[DEVICE]?key=value&...`` -> :class:`OakdOptions`; unknown keys and bad values are refused."""
     parts = urlsplit(url)
@@ -163,7 +155,7 @@ def parse_url(url: str) -> OakdOptions:
             if name in ("size", "mono_size"):
                 kw[name] = _size(url, key, v)
             elif name in ("imu", "lr_check", "subpixel", "extended", "undistort", "reconnect"):
-                kw[name] = _bool(url, key, v)
+                kw[name] = url_bool(url, key, v)
             elif name in ("fps", "sync_ms", "timeout_s"):
                 kw[name] = float(v)
             elif name == "preset":

@@ -25,7 +25,7 @@ from urllib.parse import parse_qsl, unquote, urlsplit
 
 import numpy as np
 
-from illuminet.hw import SourceError
+from illuminet.hw import URL_FALSE, URL_TRUE, SourceError
 from illuminet.runtime.config import Config
 from illuminet.runtime.frame import Frame
 from illuminet.runtime.session import CorruptFrame, SessionError, SessionReader
@@ -34,8 +34,7 @@ from illuminet.runtime.stage import EndOfStream, Source
 log = logging.getLogger(__name__)
 
 TIMINGS = ("recorded", "asap")
-_TRUE = ("1", "true", "yes", "on")
-_FALSE = ("0", "false", "no", "off")
+_TRUE, _FALSE = URL_TRUE, URL_FALSE
 
 
 class ReplaySource(Source):

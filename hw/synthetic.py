@@ -54,6 +54,7 @@ import numpy as np
 
 from illuminet.runtime import lighting as L
 from illuminet.runtime.frame import Exposure, Frame, Intrinsics
+from illuminet.runtime.odometry import invert
 from illuminet.runtime.scene import Plane
 from illuminet.runtime.stage import Source
 
@@ -272,14 +273,6 @@ def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
     return T
 
 
-def _inv(T: np.ndarray) -> np.ndarray:
-    R, t = T[:3, :3], T[:3, 3]
-    out = np.eye(4)
-    out[:3, :3] = R.T
-    out[:3, 3] = -R.T @ t
-    return out
-
-
 @dataclass
 class SyntheticScene:
     """Everything that defines a synthetic scene; the ground truth evaluators read.
@@ -304,7 +297,7 @@ class SyntheticScene:
     # ------------------------------------------------------------------ poses and frames
     def T_cam_world(self, frame: int = 0) -> np.ndarray:
         """4x4 transform world -> camera for ``frame``."""
-        return _inv(self.poses[frame % len(self.poses)])
+        return invert(self.poses[frame % len(self.poses)])
 
     def lights_cam(self, frame: int = 0) -> L.PointLights:
         """The lights in the camera frame of ``frame`` (OpenCV axes)."""
@@ -378,7 +371,7 @@ class SyntheticScene:
 
     def object_lights(self, T_cam_obj: np.ndarray, frame: int = 0) -> L.PointLights:
         """The scene lights in the object frame of an object at ``T_cam_obj`` (seen in ``frame``)."""
-        T_obj_world = _inv(self.poses[frame % len(self.poses)] @ np.asarray(T_cam_obj, float))
+        T_obj_world = invert(self.poses[frame % len(self.poses)] @ np.asarray(T_cam_obj, float))
         return self.lights.transformed(T_obj_world[:3, :3], T_obj_world[:3, 3])
 
     def true_object_oi(self, mesh, T_cam_obj: np.ndarray, visibility: bool = True, frame: int = 0,
@@ -862,7 +855,7 @@ class SyntheticSource(Source):
             exposure=exp,
             gravity=down,
         )
-        return frame.with_result("synthetic_gt", {"frame": i, "T_cam_world": _inv(T_wc)})
+        return frame.with_result("synthetic_gt", {"frame": i, "T_cam_world": invert(T_wc)})
 
     def read(self) -> Frame | None:
         if self._i >= self.frames:

@@ -41,6 +41,7 @@ from urllib.parse import parse_qsl, urlsplit
 import cv2
 import numpy as np
 
+from illuminet.hw import url_bool
 from illuminet.runtime.config import Config
 from illuminet.runtime.frame import Exposure, Frame
 from illuminet.runtime.stage import EndOfStream, Source
@@ -106,14 +107,6 @@ class V4l2Options:
     reconnect: bool | None = None
 
 
-def _bool(url: str, key: str, v: str) -> bool:
-    if v.lower() in ("1", "true", "yes", "on"):
-        return True
-    if v.lower() in ("0", "false", "no", "off"):
-        return False
-    raise ValueError(f"{url}: {key}={v!r}: expected 0/1 (or true/false)")
-
-
 def parse_url(url: str) -> V4l2Options:
     """``v4l2://DEVICE?...`` -> :class:`V4l2Options`; unknown keys and bad values are refused by name."""
     parts = urlsplit(url)
@@ -134,7 +127,7 @@ def parse_url(url: str) -> V4l2Options:
                 raise ValueError(f"{url}: size={v!r}: expected WIDTHxHEIGHT, e.g. 2560x720")
             kw["size"] = (int(m.group(1)), int(m.group(2)))
         elif key in ("swap", "reconnect"):
-            kw[key] = _bool(url, key, v)
+            kw[key] = url_bool(url, key, v)
         elif key in ("fps", "scale"):
             try:
                 kw[key] = float(v)
