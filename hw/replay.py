@@ -28,7 +28,7 @@ import numpy as np
 from illuminet.hw import URL_FALSE, URL_TRUE, SourceError
 from illuminet.runtime.config import Config
 from illuminet.runtime.frame import Frame
-from illuminet.runtime.session import CorruptFrame, SessionError, SessionReader
+from illuminet.runtime.stream.session import CorruptFrame, SessionError, SessionReader
 from illuminet.runtime.stage import EndOfStream, Source
 
 log = logging.getLogger(__name__)
@@ -43,7 +43,7 @@ class ReplaySource(Source):
     Parameters
     ----------
     path : str or Path
-        Session folder (see :mod:`illuminet.runtime.session`).
+        Session folder (see :mod:`illuminet.runtime.stream.session`).
     timing : {"recorded", "asap"}
         Follow the recorded timestamps (live-like) or go as fast as possible (drops nothing).
     loop : bool

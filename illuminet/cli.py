@@ -1,4 +1,4 @@
-"""The ``illuminet`` command line: global options, then one subcommand per module ``cmd_*.py``.
+"""The ``illuminet`` command line: global options, then one subcommand per module ``commands/*.py``.
 
 Each command module in this package defines ``register(subparsers)``, which adds its parser and sets
 ``func`` (called with the parsed ``args`` and the validated :class:`Config`, returning an exit
@@ -22,15 +22,15 @@ os.environ.setdefault("DEPTHAI_TELEMETRY", "0")
 
 #: command modules of this package, in the order --help lists them
 COMMAND_MODULES: list[str] = [
-    "cmd_run",        # run, replay, record                      (runtime foundation)
-    "cmd_demo",       # the main job on the built-in default      (rendering)
-    "cmd_bench",      # benchmarks
-    "cmd_doctor",     # what hardware/drivers are found           (runtime foundation)
-    "cmd_calibrate",  # calibrate board|capture|intrinsics|stereo|photometric
-    "cmd_train",      # train an object bundle                    (learned transfer)
-    "cmd_eval",       # evaluation report                         (learned transfer)
-    "cmd_relight",    # one RGB-D image -> placed object + radiance (learned transfer)
-    "cmd_config",     # print the effective configuration
+    "run",        # run, replay, record                      (runtime foundation)
+    "demo",       # the main job on the built-in default      (rendering)
+    "bench",      # benchmarks
+    "doctor",     # what hardware/drivers are found           (runtime foundation)
+    "calibrate",  # calibrate board|capture|intrinsics|stereo|photometric
+    "train",      # train an object bundle                    (learned transfer)
+    "eval",       # evaluation report                         (learned transfer)
+    "relight",    # one RGB-D image -> placed object + radiance (learned transfer)
+    "config",     # print the effective configuration
 ]
 
 log = logging.getLogger("illuminet")
@@ -55,8 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
     for name in COMMAND_MODULES:
         # a command whose module is not in this build (e.g. stripped down for a board) is not listed
-        if importlib.util.find_spec(f"illuminet.{name}") is not None:
-            importlib.import_module(f"illuminet.{name}").register(sub)
+        if importlib.util.find_spec(f"illuminet.commands.{name}") is not None:
+            importlib.import_module(f"illuminet.commands.{name}").register(sub)
     return parser
 
 

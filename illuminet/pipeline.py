@@ -1,7 +1,8 @@
 """Assembles the standard AR pipeline from the configuration: the stages in order, and the sinks.
 
-Filled in as the stages land; the commands (run, replay, demo) all build their pipeline here so
-that they process frames identically.
+The commands (run, replay, demo, relight's stages) all build their pipeline here so that they process
+frames identically; :func:`chain_diagram` draws the chain with each stage's declared contract (what
+``illuminet config --pipeline`` prints and ``docs/architecture.md`` shows).
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ import importlib.util
 from typing import Any, Callable
 
 from illuminet.runtime.config import Config, ConfigError
-from illuminet.runtime.sinks import PngSequenceSink, SessionRecorderSink, VideoSink
+from illuminet.runtime.stream.sinks import PngSequenceSink, SessionRecorderSink, VideoSink
 from illuminet.runtime.stage import Sink, Stage
 
 
@@ -23,14 +24,14 @@ def build_stages(cfg: Config, *, render: bool = True) -> list[Stage]:
         All sections; ``[source] response_curve`` (when set) is loaded once and given to both the
         plane measurement (to linearise) and the renderer (to encode the object the same way).
     render : bool
-        Include the :class:`~illuminet.runtime.render.RenderStage` (False: lighting only, e.g.
+        Include the :class:`~illuminet.runtime.render.stage.RenderStage` (False: lighting only, e.g.
         for evaluation or benchmarks of the lighting stages alone).
     """
-    from illuminet.runtime.anchor import AnchorStage
+    from illuminet.runtime.stages.anchor import AnchorStage
     from illuminet.runtime.physics import load_response_lut
-    from illuminet.runtime.plane_light import PlaneLightStage
-    from illuminet.runtime.planes import PlaneStage
-    from illuminet.runtime.transfer import ShadingStage
+    from illuminet.runtime.stages.plane_light import PlaneLightStage
+    from illuminet.runtime.stages.planes import PlaneStage
+    from illuminet.runtime.stages.shading import ShadingStage
 
     from illuminet.hw.serial_imu import ImuStage
 
@@ -45,7 +46,7 @@ def build_stages(cfg: Config, *, render: bool = True) -> list[Stage]:
     stages += [PlaneStage(cfg, full_masks=False), AnchorStage(cfg), PlaneLightStage(cfg, response_lut=lut),
                ShadingStage(cfg)]
     if render:
-        from illuminet.runtime.render import RenderStage
+        from illuminet.runtime.render.stage import RenderStage
 
         stages.append(RenderStage(cfg, response_lut=lut))
     return stages
@@ -62,11 +63,11 @@ def build_sinks(
     Parameters
     ----------
     cfg : Config
-        ``output.video`` -> :class:`~illuminet.runtime.sinks.VideoSink` (at ``output.fps``),
-        ``output.png_dir`` -> :class:`~illuminet.runtime.sinks.PngSequenceSink`,
-        ``output.record`` -> :class:`~illuminet.runtime.sinks.SessionRecorderSink`
+        ``output.video`` -> :class:`~illuminet.runtime.stream.sinks.VideoSink` (at ``output.fps``),
+        ``output.png_dir`` -> :class:`~illuminet.runtime.stream.sinks.PngSequenceSink`,
+        ``output.record`` -> :class:`~illuminet.runtime.stream.sinks.SessionRecorderSink`
         (``record_color``, ``record_jpeg_quality``, ``record_fsync``),
-        ``output.mjpeg`` -> ``illuminet.runtime.mjpeg.MjpegSink`` on ``listen``:``port``.
+        ``output.mjpeg`` -> ``illuminet.runtime.stream.mjpeg.MjpegSink`` on ``listen``:``port``.
     stats : callable, optional
         Returns live loop figures (``LoopStats.snapshot``) for the MJPEG status page.
     source_url : str, optional
@@ -91,9 +92,25 @@ def build_sinks(
     if out.png_dir:
         sinks.append(PngSequenceSink(out.png_dir))
     if out.mjpeg:
-        if importlib.util.find_spec("illuminet.runtime.mjpeg") is None:
-            raise ConfigError("[output] mjpeg = true, but this build has no MJPEG server (illuminet.runtime.mjpeg)")
-        from illuminet.runtime.mjpeg import MjpegSink
+        if importlib.util.find_spec("illuminet.runtime.stream.mjpeg") is None:
+            raise ConfigError("[output] mjpeg = true, but this build has no MJPEG server (illuminet.runtime.stream.mjpeg)")
+        from illuminet.runtime.stream.mjpeg import MjpegSink
 
         sinks.append(MjpegSink(out.listen, out.port, stats=stats))
     return sinks
+
+
+def chain_diagram(stages: list[Stage]) -> str:
+    """The chain as text: one line of stage names, then each stage's requires / optional / provides.
+
+    Generated from the stages' declared contracts, so it cannot disagree with the code;
+    ``tests/test_contracts.py`` checks that docs/architecture.md holds the default chain's diagram.
+    """
+    line = "Source ──Frame──▶ " + " ──▶ ".join(s.name for s in stages) + " ──▶ Sinks"
+    rows = [("stage", "class", "requires", "optional", "provides")]
+    for s in stages:
+        rows.append((s.name, type(s).__name__, ", ".join(k.name for k in s.requires) or "-",
+                     ", ".join(k.name for k in s.optional) or "-", ", ".join(k.name for k in s.provides) or "-"))
+    w = [max(len(r[i]) for r in rows) for i in range(5)]
+    table = ["  ".join(c.ljust(w[i]) for i, c in enumerate(r)).rstrip() for r in rows]
+    return "\n".join([line, ""] + table)

@@ -34,9 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
-from illuminet.runtime.lighting import fibonacci_sphere, load_hdr, median_cut
-from illuminet.runtime.objects import load_object
-from illuminet.runtime.transfer import preprocess_plane
+from illuminet.runtime.groundtruth.lighting import fibonacci_sphere, load_hdr, median_cut
+from illuminet.runtime.assets.objects import load_object
+from illuminet.runtime.stages.shading import preprocess_plane
 
 log = logging.getLogger(__name__)
 
@@ -81,12 +81,12 @@ class ObjectGeometry:
 def load_mesh(spec: str):
     """``builtin:NAME`` or a mesh file -> trimesh.Trimesh in the object frame (y = 0 base, +Y up).
 
-    Thin wrapper over :func:`illuminet.runtime.objects.load_object` (render detail, files scaled
+    Thin wrapper over :func:`illuminet.runtime.assets.objects.load_object` (render detail, files scaled
     to its default height), kept so that training and evaluation name one entry point.
 
     Raises
     ------
-    illuminet.runtime.objects.ObjectLoadError
+    illuminet.runtime.assets.objects.ObjectLoadError
         Naming the spec or file when it is unknown, unreadable or holds no triangles.
     """
     return load_object(spec)
@@ -141,7 +141,7 @@ def build_geometry(mesh, n_proxy: int = 400, k_graph: int = 6, seed: int = 0, na
 def fibonacci_directions(n: int) -> np.ndarray:
     """``n`` near-uniform unit directions on the sphere, (n, 3) float32.
 
-    The runtime's :func:`~illuminet.runtime.lighting.fibonacci_sphere` lattice mirrored in z: this
+    The runtime's :func:`~illuminet.runtime.groundtruth.lighting.fibonacci_sphere` lattice mirrored in z: this
     module's lattice always spiralled the other way, and the visibility tables and the outdoor sky
     of the shipped bundles' training data were built on it. For the sizes used here (1024 table
     directions, 62 sky directions) the result is bit-identical to the former own implementation;
@@ -201,7 +201,7 @@ class DirectionVisibility:
 def oi_point_lights(points, normals, light_pos, light_rgb, vis=None) -> np.ndarray:
     """OI (N, 3, 3) of point lights (see :mod:`illuminet.runtime.physics`): channel x xyz.
 
-    Same formula and clamp (r^2 >= 1e-6) as :func:`illuminet.runtime.lighting.oi_point_lights`,
+    Same formula and clamp (r^2 >= 1e-6) as :func:`illuminet.runtime.groundtruth.lighting.oi_point_lights`,
     but computed in float32 on plain arrays. Kept on purpose rather than calling the runtime one:
     that computes in float64, which changes the float32 training targets by ~1e-7 (relative) and
     so would stop ``illuminet train`` from reproducing the shipped bundles bit for bit.
@@ -299,8 +299,8 @@ def sample_lights(kind: str, rng: np.random.Generator, n: int = N_LIGHTS, hdr_li
 def median_cut_lights(env: np.ndarray, n: int = N_LIGHTS) -> tuple[np.ndarray, np.ndarray]:
     """Median cut of an equirectangular linear-RGB map -> n (direction, rgb) lights, float32.
 
-    :func:`illuminet.runtime.lighting.median_cut` cast to float32: directions in the object frame
-    (+Y up, convention of :func:`~illuminet.runtime.lighting.equirect_directions`: image top =
+    :func:`illuminet.runtime.groundtruth.lighting.median_cut` cast to float32: directions in the object frame
+    (+Y up, convention of :func:`~illuminet.runtime.groundtruth.lighting.equirect_directions`: image top =
     up, centre column = -Z), rgb the region's integral of radiance over solid angle, so that a
     distant light of direction d gives irradiance ``rgb * max(n.d, 0)``.
     """

@@ -27,10 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
-from illuminet.runtime.bundle import Bundle, TransferChain, load_bundle
-from illuminet.runtime.transfer import LUMA, dominant_light, preprocess_plane
+from illuminet.runtime.assets.bundle import Bundle, TransferChain, load_bundle
+from illuminet.runtime.scene import ANCHOR, PLANE_LIGHT
+from illuminet.runtime.stage import StageChain
+from illuminet.runtime.stages.shading import LUMA, dominant_light_from_oi, preprocess_plane
 
-from . import datagen
+from illuminet.models import datagen
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +46,7 @@ SEED_BASE = 1_000_003  # test seeds never collide with training seeds (seed*1000
 
 # --------------------------------------------------------------------------- spherical harmonics
 # the SH basis and the RGB-D fit live in the runtime (the stage's `sh` mode uses them too)
-from illuminet.runtime.transfer import SH_A_HAT as _A_HAT, sh9, sh_eval, sh_fit as sh_fit_rgbd  # noqa: E402
+from illuminet.runtime.sh import SH_A_HAT as _A_HAT, sh9, sh_eval, sh_fit as sh_fit_rgbd  # noqa: E402
 
 #: regularisation strengths tried on validation cases for the SH baseline (the best one is used)
 SH_LAMBDAS = (0.0, 1e-3, 1e-2, 0.1, 1.0, 10.0)
@@ -151,7 +153,7 @@ class Evaluator:
         out = {}
         for prec, ch in self.chains.items():
             oi, sh = ch(x)
-            out[f"ours_{prec}"] = (b.carry(np.maximum(sh, 0) * s), dominant_light(oi)[0])
+            out[f"ours_{prec}"] = (b.carry(np.maximum(sh, 0) * s), dominant_light_from_oi(oi)[0])
         out["constant"] = (b.carry(b.prior_shading * s), None)
         m = mask.astype(bool)
         amb = meas[m].mean(0)
@@ -183,7 +185,7 @@ class Evaluator:
                 meas, mask = self.scene.measure(e_plane, rng)
                 k = 0.18 / max(float((0.5 * e_plane @ LUMA).mean() / np.pi), 1e-12)
                 preds = self.predict_all(meas, mask, pos, rgb)
-                d_true = dominant_light(oi_true)[0]
+                d_true = dominant_light_from_oi(oi_true)[0]
                 for mth, (pe, pd) in preds.items():
                     acc.setdefault(mth, []).append(case_metrics(pe, true_e, k))
                     a = angle_deg(pd, d_true)
@@ -324,12 +326,12 @@ def run_camera(ev: Evaluator, cfg, kinds=CAMERA_KINDS, n_scenes: int = 8, frames
     import trimesh
 
     from illuminet.hw.synthetic import open_url
-    from illuminet.runtime import baselines as BL
-    from illuminet.runtime.anchor import AnchorStage
+    from illuminet.runtime.groundtruth import baselines as BL
+    from illuminet.runtime.stages.anchor import AnchorStage
     from illuminet.runtime.config import apply_overrides
     from illuminet.runtime.physics import linearize
-    from illuminet.runtime.plane_light import PlaneLightStage
-    from illuminet.runtime.planes import PlaneStage
+    from illuminet.runtime.stages.plane_light import PlaneLightStage
+    from illuminet.runtime.stages.planes import PlaneStage
 
     b = ev.bundle
     mesh = trimesh.Trimesh(b.vertices, b.faces, process=False)
@@ -349,18 +351,16 @@ def run_camera(ev: Evaluator, cfg, kinds=CAMERA_KINDS, n_scenes: int = 8, frames
             stages = [PlaneStage(c), AnchorStage(c), PlaneLightStage(c)]
             for st in stages:
                 st.open()
-            f = None
+            f, chain = None, StageChain(stages, source=src)
             for _ in range(frames):
-                f = src.read()
-                for st in stages:
-                    f = st.process(f)
+                f = chain(src.read())
             for st in stages:
                 st.close()
             src.close()
             done += 1
             if progress:
                 progress(done, len(kinds) * n_scenes)
-            anchor, pl = f.results.get("anchor"), f.results.get("plane_light")
+            anchor, pl = f.results.get(ANCHOR.name), f.results.get(PLANE_LIGHT.name)
             if anchor is None or anchor.synthetic or pl is None or not np.any(pl.mask):
                 failed += 1
                 continue
@@ -372,7 +372,7 @@ def run_camera(ev: Evaluator, cfg, kinds=CAMERA_KINDS, n_scenes: int = 8, frames
             preds = {}
             for prec, ch in ev.chains.items():
                 oi, sh = ch(x)
-                preds[f"ours_{prec}"] = (b.carry(np.maximum(sh, 0) * s), dominant_light(oi)[0])
+                preds[f"ours_{prec}"] = (b.carry(np.maximum(sh, 0) * s), dominant_light_from_oi(oi)[0])
             preds["constant"] = (b.carry(b.prior_shading * s), None)
             lin = linearize(f.color)
             preds["ambient"] = (BL.ambient_shading(BL.ambient_from_image(lin, albedo, k), len(b.vertices)), None)
@@ -384,7 +384,7 @@ def run_camera(ev: Evaluator, cfg, kinds=CAMERA_KINDS, n_scenes: int = 8, frames
             coef_o = BL.sh_from_lights(lights, ev.centre)
             preds["oracle_sh"] = (sh_eval(coef_o, b.normals), sh_dominant(coef_o))
             oi_true = sc.true_object_oi(mesh, T, frame=fi, points=b.proxy_vertices, normals=b.proxy_normals)
-            d_true = dominant_light(oi_true)[0]
+            d_true = dominant_light_from_oi(oi_true)[0]
             for m, (pe, pd) in preds.items():
                 acc.setdefault(m, []).append(case_metrics(pe, true_e, k))
                 a = angle_deg(pd, d_true)

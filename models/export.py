@@ -149,9 +149,9 @@ def write_bundle(out: str | Path, result: dict, trainer, command: str = "", extr
     import onnxruntime as ort
 
     from illuminet import __version__
-    from illuminet.runtime.bundle import BUNDLE_FORMAT, FILES
-    from illuminet.runtime.transfer import POOL
-    from .train import predict_jax
+    from illuminet.runtime.assets.bundle import BUNDLE_FORMAT, FILES
+    from illuminet.runtime.stages.shading import POOL
+    from illuminet.models.train import predict_jax
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -208,7 +208,7 @@ def write_bundle(out: str | Path, result: dict, trainer, command: str = "", extr
 
 def finalize_bundle(out: Path, meta: dict) -> Path:
     """(Re)write bundle.json with the sha256 and size of every file (after evaluation adds figures)."""
-    from illuminet.runtime.bundle import FILES, METADATA
+    from illuminet.runtime.assets.bundle import FILES, METADATA
 
     out = Path(out)
     meta["files"] = {}

@@ -16,7 +16,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from .gae import LATENT, batchnorm, dense, gconv, init_bn, init_dense, leaky
+from illuminet.models.gae import LATENT, batchnorm, dense, gconv, init_bn, init_dense, leaky
 
 GEN_WIDTH = 256  # the paper does not give the width; 256 keeps a bundle under 10 MB
 

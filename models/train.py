@@ -29,7 +29,7 @@ import json
 import logging
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -182,9 +182,9 @@ class Trainer:
     # ------------------------------------------------------------- data
     def prepare(self):
         """Object geometry, scene tables and the data sets (cached)."""
-        from . import datagen
-        from .gae import grid_edges, mean_neighbour_matrix, normalized_adjacency
-        from illuminet.runtime.transfer import POOL
+        from illuminet.models import datagen
+        from illuminet.models.gae import grid_edges, mean_neighbour_matrix, normalized_adjacency
+        from illuminet.runtime.stages.shading import POOL
 
         c = self.cfg
         t0 = time.time()
@@ -264,14 +264,13 @@ class Trainer:
         import jax.numpy as jnp
         import optax
 
-        from . import gae, gan
+        from illuminet.models import gae
 
         c = self.cfg
         if not hasattr(self, "data"):
             self.prepare()
         tr, va = self.data["train"], self.data["val"]
         a_p, a_o = jnp.asarray(self.a_plane), jnp.asarray(self.a_obj)
-        nb_o = jnp.asarray(self.nb_obj)
         normals = jnp.asarray(self.normals)
         P, V = self.a_plane.shape[0], self.a_obj.shape[0]
         key = jax.random.PRNGKey(c.seed)
@@ -362,7 +361,7 @@ class Trainer:
         import jax.numpy as jnp
         import optax
 
-        from . import gae, gan
+        from illuminet.models import gae, gan
 
         c = self.cfg
         a_p, a_o = jnp.asarray(self.a_plane), jnp.asarray(self.a_obj)
@@ -410,7 +409,7 @@ class Trainer:
         """Frozen encoders' latents of the training and validation sets."""
         import jax.numpy as jnp
 
-        from . import gae
+        from illuminet.models import gae
 
         a_p, a_o = jnp.asarray(self.a_plane), jnp.asarray(self.a_obj)
         normals = jnp.asarray(self.normals)
@@ -428,7 +427,7 @@ class Trainer:
         import jax.numpy as jnp
         import optax
 
-        from . import gae, gan
+        from illuminet.models import gae, gan
 
         c = self.cfg
         a_o = jnp.asarray(self.a_obj)
@@ -520,7 +519,7 @@ def predict_jax(result: dict, a_plane, a_obj, normals, x):
     """The inference chain in JAX (eval mode): plane input (B, P, 4) -> (OI (B, V, 3, 3), shading (B, V, 3))."""
     import jax.numpy as jnp
 
-    from . import gae, gan
+    from illuminet.models import gae, gan
 
     a_p, a_o, n = jnp.asarray(a_plane), jnp.asarray(a_obj), jnp.asarray(normals)
     zp = gae.plane_encode(result["plane"]["enc"], a_p, jnp.asarray(x))

@@ -202,8 +202,11 @@ class Frame:
         """(width, height) of the colour image."""
         return self.color.shape[1], self.color.shape[0]
 
-    def with_result(self, name: str, value: Any) -> "Frame":
-        """A new frame sharing all arrays with this one, with ``results[name] = value`` added."""
+    def with_result(self, key: Any, value: Any) -> "Frame":
+        """A new frame sharing all arrays with this one, with ``results[str(key)] = value`` added.
+
+        ``key`` is a :class:`~illuminet.runtime.scene.ResultKey` (or its name)."""
+        name = str(key)
         res = dict(self.results)
         res[name] = value
         return dataclasses.replace(self, results=MappingProxyType(res))

@@ -4,7 +4,7 @@ predicted radiance (what ``illuminet relight`` writes; the way to check results 
 Pipeline: the project's plane detection, anchor and plane-light stages (``[planes]``, ``[anchor]``,
 ``[plane_light]``) when present in this build, else :func:`fallback_plane_light` (a local plane fit
 around the anchor pixel and direct sampling of the grid; documented below), then the bundle's chain
-(:class:`~illuminet.runtime.transfer.ShadingStage`), then carrying proxy shading to the render mesh.
+(:class:`~illuminet.runtime.stages.shading.ShadingStage`), then carrying proxy shading to the render mesh.
 
 Units: ``radiance`` is the linear RGB that a *white Lambertian* surface (albedo 1) would show in the
 input image's own linear units, i.e. ``radiance = E / pi * exposure_scale``; re-encoding with the
@@ -18,10 +18,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import Config, apply_overrides
-from .frame import Exposure, Frame, Intrinsics
-from .physics import INV_PI, linearize
-from .scene import Anchor, PlaneLight
+from illuminet.runtime.config import Config, apply_overrides
+from illuminet.runtime.frame import Exposure, Frame, Intrinsics
+from illuminet.runtime.physics import INV_PI, linearize
+from illuminet.runtime.scene import ANCHOR, PLANE_LIGHT, Anchor, PlaneLight
+from illuminet.runtime.stage import StageChain
 
 log = logging.getLogger(__name__)
 
@@ -63,9 +64,9 @@ class RelightResult:
 def _stage_classes():
     """The project's plane / anchor / plane-light stages, when this build has them."""
     try:
-        from .anchor import AnchorStage
-        from .plane_light import PlaneLightStage
-        from .planes import PlaneStage
+        from illuminet.runtime.stages.anchor import AnchorStage
+        from illuminet.runtime.stages.plane_light import PlaneLightStage
+        from illuminet.runtime.stages.planes import PlaneStage
     except ImportError:  # a stripped-down build: use the local fallback
         return None
     return PlaneStage, AnchorStage, PlaneLightStage
@@ -166,7 +167,7 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
     bundle, precision : override ``[model] bundle`` / ``precision``
     exposure : Exposure metadata, when known (else the image's own linear units are used)
     """
-    from .transfer import ShadingStage
+    from illuminet.runtime.stages.shading import ShadingStage
 
     h, w = np.shape(depth)[:2]
     if not (0 <= anchor_px[0] < w and 0 <= anchor_px[1] < h):
@@ -185,7 +186,7 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
                   exposure=exposure or Exposure())
     response_lut = None
     if cfg.source.response_curve:
-        from .physics import load_response_lut
+        from illuminet.runtime.physics import load_response_lut
 
         response_lut = load_response_lut(cfg.source.response_curve)
     shading_stage = ShadingStage(apply_overrides(cfg, [("model", "temporal_smoothing", 0.0)]))
@@ -200,15 +201,14 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
         for st in stages:
             st.open()
         try:
-            for st in stages:
-                f = st.process(f)
+            f = StageChain(stages)(f)
         finally:
             for st in stages:
                 st.close()
-        if "anchor" not in f.results or "plane_light" not in f.results:
+        if ANCHOR.name not in f.results or PLANE_LIGHT.name not in f.results:
             raise ValueError(f"no plane found under the anchor pixel ({anchor_px[0]}, {anchor_px[1]}): "
                              "the depth there does not belong to a detected plane")
-        anchor, pl, source = f.results["anchor"], f.results["plane_light"], "stages"
+        anchor, pl, source = f.results[ANCHOR.name], f.results[PLANE_LIGHT.name], "stages"
         if anchor.synthetic or not np.any(pl.mask):
             raise ValueError(f"no real plane observed under the anchor pixel ({anchor_px[0]}, {anchor_px[1]}); "
                              "relight needs the plane under the object to be visible in the image")

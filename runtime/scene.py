@@ -1,16 +1,9 @@
-"""Result types that stages exchange through ``Frame.results`` (the contracts between stages).
+"""The contracts between stages: the result types they exchange through ``Frame.results`` and the
+declared keys (:class:`ResultKey`) those results live under.
 
-=================  ==========================  ====================================================
-``results`` key    type                        written by
-=================  ==========================  ====================================================
-``"planes"``       ``tuple[Plane, ...]``       plane detection + tracking
-``"anchor"``       :class:`Anchor`             anchor selection (a synthetic plane when none found)
-``"odometry"``     ``OdometryResult``          camera motion (world-locked anchor, runtime/odometry.py)
-``"plane_light"``  :class:`PlaneLight`         plane illumination (per-vertex plane OI)
-``"shading"``      :class:`ObjectShading`      transfer (learned model) or a baseline
-``"composite"``    ``np.ndarray`` HxWx3 uint8  renderer: the output picture (sinks fall back to
-                                               ``frame.color`` when it is absent)
-=================  ==========================  ====================================================
+Every key is declared once, here, and stages name them in their ``requires`` / ``optional`` /
+``provides`` (see :mod:`illuminet.runtime.stage`); nothing else spells a results key as a string.
+``docs/architecture.md`` shows the chain these keys wire together.
 
 Units follow :mod:`illuminet.runtime.physics`: irradiance is scene-referred linear RGB, i.e. the
 linear pixel value divided by ``exposure_scale``; multiplying back by it (and by albedo/pi)
@@ -144,3 +137,109 @@ class ObjectShading:
     oi: np.ndarray | None = None
     dominant_dir: np.ndarray | None = None
     dominant_share: float = 0.0
+
+
+
+@dataclass(frozen=True)
+class LightEstimate:
+    """The room's lighting at the anchor: the product's central per-frame output.
+
+    **Frame** (the anchor's object frame, gravity-aligned): origin on the supporting plane under the
+    object, **+Y up** (against gravity, along the plane normal for a floor or table), X and Z
+    horizontal (the object frame of :class:`Anchor`, right-handed), metres. ``T_cam_obj`` maps it to
+    the camera.
+
+    **Units**: scene-referred linear RGB (the linear pixel value divided by ``exposure_scale``, as
+    :class:`PlaneLight`). ``sh9`` holds *irradiance* coefficients of the ambient light (everything but
+    the primary light): ``E(n) = sh9_basis(n) @ sh9`` (:func:`illuminet.runtime.sh.sh9`, order
+    ``[Y00, Y1-1, Y10, Y11, Y2-2, Y2-1, Y20, Y21, Y22]``). Radiance coefficients (what three.js's
+    ``LightProbe`` and WebXR's ``sphericalHarmonicsCoefficients`` carry) are ``sh9 / A_hat`` per band:
+    :meth:`radiance_sh9`.
+
+    Attributes
+    ----------
+    sh9 : (9, 3)
+        Ambient irradiance SH coefficients (object frame).
+    primary_dir : (3,) or None
+        Unit vector *towards* the primary light (object frame); None when no light dominates.
+    primary_rgb : (3,)
+        Irradiance the primary light gives a surface facing it at the anchor (RGB).
+    primary_pos : (3,) or None
+        The light's position (object frame, metres) for a near light whose falloff was observed.
+    confidence : dict
+        In [0, 1]: ``"ambient"``, ``"direction"``, ``"intensity"``, ``"colour"``, ``"position"``.
+    observed : dict
+        What the estimate saw: ``"planes"`` (count), ``"plane_labels"``, ``"shadow"`` (score or
+        None), ``"env_coverage"`` (share of the sphere seen), ``"emitters"`` (count), ``"cues"`` (list
+        of cue names that set the primary light).
+    exposure_scale : float
+        Linear pixel per unit of scene-referred radiance for the frame it was made on.
+    method : str
+        What produced it (e.g. ``"scene"``, ``"plane-sh"``).
+    T_cam_obj : (4, 4) or None
+        The anchor pose for that frame.
+    """
+
+    sh9: np.ndarray
+    primary_dir: np.ndarray | None
+    primary_rgb: np.ndarray
+    primary_pos: np.ndarray | None = None
+    confidence: dict = field(default_factory=dict)
+    observed: dict = field(default_factory=dict)
+    exposure_scale: float = 1.0
+    method: str = ""
+    T_cam_obj: np.ndarray | None = None
+
+    def radiance_sh9(self) -> np.ndarray:
+        """Ambient *radiance* SH (9, 3): the convention of three.js ``LightProbe`` / WebXR."""
+        a_hat = np.array([np.pi] + [2 * np.pi / 3] * 3 + [np.pi / 4] * 5)
+        return np.asarray(self.sh9, np.float64) / a_hat[:, None]
+
+    def total_sh9(self) -> np.ndarray:
+        """Irradiance SH (9, 3) of ambient plus the primary light (the light as one SH environment)."""
+        out = np.array(self.sh9, np.float64)
+        if self.primary_dir is not None:
+            d = np.asarray(self.primary_dir, np.float64)
+            x, y, z = d
+            basis = np.array([0.282095, 0.488603 * y, 0.488603 * z, 0.488603 * x, 1.092548 * x * y,
+                              1.092548 * y * z, 0.315392 * (3 * z * z - 1), 1.092548 * x * z,
+                              0.546274 * (x * x - y * y)])
+            a_hat = np.array([np.pi] + [2 * np.pi / 3] * 3 + [np.pi / 4] * 5)
+            out += (basis * a_hat)[:, None] * np.asarray(self.primary_rgb, np.float64)[None, :]
+        return out
+
+    def primary_share(self) -> float:
+        """The primary light's share of the light: luminance of its irradiance over that plus the
+        ambient's mean irradiance over all directions (in [0, 1]; drives the cast shadow's strength)."""
+        luma = np.array([0.2126, 0.7152, 0.0722])
+        p = float(np.asarray(self.primary_rgb) @ luma) if self.primary_dir is not None else 0.0
+        amb = float(np.asarray(self.sh9)[0] @ luma) * 0.282095
+        return float(np.clip(p / max(p + amb, 1e-12), 0.0, 1.0))
+
+@dataclass(frozen=True)
+class ResultKey:
+    """A declared ``Frame.results`` key: its name, the type of its value, and what it holds.
+
+    ``str(key)`` is the name, so ``frame.results[key.name]`` and ``frame.with_result(key, v)`` agree.
+    """
+
+    name: str
+    type_name: str
+    doc: str
+
+    def __str__(self) -> str:
+        return self.name
+
+
+PLANES = ResultKey("planes", "tuple[Plane, ...]", "tracked planes, largest first")
+ANCHOR = ResultKey("anchor", "Anchor", "where the object stands (a synthetic plane when none is found)")
+ODOMETRY = ResultKey("odometry", "OdometryResult", "camera motion for the world-locked anchor")
+PLANE_LIGHT = ResultKey("plane_light", "PlaneLight", "per-vertex irradiance measured on the planes")
+LIGHT = ResultKey("light", "LightEstimate", "the room's lighting at the anchor: ambient SH + primary light")
+SHADING = ResultKey("shading", "ObjectShading", "the object's per-vertex irradiance")
+COMPOSITE = ResultKey("composite", "ndarray HxWx3 uint8", "the output picture (sinks fall back to the camera colour)")
+SYNTHETIC_GT = ResultKey("synthetic_gt", "dict", "the synthetic camera's ground truth: frame index, T_cam_world")
+
+#: every declared key, by name
+RESULT_KEYS: dict[str, ResultKey] = {k.name: k for k in (PLANES, ANCHOR, ODOMETRY, PLANE_LIGHT, LIGHT, SHADING, COMPOSITE,
+                                                         SYNTHETIC_GT)}

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
-from illuminet.bench_replay import numpy_rgbd_frames
+from illuminet.bench.replay import numpy_rgbd_frames
 from illuminet.runtime.frame import Frame
-from illuminet.runtime.session import SessionWriter
+from illuminet.runtime.stream.session import SessionWriter
 
 from .conftest import REPO
 

@@ -37,10 +37,10 @@ def shared_data() -> Path:
 def gl_ctx():
     """One standalone EGL OpenGL context for the whole run (created in one place, as moderngl's tests do)."""
     pytest.importorskip("moderngl")
-    from illuminet.runtime.gl import GLError, get_context
+    from illuminet.runtime.render.gl import GLError, get_context
 
     try:
-        ctx = get_context("egl")  # the runtime's own shared context (illuminet.runtime.gl)
+        ctx = get_context("egl")  # the runtime's own shared context (illuminet.runtime.render.gl)
     except GLError as e:  # no EGL / GL driver on this machine
         pytest.skip(f"no OpenGL context via EGL: {e}")
     yield ctx
@@ -49,7 +49,7 @@ def gl_ctx():
 @pytest.fixture
 def gl(gl_ctx):
     """The GL context, checked for GL errors before and after the test."""
-    from illuminet.runtime.gl import make_current
+    from illuminet.runtime.render.gl import make_current
 
     make_current(gl_ctx)  # another test may have created and released a context of its own
     assert gl_ctx.error == "GL_NO_ERROR", f"GL error left by an earlier test: {gl_ctx.error}"

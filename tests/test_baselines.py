@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from illuminet.runtime import lighting as L
-from illuminet.runtime.baselines import (
+from illuminet.runtime.groundtruth import lighting as L
+from illuminet.runtime.groundtruth.baselines import (
     ambient_from_image,
     ambient_shading,
     constant_shading,
@@ -17,7 +17,7 @@ from illuminet.runtime.baselines import (
     sh_irradiance,
     sh_samples_from_rgbd,
 )
-from illuminet.runtime.transfer import sh_fit
+from illuminet.runtime.sh import sh_fit
 from illuminet.runtime.frame import Intrinsics
 from illuminet.runtime.physics import linear_to_srgb8, linearize
 

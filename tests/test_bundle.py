@@ -8,7 +8,7 @@ import shutil
 import numpy as np
 import pytest
 
-from illuminet.runtime.bundle import FILES, BundleError, TransferChain, builtin_names, load_bundle
+from illuminet.runtime.assets.bundle import FILES, BundleError, TransferChain, builtin_names, load_bundle
 
 MAX_BYTES = 10 * 1024 * 1024
 

@@ -165,7 +165,7 @@ def test_capture_without_board_fails_clearly(tmp_path):
 
 def test_capture_cli_from_replay_then_intrinsics(tmp_path, capsys):
     """End to end: a recorded session of a board -> `calibrate capture replay://...` -> `calibrate intrinsics`."""
-    from illuminet.runtime.session import SessionWriter
+    from illuminet.runtime.stream.session import SessionWriter
 
     session = tmp_path / "session"
     src = _BoardSource(board_poses(SPEC, 10, seed=21))

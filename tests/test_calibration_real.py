@@ -10,7 +10,6 @@ distortion (and principal point) and estimates the focal length, and compares th
 
 from __future__ import annotations
 
-import json
 
 import cv2
 import numpy as np

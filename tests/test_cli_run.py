@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from illuminet.cli import build_parser, main
-from illuminet.cmd_run import config_with_flags
+from illuminet.commands.run import config_with_flags
 from illuminet.pipeline import build_stages
 from illuminet.runtime.config import defaults
-from illuminet.runtime.session import SessionReader
+from illuminet.runtime.stream.session import SessionReader
 
 from ._sessions import cli, make_session, same_frame, spawn, wait_for_lines
 
@@ -163,7 +163,7 @@ def test_cli_record_killed_with_sigkill_replays_complete_frames(tmp_path):
 
 
 def test_bench_replay_reports_its_figures(capsys):
-    from illuminet.bench_replay import measure
+    from illuminet.bench.replay import measure
     d = measure(12, 2, defaults(), width=64, height=48, colors=("png", "raw"))  # the real path, small frames
     out = capsys.readouterr().out
     assert "median" in out and "frames/s" in out and "CPU time" in out and "source" in out

@@ -9,10 +9,10 @@ import cv2
 import pytest
 
 from illuminet.cli import main
-from illuminet.cmd_demo import (
+from illuminet.commands.demo import (
     DEFAULT_SESSION, DEFAULT_SESSION_FRAMES, DEFAULT_SESSION_SEED, default_session_source_url, make_default_session,
 )
-from illuminet.runtime.session import SessionReader
+from illuminet.runtime.stream.session import SessionReader
 
 #: the committed session must stay small (git history)
 MAX_BYTES = 8 * 1024 * 1024

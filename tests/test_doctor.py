@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 from illuminet import cli
-from illuminet.cmd_doctor import MISSING, NONE, OK, Check, exit_code, run_checks
+from illuminet.commands.doctor import MISSING, NONE, OK, Check, exit_code, run_checks
 
 NAMES = ["OpenGL (EGL)", "onnxruntime", "OpenCV", "DepthAI (OAK)", "V4L2 cameras", "serial ports"]
 

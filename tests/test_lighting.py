@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from illuminet.runtime import lighting as L
-from illuminet.runtime.objects import BUILTIN_OBJECTS, ObjectLoadError, load_object, proxy_mesh
+from illuminet.runtime.groundtruth import lighting as L
+from illuminet.runtime.assets.objects import BUILTIN_OBJECTS, ObjectLoadError, load_object, proxy_mesh
 from illuminet.runtime.physics import irradiance_from_oi, lambert_radiance
 
 UP = np.array([[0.0, 1.0, 0.0]])
@@ -243,7 +243,7 @@ def test_load_real_meshes(shared_data):
 
 # --------------------------------------------------------------------------------- visibility
 
-from illuminet.runtime.visibility import VisibilityField, exact_visibility, shadow_on_plane  # noqa: E402
+from illuminet.runtime.groundtruth.visibility import VisibilityField, exact_visibility, shadow_on_plane  # noqa: E402
 
 
 def test_convex_mesh_sees_every_light_in_front():

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from illuminet.runtime.frame import Frame, Intrinsics
-from illuminet.runtime.mjpeg import BOUNDARY, MjpegSink
+from illuminet.runtime.stream.mjpeg import BOUNDARY, MjpegSink
 
 W, H = 160, 100
 INTR = Intrinsics(100.0, 100.0, W / 2, H / 2, W, H)
@@ -231,7 +231,7 @@ def test_encoding_rate_is_capped_and_uncapped_follows_the_loop():
 def test_bench_mjpeg_quick_runs_and_reports_a_ratio(capsys):
     import argparse
 
-    from illuminet.bench_mjpeg import run
+    from illuminet.bench.mjpeg import run
     res = run(argparse.Namespace(quick=True), None)
     assert res["2 clients"]["median_client_frames"] >= 1 and not res["2 clients"]["client_errors"]
     assert 0 < res["ratio_2_clients_vs_none"] < 10

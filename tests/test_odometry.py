@@ -12,11 +12,11 @@ import logging
 import numpy as np
 import pytest
 
-from illuminet.runtime.anchor import AnchorStage, plane_to_world, snap_to_plane
+from illuminet.runtime.stages.anchor import AnchorStage, plane_to_world, snap_to_plane
 from illuminet.runtime.config import apply_overrides, defaults
-from illuminet.runtime.odometry import Odometry, invert, kabsch, rotation_between
-from illuminet.runtime.plane_light import PlaneLightStage
-from illuminet.runtime.planes import PlaneStage
+from illuminet.runtime.stages.odometry import Odometry, invert, kabsch, rotation_between
+from illuminet.runtime.stages.plane_light import PlaneLightStage
+from illuminet.runtime.stages.planes import PlaneStage
 from illuminet.runtime.scene import Plane
 
 ORBIT = "synthetic://indoor?seed=0&frames=40&path=orbit"
@@ -303,7 +303,7 @@ def test_odometry_reports_unusable_frames_once_and_holds_the_pose(static, caplog
 
 def test_bench_drift_figures(orbit):
     """The figures `illuminet bench odometry` prints come from this function."""
-    from illuminet.bench_odometry import anchor_drift
+    from illuminet.bench.odometry import anchor_drift
 
     world = anchor_drift(orbit, defaults())
     camera = anchor_drift(orbit, apply_overrides(defaults(), [("anchor", "lock", "camera")]))

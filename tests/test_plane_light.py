@@ -6,12 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from illuminet.bench_planes import AnalyticScene
-from illuminet.runtime.anchor import AnchorStage
+from illuminet.bench.planes import AnalyticScene
+from illuminet.runtime.stages.anchor import AnchorStage
+from illuminet.runtime.stage import MissingInput
 from illuminet.runtime.config import apply_overrides, defaults
 from illuminet.runtime.physics import INV_PI
-from illuminet.runtime.plane_light import PlaneLightStage, grid_vertices, measure_cells
-from illuminet.runtime.planes import PlaneStage
+from illuminet.runtime.stages.plane_light import PlaneLightStage, grid_vertices, measure_cells
+from illuminet.runtime.stages.planes import PlaneStage
 from illuminet.runtime.scene import Anchor
 
 
@@ -230,13 +231,10 @@ def test_colour_only_frames_are_sampled_without_occlusion_test(scene):
     assert np.median(np.abs(lin[both] / lin_d[both] - 1)) < 0.03
 
 
-def test_missing_anchor_is_reported_once(scene, caplog):
+def test_missing_anchor_is_a_clear_frame_error(scene):
     st = PlaneLightStage(defaults())
-    for k in range(3):
-        out = st.process(scene.frame(k))
-    assert "plane_light" not in out.results
-    assert caplog.text.count("AnchorStage before PlaneLightStage") == 1
-    assert st.stats()["warnings"] == {"no_anchor": 3}
+    with pytest.raises(MissingInput, match=r"stage 'plane_light' needs results\['anchor'\]"):
+        st.process(scene.frame(0))
 
 
 def test_bad_plane_light_config_is_refused():

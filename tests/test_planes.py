@@ -1,6 +1,6 @@
 """Plane detection, tracking, labels, anchors and the bad-depth guard, on analytic RGB-D scenes.
 
-The scenes (:class:`illuminet.bench_planes.AnalyticScene`) are ray-cast with exact ground truth and
+The scenes (:class:`illuminet.bench.planes.AnalyticScene`) are ray-cast with exact ground truth and
 stereo-like noise (sigma = 3 mm x z^2), holes and 8-bit colour, so every figure here can fail.
 """
 
@@ -11,11 +11,11 @@ import logging
 import numpy as np
 import pytest
 
-from illuminet.bench_planes import AnalyticScene, plane_errors
-from illuminet.runtime.anchor import SYNTHETIC_HEIGHT_M, AnchorStage, object_frame, synthetic_plane
+from illuminet.bench.planes import AnalyticScene, plane_errors
+from illuminet.runtime.stages.anchor import SYNTHETIC_HEIGHT_M, AnchorStage, object_frame, synthetic_plane
 from illuminet.runtime.config import apply_overrides, defaults
 from illuminet.runtime.frame import Frame, Intrinsics
-from illuminet.runtime.planes import (
+from illuminet.runtime.stages.planes import (
     METHODS, DetectParams, PlaneStage, check_depth, detect_planes, estimate_up, fit_plane_disparity,
     label_planes, make_cloud,
 )
@@ -316,7 +316,7 @@ def test_pixel_outside_the_image_falls_back_to_the_centre_once(scene, caplog, lo
 
 
 def test_anchor_stage_is_also_importable_from_the_planes_module():
-    from illuminet.runtime import planes
+    from illuminet.runtime.stages import planes
 
     assert planes.AnchorStage is AnchorStage
     with pytest.raises(AttributeError):

@@ -15,11 +15,11 @@ import cv2
 import numpy as np
 import pytest
 
-from illuminet.runtime.anchor import AnchorStage
+from illuminet.runtime.stages.anchor import AnchorStage
 from illuminet.runtime.config import apply_overrides, defaults
 from illuminet.runtime.frame import Frame, Intrinsics, depth_from_mm
-from illuminet.runtime.plane_light import PlaneLightStage
-from illuminet.runtime.planes import PlaneStage
+from illuminet.runtime.stages.plane_light import PlaneLightStage
+from illuminet.runtime.stages.planes import PlaneStage
 
 pytestmark = pytest.mark.shared_data
 

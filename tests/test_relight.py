@@ -6,7 +6,6 @@ import json
 
 import cv2
 import numpy as np
-import pytest
 
 from illuminet.cli import main
 from illuminet.runtime.config import defaults

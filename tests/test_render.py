@@ -11,10 +11,11 @@ import pytest
 import trimesh
 
 from illuminet.runtime import config as C
+from illuminet.runtime.stage import MissingInput, StageChain
 from illuminet.runtime.frame import Frame, Intrinsics
-from illuminet.runtime.gl import GLError, create_context, get_context
+from illuminet.runtime.render.gl import GLError, create_context, get_context
 from illuminet.runtime.physics import srgb_to_linear
-from illuminet.runtime.render import (
+from illuminet.runtime.render.stage import (
     Compositor,
     RenderMesh,
     RenderStage,
@@ -24,7 +25,7 @@ from illuminet.runtime.render import (
     load_render_mesh,
 )
 from illuminet.runtime.scene import Anchor, ObjectShading, PlaneLight
-from illuminet.runtime.shadow import dominant_light, shadow_patch
+from illuminet.runtime.render.shadow import dominant_light, shadow_patch
 
 pytestmark = pytest.mark.gl
 
@@ -198,7 +199,7 @@ def test_doubling_the_exposure_doubles_the_objects_linear_value(gl):
     win = (slice(int(cv) - 10, int(cv) + 10), slice(int(cu) - 10, int(cu) + 10))
     la, lb = srgb_to_linear(a[win]).mean(), srgb_to_linear(b[win]).mean()
     # default albedo (a mesh without colours), E = 0.5: linear = albedo * 0.5 / pi * k
-    from illuminet.runtime.render import DEFAULT_ALBEDO
+    from illuminet.runtime.render.stage import DEFAULT_ALBEDO
 
     assert la == pytest.approx(DEFAULT_ALBEDO * 0.5 / np.pi * 0.4, rel=0.03)
     assert lb / la == pytest.approx(2.0, rel=0.03)
@@ -270,15 +271,20 @@ def test_spot_obj_loads_with_its_texture(shared_data):
     assert mesh.parts[0].texture.std() > 5  # a real picture, not a flat fill
 
 
-def test_frame_without_anchor_passes_through(gl):
+def test_frame_without_anchor_is_skipped_and_shows_the_camera_picture(gl):
+    """The chain's missing-input policy: the renderer does not run, and (hold_last_good = False) no
+    earlier composite is carried, so sinks show this frame's camera picture."""
     mesh = sphere_mesh()
     st = stage(gl, mesh)
     try:
+        chain = StageChain([st], check=False)
         color = np.full((H, W, 3), 77, np.uint8)
         f = Frame(seq=0, t_device_ns=0, t_host_ns=0, color=color, depth=None, intrinsics=INTR)
-        out = st.process(f)
-        assert out.results["composite"] is color
-        assert st.stats()["no_anchor"] == 1
+        out, events = chain.run(f)
+        assert "composite" not in out.results
+        assert [(e.kind, e.key) for e in events] == [("skipped", "stage:render: missing anchor, shading")]
+        with pytest.raises(MissingInput, match="anchor"):
+            st.process(f)
     finally:
         st.close()
 
@@ -417,14 +423,14 @@ def test_edges_are_antialiased(gl, antialias):
 def test_shading_on_a_proxy_is_carried_to_the_render_mesh(gl):
     from types import SimpleNamespace
 
-    from illuminet.runtime.render import mesh_from_bundle
+    from illuminet.runtime.render.stage import mesh_from_bundle
 
     render = sphere_mesh()
     proxy_index = np.arange(0, render.n_vertices, 7)  # a coarse lighting proxy: every 7th vertex
     pv = render.vertices[proxy_index]
     nearest = np.argmin(((render.vertices[:, None, :] - pv[None]) ** 2).sum(-1), axis=1)
 
-    # duck-typed like illuminet.runtime.bundle.Bundle: geometry arrays, metadata, carry()
+    # duck-typed like illuminet.runtime.assets.bundle.Bundle: geometry arrays, metadata, carry()
     bundle = SimpleNamespace(vertices=render.vertices, normals=render.normals, faces=render.faces,
                              name="test", meta={"object": "builtin:sphere"},
                              carry=lambda values: np.asarray(values)[nearest])

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from illuminet.runtime.frame import Exposure, ImuSample
-from illuminet.runtime.session import (
+from illuminet.runtime.stream.session import (
     FORMAT_NAME, CorruptFrame, SessionError, SessionReader, SessionWriter, safe_relpath,
 )
 
@@ -130,8 +130,8 @@ def test_writer_refuses_bad_input(tmp_path):
 _WRITER = textwrap.dedent(
     """
     import sys
-    from illuminet.bench_replay import numpy_rgbd_frames
-    from illuminet.runtime.session import SessionWriter
+    from illuminet.bench.replay import numpy_rgbd_frames
+    from illuminet.runtime.stream.session import SessionWriter
     w = SessionWriter(sys.argv[1], source="test://kill", fsync=False, color=sys.argv[2])
     for f in numpy_rgbd_frames(100000, 64, 48):   # records until killed
         w.append(f)
@@ -396,7 +396,7 @@ def test_safe_relpath_accepts_plain_relative_paths(tmp_path):
 
 
 def test_no_pickle_in_the_format():
-    import illuminet.runtime.session as S
+    import illuminet.runtime.stream.session as S
     src = open(S.__file__).read()
     assert "pickle" not in src.replace("no pickle", "").replace("No pickle", "")
     assert "allow_pickle" not in src and "np.load(" not in src

@@ -10,7 +10,7 @@ import pytest
 
 from illuminet.hw import open_source
 from illuminet.runtime.config import defaults
-from illuminet.runtime.session import CorruptFrame, SessionError, SessionReader, SessionWriter
+from illuminet.runtime.stream.session import CorruptFrame, SessionError, SessionReader, SessionWriter
 
 from ._sessions import H, W, frames, make_session
 

@@ -11,9 +11,9 @@ import pytest
 from illuminet.hw.replay import ReplaySource
 from illuminet.pipeline import build_sinks
 from illuminet.runtime.config import ConfigError, apply_overrides, defaults
-from illuminet.runtime.loop import run_loop
-from illuminet.runtime.session import SessionReader
-from illuminet.runtime.sinks import (
+from illuminet.runtime.stream.loop import run_loop
+from illuminet.runtime.stream.session import SessionReader
+from illuminet.runtime.stream.sinks import (
     NullSink, PngSequenceSink, SessionRecorderSink, SinkError, VideoSink, output_picture,
 )
 from illuminet.runtime.stage import Stage
@@ -118,7 +118,7 @@ def test_recorder_records_input_frames_not_results(tmp_path):
 
 
 def _session(tmp_path, fs):
-    from illuminet.runtime.session import SessionWriter
+    from illuminet.runtime.stream.session import SessionWriter
     with SessionWriter(tmp_path / "src") as w:
         for f in fs:
             w.append(f)
@@ -173,7 +173,7 @@ def test_mjpeg_status_page_shows_the_loop_snapshot(tmp_path):
     import threading
     import urllib.request
 
-    from illuminet.runtime.loop import LoopStats
+    from illuminet.runtime.stream.loop import LoopStats
 
     src_path = _session(tmp_path, frames(5))
     cfg = apply_overrides(defaults(), [("output", "mjpeg", True), ("output", "port", 0)])

@@ -13,10 +13,10 @@ pytest.importorskip("onnx")
 def test_tiny_training_to_bundle_and_relight(tmp_path):
     from illuminet.models.export import write_bundle
     from illuminet.models.train import Trainer, make_config
-    from illuminet.runtime.bundle import TransferChain, load_bundle
+    from illuminet.runtime.assets.bundle import TransferChain, load_bundle
     from illuminet.runtime.config import defaults
     from illuminet.runtime.relight import relight
-    from illuminet.runtime.transfer import preprocess_plane
+    from illuminet.runtime.stages.shading import preprocess_plane
 
     from ._learn_helpers import floor_rgbd, plane_light
 
@@ -51,7 +51,7 @@ def test_tiny_training_to_bundle_and_relight(tmp_path):
 
 def test_eval_metrics_and_oracle():
     from illuminet.models.eval import case_metrics, sh_oracle
-    from illuminet.runtime.transfer import sh_eval
+    from illuminet.runtime.sh import sh_eval
 
     t = np.full((10, 3), 1.0)
     m = case_metrics(t * 2, t, k=np.pi * 0.2)  # intensities 0.4 vs 0.2

@@ -9,7 +9,8 @@ from illuminet.runtime.config import apply_overrides, defaults
 from illuminet.runtime.frame import Frame, Intrinsics
 from illuminet.runtime.scene import ObjectShading
 from illuminet.runtime.stage import FrameError
-from illuminet.runtime.transfer import ShadingStage, dominant_light, preprocess_plane, sh_eval, sh_fit
+from illuminet.runtime.sh import sh_eval, sh_fit
+from illuminet.runtime.stages.shading import ShadingStage, dominant_light_from_oi, preprocess_plane
 
 from ._learn_helpers import plane_light
 
@@ -50,7 +51,7 @@ def test_dominant_light_of_one_direction():
     d = np.array([0.3, 0.8, -0.5])
     d /= np.linalg.norm(d)
     oi = np.tile(d[None, None, :], (50, 3, 1)).astype(np.float32)
-    got, share = dominant_light(oi)
+    got, share = dominant_light_from_oi(oi)
     assert np.allclose(got, d, atol=1e-5) and share == pytest.approx(1.0)
 
 

@@ -1,0 +1,65 @@
+"""``illuminet bench transfer``: the per-frame cost of the learned transfer.
+
+Times, on one plane measurement (32x32 grid, 10 % unobserved) for the configured bundle:
+
+* ``preprocess``: plane normalisation + pooling (numpy);
+* ``chain_int8`` / ``chain_fp32``: the ONNX chain alone (onnxruntime, 1 thread);
+* ``stage_int8``: the whole :class:`~illuminet.runtime.stages.shading.ShadingStage` per frame (preprocess,
+  chain, scale, dominant light, temporal smoothing) — the figure the 2 ms target applies to.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from illuminet.runtime.config import apply_overrides
+from illuminet.runtime.scene import PlaneLight
+from illuminet.runtime.stream.timing import measure
+from illuminet.runtime.stages.shading import ShadingStage, preprocess_plane
+
+TARGET_MS = 2.0
+
+
+def _plane_light(grid: int, extent: float, seed: int = 0) -> PlaneLight:
+    rng = np.random.default_rng(seed)
+    x = np.linspace(-extent / 2, extent / 2, grid)
+    zz, xx = np.meshgrid(x, x, indexing="ij")
+    v = np.stack([xx.ravel(), np.zeros(grid * grid), zz.ravel()], 1).astype(np.float32)
+    irr = (0.5 + 0.5 * np.exp(-((xx.ravel() - 0.2) ** 2 + zz.ravel() ** 2) * 4))[:, None] * [1.0, 0.9, 0.8]
+    irr = (irr * rng.uniform(0.95, 1.05, irr.shape)).astype(np.float32)
+    mask = rng.random(grid * grid) > 0.1
+    return PlaneLight(vertices=v, normals=np.tile([[0, 1, 0]], (grid * grid, 1)).astype(np.float32),
+                      irradiance=irr, mask=mask, confidence=np.ones(grid * grid, np.float32), grid=grid,
+                      exposure_scale=1.0, plane_slices=(slice(0, grid * grid),), labels=("floor",))
+
+
+def run(args, cfg) -> dict:
+    repeat = 50 if getattr(args, "quick", False) else 1000
+    out: dict = {"bundle": cfg.model.bundle}
+    stages = {}
+    for prec in ("int8", "fp32"):
+        c = apply_overrides(cfg, [("model", "precision", prec), ("model", "shading", "model")])
+        st = ShadingStage(c)
+        st.open()
+        stages[prec] = st
+    b = stages["int8"].bundle
+    pl = _plane_light(b.grid, b.extent_m)
+    out["proxy_vertices"] = b.n_proxy
+    out["preprocess"] = measure(lambda: preprocess_plane(pl.irradiance, pl.mask, b.grid, b.pool), repeat)
+    x, _ = preprocess_plane(pl.irradiance, pl.mask, b.grid, b.pool)
+    for prec, st in stages.items():
+        out[f"chain_{prec}"] = measure(lambda st=st: st.chain(x), repeat)
+    st = stages["int8"]
+    out["stage_int8"] = measure(lambda: st._smooth(st.predict(pl)), repeat)
+    for k in ("preprocess", "chain_int8", "chain_fp32", "stage_int8"):
+        r = out[k]
+        print(f"{k:12s} median {r['median_ms']:.3f} ms  p99 {r['p99_ms']:.3f} ms  (n={r['n']})")
+    out["int8_speedup_vs_fp32"] = out["chain_fp32"]["median_ms"] / max(out["chain_int8"]["median_ms"], 1e-9)
+    out["target_ms"] = TARGET_MS
+    out["meets_target"] = out["stage_int8"]["median_ms"] <= TARGET_MS
+    print(f"int8 vs fp32 chain: x{out['int8_speedup_vs_fp32']:.2f}; per-frame stage median "
+          f"{out['stage_int8']['median_ms']:.3f} ms vs target {TARGET_MS} ms: "
+          f"{'OK' if out['meets_target'] else 'MISSED'}")
+    for st in stages.values():
+        st.close()
+    return out

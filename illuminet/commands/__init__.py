@@ -1,0 +1,1 @@
+"""One module per ``illuminet`` subcommand; each defines ``register(subparsers)`` (see ``illuminet.cli``)."""

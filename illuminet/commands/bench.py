@@ -1,0 +1,64 @@
+"""``illuminet bench [NAME ...]``: benchmarks that print their figures (medians, p99, ratios).
+
+Each benchmark lives in a module ``illuminet.bench.<name>`` with ``run(args, cfg) -> dict`` that
+prints its figures and returns them; ``--json PATH`` writes all results. Speed targets are checked
+here, not in timed unit tests. Benchmarks say when they read ../shared/data.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import json
+import os
+import platform
+import sys
+
+#: benchmark name -> one-line description (module illuminet.bench.<name>)
+BENCHES: dict[str, str] = {
+    "replay": "replay throughput of a 640x400 RGB-D session through a null sink; MJPEG clients' cost",
+    "mjpeg": "loop throughput with two MJPEG clients attached vs none (ratio)",
+    "synthetic": "synthetic camera: render time of a 640x400 RGB-D frame; visibility precomputation",
+    "planes": "plane detection + tracking + plane illumination per 640x400 frame",
+    "odometry": "RGB-D camera odometry per 640x400 frame; drift of the world-locked anchor over an orbit",
+    "render": "render + composite at 1280x800 (moderngl)",
+    "transfer": "the int8 ONNX chain per frame (plane OI -> object shading)",
+    "stereo": "host stereo depth (SGBM + WLS) per 640x400 pair",
+    "demo": "the whole demo pipeline end to end, per-stage timing and peak memory",
+}
+
+
+def available() -> list[str]:
+    return [n for n in BENCHES if importlib.util.find_spec(f"illuminet.bench.{n}") is not None]
+
+
+def register(sub) -> None:
+    names = available()
+    p = sub.add_parser(
+        "bench", help="run benchmarks and print their figures",
+        description="Benchmarks: " + "; ".join(f"{n}: {BENCHES[n]}" for n in names),
+    )
+    p.add_argument("names", nargs="*", metavar="NAME", help=f"which to run (default: all): {', '.join(names)}")
+    p.add_argument("--quick", action="store_true", help="fewer repetitions (smoke test)")
+    p.add_argument("--json", metavar="PATH", help="also write all figures as JSON")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace, cfg) -> int:
+    names = args.names or available()
+    unknown = [n for n in names if n not in available()]
+    if unknown:
+        print(f"illuminet bench: unknown benchmark(s) {', '.join(unknown)}; available: {', '.join(available())}",
+              file=sys.stderr)
+        return 2
+    print(f"# machine: {platform.machine()} {os.cpu_count()} cores, python {platform.python_version()}")
+    results = {}
+    for n in names:
+        print(f"\n== {n}: {BENCHES[n]}")
+        results[n] = importlib.import_module(f"illuminet.bench.{n}").run(args, cfg)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=2)
+        print(f"\nwrote {args.json}")
+    return 0

@@ -1,0 +1,374 @@
+"""``illuminet demo``: the whole pipeline on a built-in default scene, to a video file, with figures.
+
+One command shows what the project does without any hardware: the built-in default session (a
+small recording of the synthetic RGB-D camera that ships with the package, ``illuminet/data/
+demo_session``: a room lit by a near lamp, 1280x800 colour, depth stored at the stereo resolution
+640x400, the camera orbiting the spot where the object stands; replayed as fast as possible, in a
+loop) -> planes -> anchor -> plane light -> shading (the learned model of the bundle when it loads,
+else the SH baseline fitted to the RGB-D frame; the demo prints which one drove the shading) ->
+render (shadow, occlusion) -> ``out/demo.mp4`` plus a PNG still of the middle frame. At the end it
+prints the per-stage timing table, each stage's counters and the peak resident memory.
+
+This module also owns the default session: :func:`make_default_session` generates it
+(``illuminet demo --make-default-session DIR [--seed N]``), deterministically per seed.
+
+Exit codes: 0 done, 1 the source or an output failed, 2 configuration error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import logging
+import resource
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from illuminet.runtime.config import Config, apply_overrides
+from illuminet.runtime.frame import Frame
+from illuminet.runtime.scene import ANCHOR, COMPOSITE, PLANE_LIGHT, SHADING
+from illuminet.runtime.stage import Sink, Stage
+
+log = logging.getLogger("illuminet.demo")
+
+#: the committed default session (package data), made by ``illuminet demo --make-default-session``
+DEFAULT_SESSION = Path(__file__).resolve().parents[1] / "data" / "demo_session"
+#: what the default session records: a near lamp (clear shading gradient and shadow direction),
+#: 1280x800 colour, the camera orbiting the object once (so a looped replay has no jump)
+DEFAULT_SESSION_SCENE = "lamp"
+DEFAULT_SESSION_SEED = 3
+DEFAULT_SESSION_FRAMES = 32
+DEFAULT_SESSION_SIZE = (1280, 800)
+#: depth stored at 1/2 of the colour size (640x400, the OAK-D's stereo resolution; format version 2)
+DEFAULT_SESSION_DEPTH_SCALE = 2
+#: colour JPEG quality of the default session (the committed folder stays small)
+DEFAULT_SESSION_JPEG_QUALITY = 85
+#: the synthetic camera the demo used before the default session existed (still accepted via --source)
+SYNTHETIC_SOURCE = "synthetic://indoor?seed=0&frames={frames}&size=1280x800&path=orbit"
+
+
+def default_session_source_url(seed: int = DEFAULT_SESSION_SEED, frames: int = DEFAULT_SESSION_FRAMES) -> str:
+    """The ``synthetic://`` URL the default session records (see :func:`make_default_session`)."""
+    w, h = DEFAULT_SESSION_SIZE
+    return f"synthetic://{DEFAULT_SESSION_SCENE}?seed={int(seed)}&frames={int(frames)}&size={w}x{h}&path=orbit"
+
+
+def default_source_url(session: Path | None = None) -> str:
+    """``replay://`` URL of the default session, looped (the demo runs more frames than it holds)."""
+    from urllib.parse import quote
+
+    path = Path(session) if session is not None else DEFAULT_SESSION
+    return f"replay://{quote(str(path.resolve()))}?loop=1"
+
+#: peak resident memory the demo should stay under (MB); above it the demo says so
+RSS_TARGET_MB = 600.0
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "demo", help="the whole pipeline on the built-in default session, to a video",
+        description="Run the AR pipeline (planes -> plane light -> shading -> render) on the built-in default "
+                    "session (a small recording of the synthetic RGB-D camera: a near lamp, 1280x800 colour, "
+                    "640x400 depth, looped; or --source URL) and write the composited stream to a video, with a PNG "
+                    "still, per-stage timing and peak memory. Says which shading (learned model or baseline) "
+                    "it used.",
+    )
+    p.add_argument("--frames", type=int, default=90, metavar="N", help="frames to process (default 90)")
+    p.add_argument("--out", default="out/demo.mp4", metavar="PATH",
+                   help="video file to write (.mp4, .avi, .mkv; default out/demo.mp4)")
+    p.add_argument("--no-video", action="store_true", help="write no video file")
+    p.add_argument("--png-dir", metavar="DIR", help="also write every output frame as a PNG into DIR")
+    p.add_argument("--still", metavar="PATH",
+                   help="PNG still of the middle frame (default: next to the video, NAME_still.png; "
+                        "'' for none)")
+    p.add_argument("--source", metavar="URL",
+                   help="frame source instead of the built-in default session (e.g. replay://SESSION, "
+                        "synthetic://indoor?size=1280x800, oakd://)")
+    p.add_argument("--make-default-session", metavar="DIR",
+                   help="(re)generate the built-in default session into the new folder DIR and exit "
+                        "(deterministic per --seed; the shipped one is illuminet/data/demo_session)")
+    p.add_argument("--seed", type=int, default=DEFAULT_SESSION_SEED,
+                   help=f"seed of --make-default-session (default {DEFAULT_SESSION_SEED}, the shipped session)")
+    p.add_argument("--stats-json", metavar="PATH", help="write the per-step timing statistics as JSON")
+    p.add_argument("--strict", action="store_true", help="stop at the first failing frame with a traceback")
+    p.set_defaults(func=cmd_demo)
+
+
+class StillSink(Sink):
+    """Keeps what the demo reports: the shading methods seen, and a PNG still of frame ``index``."""
+
+    name = "still"
+
+    def __init__(self, path: str | None, index: int):
+        self.path = Path(path) if path else None
+        self.index = index
+        self.methods: collections.Counter = collections.Counter()
+        self.frames = 0
+        self.composited = 0
+        self.written: Path | None = None
+
+    def write(self, frame: Frame) -> None:
+        sh = frame.results.get(SHADING.name)
+        self.methods[sh.method if sh is not None else "none"] += 1
+        comp = frame.results.get(COMPOSITE.name)
+        if comp is not None and comp is not frame.color:
+            self.composited += 1
+        if self.path is not None and self.frames == self.index:
+            import cv2
+
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            pic = comp if comp is not None else frame.color
+            if not cv2.imwrite(str(self.path), np.ascontiguousarray(pic[:, :, ::-1])):
+                raise OSError(f"cannot write the still {self.path}")
+            self.written = self.path
+        self.frames += 1
+
+    def stats(self) -> dict[str, Any]:
+        return {"frames": self.frames, "composited": self.composited, "shading": dict(self.methods)}
+
+
+class SHFallbackShading(Stage):
+    """The demo's shading when the object's bundle cannot load: the classic SH baseline from RGB-D.
+
+    Second-order spherical harmonics fitted to the shading of the frame's pixels
+    (:func:`illuminet.runtime.groundtruth.baselines.fit_sh_from_rgbd`: normals from depth, irradiance =
+    pi x radiance / assumed albedo), evaluated at the drawn object's own vertex normals (the
+    renderer draws the same generated object then, one value per render vertex). The fit runs on a
+    320-pixel-wide copy of the frame every ``every`` frames and is smoothed like the learned
+    shading (``[model] temporal_smoothing``). Writes ``results["shading"]`` with method ``"sh"``.
+    """
+
+    name = "shading"
+    requires = (ANCHOR, PLANE_LIGHT)
+    provides = (SHADING,)
+
+    def __init__(self, cfg: Config, normals: np.ndarray, every: int = 3):
+        self.cfg = cfg
+        self.normals = np.asarray(normals, dtype=np.float64)
+        self.every = int(every)
+        self.alpha = float(cfg.model.temporal_smoothing)
+        self._coef: np.ndarray | None = None
+        self.frames = 0
+        self.fits = 0
+
+    def process(self, frame: Frame) -> Frame:
+        import cv2
+
+        from illuminet.runtime.groundtruth.baselines import fit_sh_from_rgbd
+        from illuminet.runtime.physics import linearize
+        from illuminet.runtime.scene import ObjectShading
+        from illuminet.runtime.stage import FrameError
+
+        anchor, pl = self.require(frame, ANCHOR), self.require(frame, PLANE_LIGHT)
+        if frame.depth is None:
+            raise FrameError("the SH baseline needs depth")
+        if self._coef is None or self.frames % self.every == 0:
+            w, h = frame.size
+            sw, sh = 320, max(2, int(round(320 * h / w)))
+            col = cv2.resize(frame.color, (sw, sh), interpolation=cv2.INTER_AREA)
+            dep = cv2.resize(frame.depth, (sw, sh), interpolation=cv2.INTER_NEAREST)
+            intr = frame.intrinsics.scaled(sw, sh)
+            try:
+                coef = fit_sh_from_rgbd(linearize(col), dep, intr, self.cfg.plane_light.assumed_albedo,
+                                        R_obj_cam=anchor.R.T, exposure_scale=max(pl.exposure_scale, 1e-12),
+                                        stride=1, step=2)
+            except ValueError as e:
+                raise FrameError(f"SH baseline: {e}") from None
+            a = self.alpha if self._coef is not None else 0.0
+            self._coef = coef if a == 0.0 else a * self._coef + (1.0 - a) * coef
+            self.fits += 1
+        self.frames += 1
+        from illuminet.runtime.sh import sh_eval
+
+        irr = sh_eval(self._coef, self.normals)
+        return frame.with_result(SHADING, ObjectShading(irradiance=irr, method="sh"))
+
+    def stats(self) -> dict[str, Any]:
+        return {"mode": "sh (demo fallback: no bundle)", "frames": self.frames, "fits": self.fits}
+
+
+def make_default_session(path: str | Path, *, seed: int = DEFAULT_SESSION_SEED,
+                         frames: int = DEFAULT_SESSION_FRAMES) -> Path:
+    """Generate the demo's default session into the new folder ``path``, deterministically per seed.
+
+    Records :func:`default_session_source_url` (the synthetic camera's lamp scene at 1280x800, one
+    orbit) with JPEG colour (quality :data:`DEFAULT_SESSION_JPEG_QUALITY`) and depth stored at half
+    the colour size (640x400 16-bit PNG, zlib level 9; session format version 2). The depth is the
+    one the same synthetic scene gives at 640x400 (same seed: same room, lights and camera path;
+    disparity noise and steps of a 640x400 stereo pair, as an OAK-D computes it), not a subsample of
+    the 1280x800 depth, whose finer disparity noise would double the files. Host timestamps are
+    the device ones (a synthetic frame has no host clock), so the frame files and the index are the
+    same bytes for the same seed; only the manifest's ``created``/``closed`` times differ. The
+    manifest's ``meta`` records the command and the seed.
+
+    Raises
+    ------
+    SessionError
+        When ``path`` already holds a session.
+    """
+    from illuminet.hw import open_source
+    from illuminet.runtime.config import defaults
+    from illuminet.runtime.stream.session import SessionWriter
+
+    import cv2
+
+    url = default_session_source_url(seed, frames)
+    w, h = DEFAULT_SESSION_SIZE
+    k = DEFAULT_SESSION_DEPTH_SCALE
+    stereo_url = url.replace(f"size={w}x{h}", f"size={w // k}x{h // k}")
+    meta = {"generated_by": f"illuminet demo --make-default-session DIR --seed {int(seed)}",
+            "seed": int(seed), "source": url, "frames": int(frames),
+            "color_jpeg_quality": DEFAULT_SESSION_JPEG_QUALITY, "depth_scale": DEFAULT_SESSION_DEPTH_SCALE}
+    meta["depth_source"] = stereo_url
+    with open_source(url, defaults()) as src, open_source(stereo_url, defaults()) as stereo, SessionWriter(
+            path, source=url, color="jpeg", jpeg_quality=DEFAULT_SESSION_JPEG_QUALITY, fsync=False,
+            depth_scale=k, depth_png_compression=9, meta=meta) as wr:
+        while True:
+            f, d = src.read(), stereo.read()
+            if f is None or d is None:
+                break
+            # nearest-neighbour up to colour size: the writer's 1/k subsample gives back exactly these samples
+            depth = cv2.resize(d.depth, (w, h), interpolation=cv2.INTER_NEAREST)
+            wr.append(f.replace(depth=depth, t_host_ns=f.t_device_ns))
+    return Path(path)
+
+
+def demo_stages(cfg: Config) -> list[Stage]:
+    """The standard chain (:func:`illuminet.pipeline.build_stages`), with the SH baseline for shading
+    when the bundle ``[model] bundle`` cannot be loaded (a built-in object is then drawn from its
+    generator; see :class:`SHFallbackShading`)."""
+    from illuminet.pipeline import build_stages
+    from illuminet.runtime.assets.bundle import load_bundle
+
+    stages = build_stages(cfg)
+    spec = cfg.model.bundle
+    if cfg.model.shading not in ("auto", "model"):
+        return stages
+    try:
+        load_bundle(spec, verify=False)
+    except ValueError as e:
+        if not str(spec).startswith("builtin:"):
+            raise
+        from illuminet.runtime.assets.objects import load_object
+        from illuminet.runtime.render.stage import load_render_mesh
+
+        print(f"demo: the learned model is not available ({e}); the SH baseline drives the shading")
+        normals = load_render_mesh(load_object(spec)).normals
+        stages = [SHFallbackShading(cfg, normals) if st.name == "shading" else st for st in stages]
+    return stages
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process so far, MB (Linux reports ru_maxrss in KiB)."""
+    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return r / 1024.0 if sys.platform != "darwin" else r / (1024.0 * 1024.0)
+
+
+def describe_shading(methods: collections.Counter, cfg: Config) -> str:
+    """One line saying what drove the object's shading, e.g. ``learned model (int8 ONNX)``."""
+    if not methods:
+        return "no frames"
+    main, n = methods.most_common(1)[0]
+    names = {"sh": "SH baseline (2nd-order spherical harmonics fitted to the RGB-D shading)",
+             "ambient": "ambient baseline (the plane's mean irradiance; the learned model did not load)",
+             "constant": "constant-prior baseline", "none": "none (no plane light yet)"}
+    what = f"learned model ({main.split(':', 1)[1]} ONNX)" if main.startswith("model") else names.get(main, main)
+    others = ", ".join(f"{m} {c}" for m, c in methods.items() if m != main)
+    return f"{what} on {n} frames" + (f" (also: {others})" if others else "") + f"; [model] bundle = {cfg.model.bundle}"
+
+
+def demo_config(args: argparse.Namespace, cfg: Config) -> Config:
+    """The configuration the demo runs with: outputs from the flags, replay as fast as possible."""
+    over = [("output", "video", "" if args.no_video else args.out),
+            ("source", "timing", "asap"), ("source", "max_frames", int(args.frames))]
+    if args.png_dir:
+        over.append(("output", "png_dir", args.png_dir))
+    if args.strict:
+        over.append(("logging", "strict", True))
+    if args.stats_json:
+        over.append(("logging", "stats_json", args.stats_json))
+    return apply_overrides(cfg, over)
+
+
+def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
+    from illuminet.hw import SourceError, open_source
+    from illuminet.pipeline import build_sinks
+    from illuminet.runtime.stream.loop import LoopStats, run_loop
+    from illuminet.runtime.stream.sinks import SinkError
+
+    from illuminet.runtime.stream.session import SessionError
+
+    if args.make_default_session:
+        try:
+            out = make_default_session(args.make_default_session, seed=args.seed)
+        except (SourceError, SessionError, OSError) as e:
+            print(f"illuminet demo: --make-default-session: {e}", file=sys.stderr)
+            return 1
+        print(f"default session: {out} ({default_session_source_url(args.seed)}, seed {args.seed})")
+        return 0
+    if args.seed != DEFAULT_SESSION_SEED:
+        print(f"illuminet demo: --seed {args.seed} only applies with --make-default-session DIR "
+              f"(the demo replays the shipped session, seed {DEFAULT_SESSION_SEED})", file=sys.stderr)
+        return 2
+    if args.frames < 1:
+        print(f"illuminet demo: --frames must be at least 1, got {args.frames}", file=sys.stderr)
+        return 2
+    cfg = demo_config(args, cfg)
+    if args.source:
+        url = args.source
+    elif (DEFAULT_SESSION / "manifest.json").is_file():
+        url = default_source_url()
+    else:  # an install without the package data: the synthetic camera still gives a demo
+        print(f"demo: the default session {DEFAULT_SESSION} is missing; using the synthetic camera "
+              f"(slow: it renders every frame)")
+        url = SYNTHETIC_SOURCE.format(frames=args.frames)
+    if args.still is not None:
+        still = args.still
+    elif not args.no_video:
+        p = Path(args.out)
+        still = str(p.with_name(p.stem + "_still.png"))
+    else:
+        still = "out/demo_still.png"
+    probe = StillSink(still, index=args.frames // 2)
+    stats = LoopStats()
+    try:
+        if cfg.output.video:
+            # the default out/demo.mp4 must work in a fresh checkout: the video sink does not make folders
+            Path(cfg.output.video).parent.mkdir(parents=True, exist_ok=True)
+        source = open_source(url, cfg)
+        stages = demo_stages(cfg)
+        sinks = build_sinks(cfg, stats=stats.snapshot, source_url=url) + [probe]
+    except (SourceError, SinkError, ValueError, OSError) as e:
+        print(f"illuminet demo: {e}", file=sys.stderr)
+        return 1
+    print(f"demo: source {url}")
+    rc = 0
+    try:
+        run_loop(source, stages, sinks, strict=cfg.logging.strict, max_frames=args.frames, stats=stats)
+    except (SourceError, SinkError, OSError) as e:
+        if cfg.logging.strict:
+            raise
+        print(f"illuminet demo: {e}", file=sys.stderr)
+        rc = 1
+    finally:
+        print(stats.format_stats())
+        for st in stages:
+            s = st.stats()
+            if s:
+                print(f"  {st.name}: " + ", ".join(f"{k}={v}" for k, v in s.items()))
+        print(f"shading: {describe_shading(probe.methods, cfg)}")
+        if cfg.output.video and rc == 0:
+            print(f"video: {cfg.output.video}")
+        if probe.written is not None:
+            print(f"still: {probe.written}")
+        rss = peak_rss_mb()
+        print(f"peak resident memory: {rss:.0f} MB (target <= {RSS_TARGET_MB:.0f} MB)"
+              + ("" if rss <= RSS_TARGET_MB else "  ** over target **"))
+        if cfg.logging.stats_json:
+            Path(cfg.logging.stats_json).write_text(stats.to_json() + "\n")
+    if stats.end_reason.startswith("source error"):
+        rc = 1
+    return rc

@@ -1,0 +1,108 @@
+"""``illuminet relight``: one RGB-D image -> the placed object and its predicted radiance (npz).
+
+Example::
+
+    illuminet relight --color C.png --depth D.png --intrinsics 500,500,320,180 --anchor 320,250 \\
+        --bundle builtin:vase --out result.npz
+
+``--depth`` is a 16-bit PNG in millimetres (0 = invalid) or a float ``.npy`` in metres, aligned to the
+colour image. ``--intrinsics`` is ``fx,fy,cx,cy`` or a JSON file with those keys (plus optional
+width/height). The npz format is documented in docs/models.md ("relight npz").
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def register(sub) -> None:
+    p = sub.add_parser("relight", help="predict a virtual object's radiance in one RGB-D image (npz)",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--color", required=True, metavar="PNG", help="colour image (8-bit RGB, sRGB)")
+    p.add_argument("--depth", required=True, metavar="PNG|NPY",
+                   help="aligned depth: uint16 PNG in mm, or .npy float metres (0 = invalid)")
+    p.add_argument("--intrinsics", required=True, metavar="FX,FY,CX,CY|JSON", help="colour camera intrinsics")
+    p.add_argument("--anchor", required=True, metavar="X,Y", help="pixel where the object stands")
+    p.add_argument("--bundle", default=None, help="object bundle (default: [model] bundle)")
+    p.add_argument("--precision", choices=("int8", "fp32"), default=None, help="ONNX chain (default: [model] precision)")
+    p.add_argument("--exposure", metavar="US,ISO", default=None,
+                   help="exposure time (microseconds) and ISO, when known (absolute units)")
+    p.add_argument("--out", required=True, metavar="NPZ", help="output file")
+    p.set_defaults(func=run)
+
+
+def _floats(text: str, n: int, what: str) -> list[float]:
+    try:
+        vals = [float(x) for x in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) != n:
+        raise ValueError(f"{what}: expected {n} comma-separated numbers, got {text!r}")
+    return vals
+
+
+def load_inputs(color_path: str, depth_path: str, intr: str):
+    """Read colour, depth and intrinsics with errors that name the file and what was expected."""
+    import cv2
+
+    from illuminet.runtime.frame import Intrinsics, depth_from_mm
+
+    bgr = cv2.imread(color_path, cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise ValueError(f"--color {color_path}: cannot read an image from it")
+    color = np.ascontiguousarray(bgr[..., ::-1])
+    if depth_path.endswith(".npy"):
+        depth = np.load(depth_path, allow_pickle=False).astype(np.float32)
+    else:
+        d = cv2.imread(depth_path, cv2.IMREAD_UNCHANGED)
+        if d is None:
+            raise ValueError(f"--depth {depth_path}: cannot read an image from it")
+        if d.dtype != np.uint16 or d.ndim != 2:
+            raise ValueError(f"--depth {depth_path}: expected a single-channel 16-bit PNG in millimetres, "
+                             f"got {d.dtype} with shape {d.shape}")
+        depth = depth_from_mm(d)
+    if depth.shape != color.shape[:2]:
+        raise ValueError(f"--depth {depth_path}: size {depth.shape[::-1]} differs from the colour image "
+                         f"{color.shape[1::-1]}; depth must be aligned to colour")
+    h, w = depth.shape
+    if Path(intr).is_file():
+        try:
+            d = json.loads(Path(intr).read_text())
+            K = Intrinsics(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]),
+                           int(d.get("width", w)), int(d.get("height", h)))
+        except (KeyError, ValueError, json.JSONDecodeError) as e:
+            raise ValueError(f"--intrinsics {intr}: expected JSON with fx, fy, cx, cy: {e}") from None
+        if (K.width, K.height) != (w, h):
+            K = K.scaled(w, h)
+    else:
+        fx, fy, cx, cy = _floats(intr, 4, "--intrinsics")
+        K = Intrinsics(fx, fy, cx, cy, w, h)
+    return color, depth, K
+
+
+def run(args: argparse.Namespace, cfg) -> int:
+    from illuminet.runtime.assets.bundle import BundleError
+    from illuminet.runtime.frame import Exposure
+    from illuminet.runtime.relight import relight
+
+    try:
+        color, depth, K = load_inputs(args.color, args.depth, args.intrinsics)
+        ax, ay = _floats(args.anchor, 2, "--anchor")
+        exp = None
+        if args.exposure:
+            us, iso = _floats(args.exposure, 2, "--exposure")
+            exp = Exposure(exposure_us=us, iso=iso)
+        res = relight(color, depth, K, (ax, ay), cfg, bundle=args.bundle, exposure=exp, precision=args.precision)
+    except (ValueError, BundleError, FileNotFoundError) as e:
+        print(f"illuminet relight: {e}", file=sys.stderr)
+        return 2
+    res.save(args.out)
+    print(f"wrote {args.out}: {len(res.vertices)} vertices, method {res.method}, plane from {res.plane_source} "
+          f"({res.plane_observed:.0%} of the grid observed), mean radiance "
+          f"{np.round(res.radiance.mean(0), 4).tolist()}")
+    return 0

@@ -1,0 +1,206 @@
+"""``illuminet run SOURCE_URL``, ``illuminet replay SESSION``, ``illuminet record SOURCE_URL OUT``.
+
+All three run the streaming loop (:func:`illuminet.runtime.stream.loop.run_loop`); they differ in the source
+and the stages: ``run`` and ``replay`` process frames through the configured pipeline
+(:func:`illuminet.pipeline.build_stages`), ``record`` only records the input. Command-line flags
+override the configuration file (they are applied as ``--set`` overrides, so they are validated the
+same way). At the end the per-step timing table is printed; ``--stats-json`` writes it as JSON.
+
+Exit codes: 0 done (also after Ctrl-C / SIGTERM, outputs finalised), 1 the source or an output failed,
+2 configuration error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+from urllib.parse import quote
+
+from illuminet.runtime.config import Config, ConfigError, apply_overrides
+from illuminet.runtime.stream.loop import LoopStats, run_loop
+from illuminet.runtime.stream.session import SessionError, SessionReader
+from illuminet.runtime.stream.sinks import SinkError
+
+log = logging.getLogger("illuminet.run")
+
+
+def _add_source_flags(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("source (override [source])")
+    g.add_argument("--timing", choices=("recorded", "asap"),
+                   help="replay timing: follow recorded timestamps, or as fast as possible ([source] timing)")
+    g.add_argument("--loop", action=argparse.BooleanOptionalAction, default=None,
+                   help="replay: start again at the end ([source] loop)")
+    g.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames, 0 = no limit ([source] max_frames)")
+
+
+def _add_output_flags(p: argparse.ArgumentParser, *, record: bool = True) -> None:
+    g = p.add_argument_group("outputs (override [output])")
+    g.add_argument("--video", metavar="PATH", help="write the output to a video file (.mp4, .avi, .mkv)")
+    g.add_argument("--fps", type=float, help="frame rate written into the video file ([output] fps)")
+    g.add_argument("--png-dir", metavar="DIR", help="write a PNG per output frame into DIR")
+    if record:
+        g.add_argument("--record", metavar="DIR", help="also record the input frames as a session in DIR")
+    g.add_argument("--mjpeg", action=argparse.BooleanOptionalAction, default=None,
+                   help="serve the output as MJPEG over HTTP with a status page at /")
+    g.add_argument("--listen", metavar="ADDR", help="MJPEG bind address (default 127.0.0.1; 0.0.0.0 = local network)")
+    g.add_argument("--port", type=int, help="MJPEG port ([output] port)")
+    g = p.add_argument_group("run control (override [logging])")
+    g.add_argument("--strict", action="store_true", default=None,
+                   help="stop at the first failing frame with a traceback instead of counting it")
+    g.add_argument("--stats-json", metavar="PATH", help="write the per-step timing statistics as JSON at the end")
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "run", help="run the pipeline on a source (camera, replay, synthetic)",
+        description="Run the AR pipeline on frames from SOURCE_URL (default: [source] url): oakd://, "
+                    "v4l2:///dev/videoN, replay://SESSION, synthetic://SCENE. Ctrl-C stops cleanly.",
+    )
+    p.add_argument("source_url", nargs="?", metavar="SOURCE_URL", help="frame source (default: [source] url)")
+    _add_source_flags(p)
+    _add_output_flags(p)
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser(
+        "replay", help="run the pipeline on a recorded session",
+        description="Replay the session folder SESSION through the pipeline (same as run replay://SESSION). "
+                    "--check only validates the session and lists every problem.",
+    )
+    p.add_argument("session", metavar="SESSION", help="session folder (made by `illuminet record` or --record)")
+    p.add_argument("--check", action="store_true",
+                   help="validate every index line and decode every frame; print problems; exit 1 if any")
+    _add_source_flags(p)
+    _add_output_flags(p)
+    p.set_defaults(func=cmd_replay)
+
+    p = sub.add_parser(
+        "record", help="record a source into a session folder",
+        description="Record frames from SOURCE_URL (colour, 16-bit depth, timestamps, intrinsics, exposure, "
+                    "IMU) into the new session folder OUT. Crash-safe: a killed recording keeps every "
+                    "complete frame. Ctrl-C / SIGTERM stop and finalise it.",
+    )
+    p.add_argument("source_url", metavar="SOURCE_URL", help="frame source to record")
+    p.add_argument("out", metavar="OUT", help="new session folder")
+    p.add_argument("--color", choices=("raw", "png", "jpeg"),
+                   help="colour encoding: raw bytes (lossless, least CPU; default), PNG (lossless, ~40%% smaller), "
+                        "JPEG (lossy) ([output] record_color)")
+    p.add_argument("--jpeg-quality", type=int, metavar="Q", help="JPEG quality 1..100 ([output] record_jpeg_quality)")
+    p.add_argument("--no-fsync", action="store_true",
+                   help="do not fsync each frame (faster; still safe against kill -9, not against power loss)")
+    _add_source_flags(p)
+    _add_output_flags(p, record=False)
+    p.set_defaults(func=cmd_record)
+
+
+_FLAG_KEYS = {
+    "timing": ("source", "timing"),
+    "loop": ("source", "loop"),
+    "max_frames": ("source", "max_frames"),
+    "video": ("output", "video"),
+    "fps": ("output", "fps"),
+    "png_dir": ("output", "png_dir"),
+    "record": ("output", "record"),
+    "mjpeg": ("output", "mjpeg"),
+    "listen": ("output", "listen"),
+    "port": ("output", "port"),
+    "strict": ("logging", "strict"),
+    "stats_json": ("logging", "stats_json"),
+    "color": ("output", "record_color"),
+    "jpeg_quality": ("output", "record_jpeg_quality"),
+}
+
+
+def config_with_flags(args: argparse.Namespace, cfg: Config) -> Config:
+    """``cfg`` with every flag the user gave applied as an override (validated like the file)."""
+    overrides = [(*_FLAG_KEYS[k], v) for k, v in vars(args).items() if k in _FLAG_KEYS and v is not None]
+    if getattr(args, "no_fsync", False):
+        overrides.append(("output", "record_fsync", False))
+    return apply_overrides(cfg, overrides)
+
+
+def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
+    from illuminet.hw import SourceError, open_source
+    from illuminet.pipeline import build_sinks, build_stages
+
+    stats = LoopStats()
+    try:
+        source = open_source(url, cfg)
+        sinks = build_sinks(cfg, stats=stats.snapshot, source_url=url)
+        stages = build_stages(cfg) if with_stages else []
+    except (SourceError, SinkError, SessionError) as e:
+        print(f"illuminet: {e}", file=sys.stderr)
+        return 1
+    except ModuleNotFoundError as e:  # a source module that is not part of this build
+        print(f"illuminet: source {url!r} is not available in this build ({e})", file=sys.stderr)
+        return 1
+    rc = 0
+    try:
+        run_loop(source, stages, sinks, strict=cfg.logging.strict, max_frames=cfg.source.max_frames, stats=stats)
+    except (SourceError, SinkError, SessionError) as e:  # these messages say it all; no traceback
+        print(f"illuminet: {e}", file=sys.stderr)
+        rc = 1
+    except OSError as e:
+        if cfg.logging.strict:  # strict: the traceback, as for any failure
+            raise
+        print(f"illuminet: {e}", file=sys.stderr)
+        rc = 1
+    finally:
+        if stats.frames or stats.end_reason:
+            print(stats.format_stats())
+        if cfg.logging.stats_json:
+            Path(cfg.logging.stats_json).write_text(stats.to_json() + "\n")
+            print(f"statistics written to {cfg.logging.stats_json}")
+    if stats.end_reason.startswith("source error"):
+        rc = 1
+    return rc
+
+
+def cmd_run(args: argparse.Namespace, cfg: Config) -> int:
+    cfg = config_with_flags(args, cfg)
+    return _execute(cfg, args.source_url or cfg.source.url, with_stages=True)
+
+
+def _depth_summary(reader) -> str:
+    """How a session stores depth, for ``replay --check``."""
+    if not reader.has_depth:
+        return "none"
+    k = reader.depth_scale
+    if k == 1:
+        return "16-bit PNG mm"
+    return f"16-bit PNG mm at {reader.width // k}x{reader.height // k} (1/{k}, upsampled nearest on replay)"
+
+
+def cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
+    cfg = config_with_flags(args, cfg)
+    if args.check:
+        try:
+            reader = SessionReader(args.session)
+        except SessionError as e:
+            print(f"illuminet: {e}", file=sys.stderr)
+            return 1
+        problems = reader.check()
+        m = reader.manifest
+        print(f"{args.session}: {m['format']} v{m['version']}, {reader.width}x{reader.height}, colour "
+              f"{reader.color_encoding}, depth {_depth_summary(reader)}, "
+              f"{len(reader)} intact frames, {'finalised' if reader.finalized else 'NOT finalised'}, "
+              f"source {m.get('source') or '?'}")
+        for p in problems:
+            print(f"  problem: {p}")
+        print("OK" if not problems else f"{len(problems)} problem(s)")
+        return 0 if not problems else 1
+    if not Path(args.session).is_dir():
+        print(f"illuminet: replay: {args.session} is not a folder (expected a recorded session)", file=sys.stderr)
+        return 1
+    url = "replay://" + quote(str(args.session), safe="/")
+    return _execute(cfg, url, with_stages=True)
+
+
+def cmd_record(args: argparse.Namespace, cfg: Config) -> int:
+    args.record = args.out
+    cfg = config_with_flags(args, cfg)
+    return _execute(cfg, args.source_url, with_stages=False)
+
+
+__all__ = ["register", "config_with_flags", "cmd_run", "cmd_replay", "cmd_record", "ConfigError"]

@@ -1,0 +1,265 @@
+"""Object bundles: what a trained object ships as, and loading it with integrity and shape checks.
+
+A bundle is a folder::
+
+    bundle.json          metadata: object, vertex counts, plane grid, normalisation, ONNX interface,
+                         training config + seed + command, evaluation figures, sha256 + size of
+                         every file, package version
+    mesh.npz             render mesh (vertices, normals, faces), the lighting proxy (proxy_index into
+                         the render vertices, proxy_edges), the carry mapping (carry_index,
+                         carry_weight: each render vertex interpolates k proxy vertices) and
+                         prior_shading (the mean training shading / s: the constant-prior baseline)
+    transfer_fp32.onnx   the inference chain, fp32
+    transfer_int8.onnx   the same with its FC layers dynamically quantised to int8
+
+``builtin:NAME`` names a bundle shipped in the package (``illuminet/models/bundles/NAME``); any
+other value is a folder path. :func:`load_bundle` says exactly what is wrong when something is
+(missing file, checksum mismatch, array shapes that disagree with the metadata).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+BUNDLE_FORMAT = 1
+METADATA = "bundle.json"
+FILES = {"mesh": "mesh.npz", "fp32": "transfer_fp32.onnx", "int8": "transfer_int8.onnx"}
+MESH_KEYS = ("vertices", "normals", "faces", "proxy_index", "proxy_edges", "carry_index", "carry_weight",
+             "prior_shading")
+
+
+class BundleError(ValueError):
+    """A bundle is missing, damaged or inconsistent; the message names the file and the problem."""
+
+
+def builtin_dir() -> Path:
+    """Folder of the bundles shipped with the package (``models/bundles`` in a checkout)."""
+    # runtime/assets/ sits two levels below the folder that holds models/, both in a checkout and installed
+    # (illuminet/runtime/assets, illuminet/models); locating the data by path keeps runtime from importing models.
+    return Path(__file__).resolve().parents[2] / "models" / "bundles"
+
+
+def builtin_names() -> list[str]:
+    d = builtin_dir()
+    return sorted(p.name for p in d.iterdir() if (p / METADATA).is_file()) if d.is_dir() else []
+
+
+def resolve_bundle(spec: str | Path) -> Path:
+    """``builtin:NAME`` or a folder -> the bundle folder (not yet checked)."""
+    s = str(spec)
+    if s.startswith("builtin:"):
+        name = s.split(":", 1)[1]
+        p = builtin_dir() / name
+        if not (p / METADATA).is_file():
+            raise BundleError(f"bundle {s!r}: no built-in bundle named {name!r}; built-in: "
+                              f"{', '.join('builtin:' + n for n in builtin_names()) or '(none installed)'}")
+        return p
+    p = Path(s)
+    if p.is_file() and p.name == METADATA:
+        p = p.parent
+    if not p.is_dir():
+        raise BundleError(f"bundle {s!r}: folder not found (expected builtin:NAME or a bundle folder "
+                          f"containing {METADATA})")
+    return p
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+@dataclass
+class Bundle:
+    """A loaded, checked bundle. Arrays are read-only views of ``mesh.npz``."""
+
+    path: Path
+    meta: dict
+    vertices: np.ndarray
+    normals: np.ndarray
+    faces: np.ndarray
+    proxy_index: np.ndarray
+    proxy_edges: np.ndarray
+    carry_index: np.ndarray
+    carry_weight: np.ndarray
+    prior_shading: np.ndarray
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        return str(self.meta.get("name", self.path.name))
+
+    @property
+    def n_proxy(self) -> int:
+        return int(len(self.proxy_index))
+
+    @property
+    def proxy_vertices(self) -> np.ndarray:
+        return self.vertices[self.proxy_index]
+
+    @property
+    def proxy_normals(self) -> np.ndarray:
+        return self.normals[self.proxy_index]
+
+    @property
+    def grid(self) -> int:
+        return int(self.meta["plane"]["grid"])
+
+    @property
+    def pool(self) -> int:
+        return int(self.meta["plane"]["pool"])
+
+    @property
+    def extent_m(self) -> float:
+        return float(self.meta["plane"]["extent_m"])
+
+    def onnx_path(self, precision: str = "int8") -> Path:
+        if precision not in ("int8", "fp32"):
+            raise BundleError(f"precision {precision!r}: expected 'int8' or 'fp32'")
+        return self.path / FILES[precision]
+
+    def carry(self, proxy_values: np.ndarray) -> np.ndarray:
+        """Proxy-vertex values (V, ...) -> render-vertex values (R, ...) by the carry weights."""
+        v = np.asarray(proxy_values)
+        if v.shape[0] != self.n_proxy:
+            raise ValueError(f"carry: expected {self.n_proxy} proxy values, got {v.shape[0]}")
+        w = self.carry_weight.reshape(self.carry_weight.shape + (1,) * (v.ndim - 1))
+        return (v[self.carry_index] * w).sum(1).astype(np.float32)
+
+
+def load_bundle(spec: str | Path, verify: bool = True) -> Bundle:
+    """Load and check a bundle.
+
+    Parameters
+    ----------
+    spec : str or Path
+        ``builtin:NAME`` or a bundle folder.
+    verify : bool
+        Check every file's sha256 against ``bundle.json`` (a few tens of ms).
+
+    Raises
+    ------
+    BundleError
+        With the file and what is wrong: missing file, bad JSON, unsupported format, checksum or
+        size mismatch, missing arrays, shapes that disagree with each other or with the metadata.
+    """
+    path = resolve_bundle(spec)
+    mpath = path / METADATA
+    if not mpath.is_file():
+        raise BundleError(f"{path}: no {METADATA} (not a bundle folder?)")
+    try:
+        meta = json.loads(mpath.read_text())
+    except json.JSONDecodeError as e:
+        raise BundleError(f"{mpath}: not valid JSON: {e}") from None
+    fmt = meta.get("format")
+    if fmt != BUNDLE_FORMAT:
+        raise BundleError(f"{mpath}: bundle format {fmt!r} is not supported (this version reads format "
+                          f"{BUNDLE_FORMAT}); retrain or update illuminet")
+    for key in ("files", "vertices", "plane", "onnx"):
+        if key not in meta:
+            raise BundleError(f"{mpath}: missing key {key!r}")
+    for name in FILES.values():
+        p = path / name
+        if not p.is_file():
+            raise BundleError(f"{path}: missing file {name}")
+        rec = meta["files"].get(name)
+        if rec is None:
+            raise BundleError(f"{mpath}: no checksum recorded for {name}")
+        size = p.stat().st_size
+        if size != rec.get("bytes"):
+            raise BundleError(f"{p}: size {size} bytes, {METADATA} records {rec.get('bytes')} (file damaged or replaced)")
+        if verify:
+            digest = _sha256(p)
+            if digest != rec.get("sha256"):
+                raise BundleError(f"{p}: sha256 {digest} does not match {METADATA} ({rec.get('sha256')}); "
+                                  "the file is damaged or was replaced")
+    try:
+        with np.load(path / FILES["mesh"], allow_pickle=False) as z:
+            missing = [k for k in MESH_KEYS if k not in z.files]
+            if missing:
+                raise BundleError(f"{path / FILES['mesh']}: missing arrays {', '.join(missing)}")
+            arr = {k: z[k] for k in MESH_KEYS}
+    except BundleError:
+        raise
+    except Exception as e:  # zip/npz errors
+        raise BundleError(f"{path / FILES['mesh']}: cannot read: {e}") from None
+    b = Bundle(path=path, meta=meta, **arr)
+    _check_shapes(b, path / FILES["mesh"])
+    return b
+
+
+def _check_shapes(b: Bundle, where: Path) -> None:
+    def need(cond: bool, what: str) -> None:
+        if not cond:
+            raise BundleError(f"{where}: {what}")
+
+    R = len(b.vertices)
+    V = b.n_proxy
+    counts = b.meta["vertices"]
+    need(b.vertices.ndim == 2 and b.vertices.shape[1] == 3, f"vertices must be (R, 3), got {b.vertices.shape}")
+    need(b.normals.shape == b.vertices.shape, f"normals {b.normals.shape} must match vertices {b.vertices.shape}")
+    need(b.faces.ndim == 2 and b.faces.shape[1] == 3, f"faces must be (F, 3), got {b.faces.shape}")
+    need(b.faces.size == 0 or (b.faces.min() >= 0 and b.faces.max() < R), f"faces index outside 0..{R - 1}")
+    need(R == counts.get("render"), f"{R} render vertices, metadata says {counts.get('render')}")
+    need(V == counts.get("proxy"), f"{V} proxy vertices, metadata says {counts.get('proxy')}")
+    need(b.proxy_index.ndim == 1 and (V == 0 or (b.proxy_index.min() >= 0 and b.proxy_index.max() < R)),
+         f"proxy_index must index the {R} render vertices")
+    need(b.proxy_edges.ndim == 2 and b.proxy_edges.shape[1] == 2, f"proxy_edges must be (E, 2), got {b.proxy_edges.shape}")
+    need(b.proxy_edges.size == 0 or b.proxy_edges.max() < V, f"proxy_edges index outside 0..{V - 1}")
+    need(b.carry_index.shape == b.carry_weight.shape and b.carry_index.ndim == 2 and len(b.carry_index) == R,
+         f"carry_index {b.carry_index.shape} and carry_weight {b.carry_weight.shape} must both be (R={R}, k)")
+    need(b.carry_index.min() >= 0 and b.carry_index.max() < V, f"carry_index outside 0..{V - 1}")
+    need(bool(np.allclose(b.carry_weight.sum(1), 1.0, atol=1e-3)), "carry_weight rows must sum to 1")
+    need(b.prior_shading.shape == (V, 3), f"prior_shading must be ({V}, 3), got {b.prior_shading.shape}")
+    g, pool = b.grid, b.pool
+    P = (g // pool) ** 2
+    io = b.meta["onnx"]
+    need(list(io["input"]["plane"]) == [1, P, 4], f"ONNX input plane {io['input']['plane']} != [1, {P}, 4]")
+    need(list(io["outputs"]["shading"]) == [1, V, 3], f"ONNX output shading {io['outputs']['shading']} != [1, {V}, 3]")
+
+
+class TransferChain:
+    """One of a bundle's ONNX chains in onnxruntime, with its interface checked against the bundle.
+
+    Parameters
+    ----------
+    bundle : Bundle
+    precision : "int8" or "fp32"
+    threads : int
+        onnxruntime intra-op threads; 1 is fastest for this small per-frame model (no thread wake-ups).
+    """
+
+    def __init__(self, bundle: Bundle, precision: str = "int8", threads: int = 1):
+        import onnxruntime as ort
+
+        self.bundle = bundle
+        self.precision = precision
+        path = bundle.onnx_path(precision)
+        so = ort.SessionOptions()
+        so.intra_op_num_threads = threads
+        so.inter_op_num_threads = 1
+        so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        try:
+            self.session = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+        except Exception as e:
+            raise BundleError(f"{path}: onnxruntime cannot load it: {e}") from None
+        P = (bundle.grid // bundle.pool) ** 2
+        V = bundle.n_proxy
+        ins = {i.name: i.shape for i in self.session.get_inputs()}
+        outs = {o.name: o.shape for o in self.session.get_outputs()}
+        if ins.get("plane") != [1, P, 4]:
+            raise BundleError(f"{path}: input 'plane' has shape {ins.get('plane')}, expected [1, {P}, 4]")
+        if outs.get("shading") != [1, V, 3] or outs.get("oi") != [1, V, 3, 3]:
+            raise BundleError(f"{path}: outputs {outs}, expected shading [1, {V}, 3] and oi [1, {V}, 3, 3]")
+
+    def __call__(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Preprocessed plane input (P, 4) -> (OI (V, 3, 3), shading (V, 3)), both relative to s."""
+        oi, sh = self.session.run(["oi", "shading"], {"plane": np.ascontiguousarray(x, np.float32)[None]})
+        return oi[0], sh[0]

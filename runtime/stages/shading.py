@@ -1,0 +1,222 @@
+"""The transfer stage: plane illumination -> the object's shading, per frame.
+
+Owns :func:`preprocess_plane` (the plane input normalisation shared by training and run time),
+:class:`TransferChain` (the ONNX chain of a bundle in onnxruntime) and :class:`ShadingStage`
+(``results["plane_light"]`` -> ``results["shading"]`` with temporal smoothing, or a baseline when
+``[model] shading`` asks for one).
+
+Normalisation: the plane's measured irradiance is divided by its mean luminance ``s`` over the
+observed cells, so the network sees lighting *shape and colour*, never absolute brightness (which
+depends on exposure, plane albedo and units). The network predicts the object's shading divided by
+the same ``s``; multiplying back gives scene-referred irradiance in the plane's units.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from illuminet.runtime.scene import PLANE_LIGHT, SHADING, ObjectShading
+from illuminet.runtime.sh import sh_eval, sh_fit
+from illuminet.runtime.stage import FrameError, Stage
+
+log = logging.getLogger(__name__)
+
+LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+
+#: plane grid cells are pooled by this factor per side before the network (32x32 -> 16x16)
+POOL = 2
+
+
+def preprocess_plane(irradiance: np.ndarray, mask: np.ndarray, grid: int, pool: int = POOL,
+                     confidence: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """Plane irradiance grid -> network input (cells, 4) and the normalising scale ``s``.
+
+    Parameters
+    ----------
+    irradiance : (grid*grid, 3)
+        Linear RGB irradiance per plane vertex (row-major grid, vertex i*grid+j).
+    mask : (grid*grid,) bool
+        Observed vertices.
+    grid : int
+        Vertices per side; must be divisible by ``pool``.
+    pool : int
+        Cells per side merged into one network vertex (mask-weighted mean).
+    confidence : (grid*grid,) float, optional
+        Extra per-vertex weights in [0, 1].
+
+    Returns
+    -------
+    x : (grid/pool)^2 x 4 float32
+        Normalised RGB irradiance and the observed fraction of each pooled cell.
+    s : float
+        Mean observed luminance (the scale the prediction is multiplied back by).
+    """
+    e = np.asarray(irradiance, dtype=np.float32)
+    m = np.asarray(mask, dtype=bool)
+    n = grid * grid
+    if e.shape != (n, 3) or m.shape != (n,):
+        raise ValueError(f"plane irradiance must be ({n}, 3) with mask ({n},) for grid {grid}, "
+                         f"got {e.shape} and {m.shape}")
+    if grid % pool:
+        raise ValueError(f"plane grid {grid} is not divisible by the pooling factor {pool}")
+    w = m.astype(np.float32)
+    if confidence is not None:
+        w = w * np.clip(np.asarray(confidence, dtype=np.float32), 0.0, 1.0)
+    e = np.where(np.isfinite(e), e, 0.0)
+    wsum = float(w.sum())
+    if wsum <= 0:
+        raise ValueError("no observed plane cells: cannot measure the plane's illumination")
+    s = float((e @ LUMA * w).sum() / wsum)
+    if not s > 0:
+        raise ValueError(f"plane irradiance has non-positive mean luminance {s}")
+    g2 = grid // pool
+    ew = (e / s * w[:, None]).reshape(g2, pool, g2, pool, 3).sum((1, 3))
+    ws = w.reshape(g2, pool, g2, pool).sum((1, 3))
+    x = np.zeros((g2, g2, 4), dtype=np.float32)
+    x[..., :3] = ew / np.maximum(ws, 1e-6)[..., None]
+    x[..., 3] = ws / (pool * pool)
+    return x.reshape(g2 * g2, 4), s
+
+
+def dominant_light_from_oi(oi: np.ndarray, normals: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """Dominant light direction (towards the light, object frame) and its share, from per-vertex OI.
+
+    The OI vectors of all vertices point towards where light comes from; their luminance-weighted
+    sum is the dominant direction, and the ratio of the sum's length to the sum of lengths says how
+    much of the light comes from that one direction (1 = a single distant light, 0 = uniform).
+    """
+    lum = np.einsum("vcx,c->vx", np.asarray(oi, dtype=np.float32), LUMA)
+    tot = lum.sum(0)
+    norm = float(np.linalg.norm(tot))
+    lens = float(np.linalg.norm(lum, axis=1).sum())
+    if norm <= 1e-12 or lens <= 1e-12:
+        return np.array([0.0, 1.0, 0.0], dtype=np.float32), 0.0
+    return (tot / norm).astype(np.float32), float(np.clip(norm / lens, 0.0, 1.0))
+
+
+def plane_mean_shading(plane_irr: np.ndarray, mask: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Ambient-only shading (what phone AR frameworks give): every vertex gets the plane's mean RGB
+    irradiance. (The full baselines, incl. SH from RGB-D, are in :mod:`illuminet.runtime.groundtruth.baselines`.)"""
+    m = np.asarray(mask, dtype=bool)
+    mean = np.asarray(plane_irr, dtype=np.float32)[m].mean(0) if m.any() else np.zeros(3, np.float32)
+    return np.tile(mean[None, :], (n_vertices, 1)).astype(np.float32)
+
+
+class ShadingStage(Stage):
+    """``results["plane_light"]`` -> ``results["shading"]`` (:class:`ObjectShading` of the proxy mesh).
+
+    ``[model] shading``:
+
+    * ``model``: the bundle's ONNX chain (``[model] precision`` int8 or fp32) on the anchor plane's
+      irradiance; ``auto`` does the same and falls back to ``ambient`` when the bundle cannot load;
+    * ``constant``: the bundle's prior (mean training shading) times the plane's scale;
+    * ``ambient``: the plane's mean irradiance everywhere;
+    * ``sh``: second-order SH fitted (minimum-norm least squares) to the plane-light samples with
+      their normals (all planes of the frame's ``plane_light``), evaluated at the proxy normals.
+
+    Temporal smoothing: an exponential moving average of the predicted shading and OI with weight
+    ``[model] temporal_smoothing`` on the previous value (0 = none), reset when the anchor plane or
+    the method changes.
+    """
+
+    name = "shading"
+    requires = (PLANE_LIGHT,)
+    provides = (SHADING,)
+
+    def __init__(self, cfg):
+        self.cfg = cfg
+        m = cfg.model
+        self.mode = m.shading
+        self.precision = m.precision
+        self.alpha = float(m.temporal_smoothing)
+        if not 0.0 <= self.alpha < 1.0:
+            raise ValueError(f"[model] temporal_smoothing must be in [0, 1), got {self.alpha}")
+        self.bundle = None
+        self.chain = None
+        self._prev: tuple | None = None
+        self.frames = 0
+        self.fallbacks = 0
+
+    def open(self) -> None:
+        from illuminet.runtime.assets.bundle import BundleError, TransferChain, load_bundle
+
+        try:
+            self.bundle = load_bundle(self.cfg.model.bundle)
+            if self.mode in ("auto", "model"):
+                self.chain = TransferChain(self.bundle, self.precision)
+        except BundleError as e:
+            if self.mode != "auto":
+                raise
+            log.error("%s; shading falls back to the ambient baseline", e)
+            self.mode = "ambient"
+        if self.mode == "auto":
+            self.mode = "model"
+
+    def close(self) -> None:
+        self.chain = None
+
+    def stats(self) -> dict:
+        return {"mode": self.mode, "precision": self.precision if self.mode == "model" else None,
+                "frames": self.frames}
+
+    def _plane_input(self, pl):
+        sl = pl.plane_slices[0] if pl.plane_slices else slice(0, len(pl.irradiance))
+        irr, mask = pl.irradiance[sl], pl.mask[sl]
+        conf = pl.confidence[sl] if pl.confidence is not None else None
+        return irr, mask, conf
+
+    def predict(self, pl) -> ObjectShading:
+        """One prediction from a :class:`~illuminet.runtime.scene.PlaneLight` (no smoothing)."""
+        b = self.bundle
+        irr, mask, conf = self._plane_input(pl)
+        if self.mode in ("model", "constant"):
+            if pl.grid != b.grid:
+                raise FrameError(f"plane grid is {pl.grid}x{pl.grid} but bundle {b.name} was trained on "
+                                 f"{b.grid}x{b.grid}: set [plane_light] grid = {b.grid}")
+            try:
+                x, s = preprocess_plane(irr, mask, b.grid, b.pool, conf)
+            except ValueError as e:
+                raise FrameError(str(e)) from None
+            if self.mode == "constant":
+                return ObjectShading(irradiance=b.prior_shading * s, method="constant")
+            oi, sh = self.chain(x)
+            oi, sh = oi * s, np.maximum(sh, 0.0) * s
+            d, share = dominant_light_from_oi(oi)
+            return ObjectShading(irradiance=sh, method=f"model:{self.precision}", oi=oi, dominant_dir=d,
+                                 dominant_share=share)
+        if self.mode == "ambient":
+            n = b.n_proxy if b is not None else 1
+            return ObjectShading(irradiance=plane_mean_shading(irr, mask, n), method="ambient")
+        if self.mode == "sh":
+            m = np.asarray(pl.mask, bool)  # every plane's samples, not only the anchor plane
+            if not m.any():
+                raise FrameError("no observed plane samples to fit SH lighting to")
+            coef = sh_fit(pl.normals[m], pl.irradiance[m])
+            lin = coef[1:4] @ LUMA
+            d = np.array([lin[2], lin[0], lin[1]], np.float32)
+            nd = float(np.linalg.norm(d))
+            return ObjectShading(irradiance=sh_eval(coef, b.proxy_normals), method="sh",
+                                 dominant_dir=d / nd if nd > 0 else None,
+                                 dominant_share=float(np.clip(nd / max(float(coef[0] @ LUMA), 1e-12), 0, 1)))
+        raise FrameError(f"unknown shading mode {self.mode!r}")
+
+    def process(self, frame):
+        pl = self.require(frame, PLANE_LIGHT)
+        shading = self.predict(pl)
+        shading = self._smooth(shading)
+        self.frames += 1
+        return frame.with_result(SHADING, shading)
+
+    def _smooth(self, s: ObjectShading) -> ObjectShading:
+        a = self.alpha
+        prev = self._prev
+        if a > 0 and prev is not None and prev[0] == s.method and prev[1].shape == s.irradiance.shape:
+            irr = a * prev[1] + (1 - a) * s.irradiance
+            oi = s.oi if (s.oi is None or prev[2] is None) else a * prev[2] + (1 - a) * s.oi
+            d, share = (dominant_light_from_oi(oi) if oi is not None else (s.dominant_dir, s.dominant_share))
+            s = ObjectShading(irradiance=irr.astype(np.float32), method=s.method,
+                              oi=None if oi is None else oi.astype(np.float32), dominant_dir=d, dominant_share=share)
+        self._prev = (s.method, s.irradiance, s.oi)
+        return s

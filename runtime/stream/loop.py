@@ -1,0 +1,506 @@
+"""The streaming loop: source -> stages -> sinks, with timing, flow limiting, failures and signals.
+
+This module owns how frames move through the pipeline (DESIGN.md §1)::
+
+    live source ──read──▶ [reader thread] ──▶ newest-frame slot ──▶ stages ──▶ sinks
+                                              (one frame; a newer one
+                                               replaces it: counted drop)
+    non-live source (replay asap, synthetic) ──read in the loop thread──▶ stages ──▶ sinks
+                                              (nothing dropped)
+
+* **Flow limiting** (after MediaPipe's ``FlowLimiterCalculator``): when ``source.live`` is true a
+  reader thread keeps reading at the source's pace and parks the frame in a one-slot mailbox. If the
+  loop has not taken the previous frame yet, the older one is discarded and counted as dropped, so the
+  loop always works on the newest picture and latency does not build up behind a slow stage.
+* **Failures**: a stage that raises on a frame marks that frame failed; the failure is counted, logged
+  once per (stage, error type) with what to do, and the frame continues with the *last good* results
+  of that stage (e.g. the previous lighting), so the output never flickers to nothing. Sink failures
+  are counted the same way. ``strict=True`` (tests) re-raises instead.
+* **Signals**: SIGINT/SIGTERM set the stop event (handlers are installed only when the loop runs in the
+  main thread); the loop finishes the current frame and closes sinks first, so recordings are
+  finalised. A second signal interrupts immediately.
+* **Timing**: :class:`LoopStats` holds a :class:`~illuminet.runtime.stream.timing.Samples` per step
+  (``source``, ``stage:<name>``, ``sink:<name>``, ``total``); :meth:`LoopStats.format_stats` prints the
+  median/p99 table, :meth:`LoopStats.to_json` gives the same as JSON, and :meth:`LoopStats.snapshot`
+  gives thread-safe live figures (fps, drops, failures, recent per-step medians) for status pages.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import json
+import logging
+import signal
+import threading
+import time
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from illuminet.runtime.frame import Frame
+from illuminet.runtime.stage import EndOfStream, Sink, Source, Stage, StageChain
+from illuminet.runtime.stream.timing import Samples
+
+log = logging.getLogger(__name__)
+
+#: how many recent durations per step the live snapshot uses (a few seconds at camera rates)
+RECENT = 120
+
+
+class LoopStats:
+    """Counters and per-step timing of one loop run; safe to read from other threads.
+
+    Attributes
+    ----------
+    frames : int
+        Frames that went through the stages and sinks.
+    dropped : int
+        Frames a live source delivered that the loop skipped because a newer one arrived first.
+    failed_frames : int
+        Frames on which at least one stage raised (they still reached the sinks).
+    failures : collections.Counter
+        ``"stage:<name>: <ErrorType>"`` / ``"sink:<name>: <ErrorType>"`` -> count.
+    sink_failures : int
+        Sink writes that raised.
+    end_reason : str
+        ``"end of stream"``, ``"max_frames"``, ``"stopped"`` (signal / stop event) or an error.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.samples: dict[str, Samples] = {}
+        self._recent: dict[str, collections.deque] = {}
+        self._frame_times: collections.deque = collections.deque(maxlen=RECENT)
+        self.frames = 0
+        self.dropped = 0
+        self.failed_frames = 0
+        self.sink_failures = 0
+        self.failures: collections.Counter = collections.Counter()
+        self.source_stats: dict[str, Any] = {}
+        self.end_reason = ""
+        self.running = False
+        self._t_start: float | None = None
+        self._t_end: float | None = None
+
+    # -- recording (called by the loop)
+
+    def _step(self, name: str) -> None:
+        if name not in self.samples:
+            self.samples[name] = Samples(name)
+            self._recent[name] = collections.deque(maxlen=RECENT)
+
+    def add(self, name: str, seconds: float) -> None:
+        """Add one duration of step ``name`` (created on first use; table order = first-use order)."""
+        with self._lock:
+            self._step(name)
+            self.samples[name].add(seconds)
+            self._recent[name].append(seconds)
+
+    def start(self) -> None:
+        with self._lock:
+            self._t_start = time.perf_counter()
+            self.running = True
+
+    def stop(self, reason: str) -> None:
+        with self._lock:
+            self._t_end = time.perf_counter()
+            self.running = False
+            self.end_reason = reason
+
+    def frame_done(self) -> None:
+        with self._lock:
+            self.frames += 1
+            self._frame_times.append(time.perf_counter())
+
+    def count_failure(self, key: str, frame_failed: bool) -> None:
+        with self._lock:
+            self.failures[key] += 1
+            if key.startswith("sink:"):
+                self.sink_failures += 1
+            if frame_failed:
+                self.failed_frames += 1
+
+    def set_dropped(self, n: int) -> None:
+        with self._lock:
+            self.dropped = n
+
+    def set_source_stats(self, d: dict[str, Any]) -> None:
+        with self._lock:
+            self.source_stats = dict(d)
+
+    # -- reading
+
+    @property
+    def elapsed_s(self) -> float:
+        if self._t_start is None:
+            return 0.0
+        end = self._t_end if self._t_end is not None else time.perf_counter()
+        return end - self._t_start
+
+    def snapshot(self) -> dict[str, Any]:
+        """Live figures for status pages: thread-safe, cheap (recent window only).
+
+        Returns
+        -------
+        dict
+            ``running``, ``frames``, ``fps`` (over the run), ``fps_recent`` (last ~120 frames),
+            ``dropped``, ``failed_frames``, ``sink_failures``, ``elapsed_s``, ``source`` (the source's
+            own counters), ``stages_ms``: step -> median milliseconds over the recent window.
+        """
+        with self._lock:
+            recent = {k: list(v) for k, v in self._recent.items()}
+            ft = list(self._frame_times)
+            out = {
+                "running": self.running,
+                "frames": self.frames,
+                "dropped": self.dropped,
+                "failed_frames": self.failed_frames,
+                "sink_failures": self.sink_failures,
+                "source": dict(self.source_stats),
+                "end_reason": self.end_reason,
+            }
+        el = self.elapsed_s
+        out["elapsed_s"] = round(el, 3)
+        out["fps"] = round(out["frames"] / el, 2) if el > 0 else 0.0
+        out["fps_recent"] = round((len(ft) - 1) / (ft[-1] - ft[0]), 2) if len(ft) > 1 and ft[-1] > ft[0] else 0.0
+        out["stages_ms"] = {k: round(float(np.median(v)) * 1e3, 3) for k, v in recent.items() if v}
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        """Everything: counters plus each step's ``n``, ``median_ms``, ``p99_ms``, ``max_ms``."""
+        with self._lock:
+            steps = {k: s.summary() for k, s in self.samples.items()}
+            d = {
+                "frames": self.frames,
+                "dropped": self.dropped,
+                "failed_frames": self.failed_frames,
+                "sink_failures": self.sink_failures,
+                "failures": dict(self.failures),
+                "source": dict(self.source_stats),
+                "end_reason": self.end_reason,
+            }
+        el = self.elapsed_s
+        d["elapsed_s"] = el
+        d["fps"] = d["frames"] / el if el > 0 else 0.0
+        d["steps"] = steps
+        return d
+
+    def to_json(self, indent: int | None = 2) -> str:
+        """:meth:`to_dict` as a JSON string."""
+        return json.dumps(self.to_dict(), indent=indent)
+
+    def format_stats(self) -> str:
+        """The end-of-run table: one row per step with n, median, p99 and max in milliseconds."""
+        d = self.to_dict()
+        width = max([len("step")] + [len(k) for k in d["steps"]])
+        rows = [f"{'step':<{width}}  {'n':>7}  {'median ms':>9}  {'p99 ms':>8}  {'max ms':>8}"]
+        for k, s in d["steps"].items():
+            rows.append(f"{k:<{width}}  {s['n']:>7d}  {s['median_ms']:>9.2f}  {s['p99_ms']:>8.2f}  {s['max_ms']:>8.2f}")
+        rows.append(
+            f"{d['frames']} frames in {d['elapsed_s']:.2f} s ({d['fps']:.1f} fps); dropped {d['dropped']}; "
+            f"failed frames {d['failed_frames']}; sink failures {d['sink_failures']}; ended: {d['end_reason']}"
+        )
+        for k, n in sorted(d["failures"].items()):
+            rows.append(f"  failure {k}: {n}x")
+        if d["source"]:
+            rows.append("  source: " + ", ".join(f"{k}={v}" for k, v in d["source"].items()))
+        return "\n".join(rows)
+
+
+class _NewestFrameSlot:
+    """One-frame mailbox between the reader thread and the loop: a newer frame replaces an untaken one."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._frame: Frame | None = None
+        self._done = False
+        self._error: BaseException | None = None
+        self.dropped = 0
+
+    def put(self, frame: Frame) -> None:
+        with self._cond:
+            if self._frame is not None:
+                self.dropped += 1  # the loop fell behind: the older frame is never processed
+            self._frame = frame
+            self._cond.notify()
+
+    def finish(self, error: BaseException | None = None) -> None:
+        with self._cond:
+            self._done = True
+            self._error = error
+            self._cond.notify()
+
+    def take(self, timeout: float) -> tuple[Frame | None, bool, BaseException | None]:
+        """(frame or None, stream finished, error). Waits at most ``timeout`` seconds for a frame."""
+        with self._cond:
+            if self._frame is None and not self._done:
+                self._cond.wait(timeout)
+            f, self._frame = self._frame, None
+            return f, (self._done and f is None), self._error
+
+
+def _reader(source: Source, slot: _NewestFrameSlot, stats: LoopStats, stop: threading.Event) -> None:
+    try:
+        while not stop.is_set():
+            t0 = time.perf_counter()
+            f = source.read()
+            stats.add("source", time.perf_counter() - t0)
+            if f is None:
+                break
+            slot.put(f)
+        slot.finish()
+    except BaseException as e:  # handed to the loop thread, which decides (EndOfStream, strict...)
+        slot.finish(e)
+
+
+@contextlib.contextmanager
+def _signals_stop(stop: threading.Event, enabled: bool):
+    """SIGINT/SIGTERM -> ``stop`` while the loop runs (main thread only); restore handlers after."""
+    if not enabled or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, _frame):
+        if stop.is_set():  # second signal: the user really wants out now
+            raise KeyboardInterrupt
+        log.info("%s received: stopping after this frame and finalising outputs (again to abort)",
+                 signal.Signals(signum).name)
+        stop.set()
+
+    previous = {}
+    for s in (signal.SIGINT, signal.SIGTERM):
+        previous[s] = signal.signal(s, handler)
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+def _name(component: Any, fallback: str) -> str:
+    return getattr(component, "name", None) or fallback
+
+
+class _FailureLog:
+    """Logs the first failure of each kind in full (with advice), later ones only at debug level."""
+
+    def __init__(self) -> None:
+        self.seen: set[str] = set()
+
+    def report(self, key: str, frame: Frame | None, err: BaseException, what_next: str) -> None:
+        where = f"frame {frame.seq}" if frame is not None else "before the first frame"
+        if key in self.seen:
+            log.debug("%s failed again on %s: %s", key, where, err)
+            return
+        self.seen.add(key)
+        log.error(
+            "%s failed on %s: %s: %s. %s This is logged once per kind; the count is in the final "
+            "statistics. To stop at the first failure with a traceback use --strict ([logging] strict = true); "
+            "--log-level debug logs every occurrence.",
+            key.split(": ")[0], where, type(err).__name__, err, what_next,
+        )
+
+    def report_skip(self, key: str, frame: Frame) -> None:
+        """A stage skipped because a result it requires is missing (its producer failed)."""
+        if key in self.seen:
+            return
+        self.seen.add(key)
+        stage, _, what = key.partition(": ")
+        log.warning("%s skipped on frame %d: %s (its producer failed on this frame and had no earlier result); "
+                    "the frame goes on with this stage's last good result. Logged once per kind.",
+                    stage, frame.seq, what)
+
+
+def run_loop(
+    source: Source,
+    stages: Sequence[Stage],
+    sinks: Sequence[Sink],
+    *,
+    strict: bool = False,
+    max_frames: int = 0,
+    stop_event: threading.Event | None = None,
+    on_stats: Callable[[dict[str, Any]], None] | None = None,
+    stats: LoopStats | None = None,
+    stats_interval_s: float = 1.0,
+    install_signals: bool = True,
+) -> LoopStats:
+    """Run ``source`` through ``stages`` into ``sinks`` until the stream ends or a stop is requested.
+
+    Opens the source, the stages and the sinks (in that order) and always closes them in reverse
+    order -- sinks first, so recordings and videos are finalised even after an error or a signal.
+
+    Parameters
+    ----------
+    source : Source
+        Unopened source; ``source.live`` selects flow limiting (newest frame wins, drops counted).
+    stages : sequence of Stage
+        Applied in order; each returns a new frame with its results added.
+    sinks : sequence of Sink
+        Each gets every processed frame.
+    strict : bool
+        Re-raise the first stage or sink failure instead of counting it (tests).
+    max_frames : int
+        Stop after this many processed frames (0 = no limit).
+    stop_event : threading.Event, optional
+        Set it (from any thread) to stop after the current frame. SIGINT/SIGTERM set it too.
+    on_stats : callable, optional
+        Called with :meth:`LoopStats.snapshot` every ``stats_interval_s`` seconds and at the end.
+    stats : LoopStats, optional
+        Use this object (e.g. created earlier so a status page can poll its ``snapshot``).
+    install_signals : bool
+        Install SIGINT/SIGTERM handlers (only effective in the main thread).
+
+    Returns
+    -------
+    LoopStats
+        Counters and timing; ``format_stats()`` for the table, ``to_json()`` for JSON.
+
+    Raises
+    ------
+    Exception
+        With ``strict=True`` the first failure; always: errors of ``open``/``read`` other than
+        :class:`~illuminet.runtime.stage.EndOfStream` (which ends the stream with a logged error).
+    """
+    stats = stats if stats is not None else LoopStats()
+    stop = stop_event if stop_event is not None else threading.Event()
+    failures = _FailureLog()
+    chain = StageChain(stages, strict=strict, source=source)  # checks the wiring before anything opens
+    sink_names = [_name(s, f"sink{i}") for i, s in enumerate(sinks)]
+
+    def stage_time(name: str, seconds: float) -> None:
+        stats.add(f"stage:{name}", seconds)
+    reader_stop = threading.Event()
+    reader: threading.Thread | None = None
+    slot: _NewestFrameSlot | None = None
+    next_report = time.perf_counter() + stats_interval_s
+    reason = "end of stream"
+
+    def report() -> None:
+        try:
+            stats.set_source_stats(source.stats())
+            if slot is not None:
+                stats.set_dropped(slot.dropped)
+            if on_stats is not None:
+                on_stats(stats.snapshot())
+        except Exception as e:  # statistics must never stop the stream
+            if strict:
+                raise
+            failures.report(f"stats: {type(e).__name__}", current[0], e, "Statistics may be stale.")
+
+    current: list[Frame | None] = [None]  # the frame being processed, for messages
+
+    # signal handlers stay installed until everything is closed: a SIGTERM during finalisation must
+    # not kill the process with the default handler half-way through closing a recording
+    with _signals_stop(stop, install_signals), contextlib.ExitStack() as stack:
+        # close order is the reverse of this: sinks, stages, reader stop, source, last reader join.
+        # The reader thread may be blocked inside read() (waiting for a camera, or replay sleeping
+        # until a timestamp): it gets a moment to notice the stop, then closing the source unblocks it.
+        @stack.callback
+        def _join_reader() -> None:
+            if reader is not None:
+                reader.join(timeout=2.0)
+                if reader.is_alive():
+                    log.warning("source %r did not return from read() within 2 s of being closed",
+                                _name(source, "source"))
+
+        stack.enter_context(source)
+
+        @stack.callback
+        def _stop_reader() -> None:
+            reader_stop.set()
+            if reader is not None:
+                reader.join(timeout=0.5)
+
+        for st in stages:
+            stack.enter_context(st)
+        for sk in sinks:
+            stack.enter_context(sk)
+
+        if getattr(source, "live", False):
+            slot = _NewestFrameSlot()
+            reader = threading.Thread(target=_reader, args=(source, slot, stats, reader_stop),
+                                      name="illuminet-source-reader", daemon=True)
+        stats.start()
+        if reader is not None:
+            reader.start()
+        try:
+            while True:
+                if stop.is_set():
+                    reason = "stopped"
+                    break
+                if max_frames and stats.frames >= max_frames:
+                    reason = "max_frames"
+                    break
+                # ---- next frame
+                if slot is not None:
+                    frame, finished, err = slot.take(timeout=0.1)
+                    if err is not None and frame is None:
+                        if isinstance(err, EndOfStream):
+                            log.error("source ended: %s", err)
+                            reason = f"source error: {err}"
+                            break
+                        raise err
+                    if finished:
+                        break
+                    if frame is None:  # timed out: check the stop flags again
+                        if time.perf_counter() >= next_report:
+                            report()
+                            next_report = time.perf_counter() + stats_interval_s
+                        continue
+                    t_frame = time.perf_counter()
+                else:
+                    t_frame = time.perf_counter()
+                    try:
+                        frame = source.read()
+                    except EndOfStream as e:
+                        log.error("source ended: %s", e)
+                        reason = f"source error: {e}"
+                        break
+                    stats.add("source", time.perf_counter() - t_frame)
+                    if frame is None:
+                        break
+                # ---- stages (StageChain: the one failure / missing-input policy)
+                current[0] = frame
+                frame, events = chain.run(frame, on_time=stage_time)
+                counted = False
+                for ev in events:
+                    stats.count_failure(ev.key, frame_failed=ev.kind == "failed" and not counted)
+                    counted = counted or ev.kind == "failed"
+                    if ev.kind == "failed":
+                        failures.report(ev.key, frame, ev.error, "The frame goes on with this stage's last good result.")
+                    else:
+                        failures.report_skip(ev.key, frame)
+                # ---- sinks
+                for k, sk in enumerate(sinks):
+                    t0 = time.perf_counter()
+                    try:
+                        sk.write(frame)
+                    except Exception as e:
+                        if strict:
+                            raise
+                        key = f"sink:{sink_names[k]}: {type(e).__name__}"
+                        stats.count_failure(key, frame_failed=False)
+                        failures.report(key, frame, e, "This frame is missing from that output.")
+                    finally:
+                        stats.add(f"sink:{sink_names[k]}", time.perf_counter() - t0)
+                stats.add("total", time.perf_counter() - t_frame)
+                stats.frame_done()
+                if time.perf_counter() >= next_report:
+                    report()
+                    next_report = time.perf_counter() + stats_interval_s
+        except BaseException as e:
+            reason = f"error: {type(e).__name__}: {e}" if not isinstance(e, KeyboardInterrupt) else "interrupted"
+            raise
+        finally:
+            stats.stop(reason)
+            try:
+                report()
+            except Exception:  # strict: a failing stats callback must not hide the real outcome
+                log.exception("stats callback failed")
+    # after close: the source's final counters (e.g. frames it dropped itself)
+    try:
+        stats.set_source_stats(source.stats())
+    except Exception:  # pragma: no cover
+        pass
+    return stats

@@ -1,0 +1,59 @@
+"""The package list in pyproject.toml covers every folder with Python code, and a built wheel imports."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tomllib
+import zipfile
+
+import pytest
+
+from .conftest import REPO
+
+
+def _declared():
+    cfg = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    return cfg["packages"], cfg["package-dir"]
+
+
+def _folder(pkg: str, package_dir: dict[str, str]) -> str:
+    """The source folder of ``pkg`` under the package-dir mapping (longest mapped prefix wins)."""
+    best = max((p for p in package_dir if pkg == p or pkg.startswith(p + ".")), key=len)
+    rest = pkg[len(best):].lstrip(".")
+    return "/".join([package_dir[best]] + ([rest.replace(".", "/")] if rest else []))
+
+
+def test_every_python_folder_is_a_declared_package():
+    packages, package_dir = _declared()
+    declared = {_folder(p, package_dir) for p in packages}
+    on_disk = set()
+    for top in ("illuminet", "runtime", "hw", "models", "calibration"):
+        for init in (REPO / top).rglob("__init__.py"):
+            on_disk.add(str(init.parent.relative_to(REPO)))
+    assert on_disk - declared == set(), f"folders missing from pyproject's packages: {sorted(on_disk - declared)}"
+    assert declared - on_disk == set(), f"declared packages without a folder: {sorted(declared - on_disk)}"
+    for d in on_disk:  # a folder of modules without __init__.py would silently drop out of the wheel
+        for py in (REPO / d).iterdir():
+            if py.is_dir() and any(py.glob("*.py")):
+                assert (py / "__init__.py").is_file(), f"{py.relative_to(REPO)} has modules but no __init__.py"
+
+
+@pytest.mark.slow
+def test_built_wheel_imports_every_package(tmp_path):
+    """Build the wheel (no network: the build backend is already installed), install it into a fresh
+    target folder and import every declared package from there."""
+    packages, _ = _declared()
+    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
+                        "-w", str(tmp_path / "dist"), str(REPO)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    whl = next((tmp_path / "dist").glob("illuminet-*.whl"))
+    names = zipfile.ZipFile(whl).namelist()
+    for p in packages:
+        assert p.replace(".", "/") + "/__init__.py" in names, f"{p} is not in the wheel"
+    assert any(n.startswith("illuminet/models/bundles/") for n in names), "the shipped bundles are not in the wheel"
+    zipfile.ZipFile(whl).extractall(tmp_path / "site")
+    code = "import importlib,sys; [importlib.import_module(p) for p in sys.argv[1:]]; import illuminet.cli"
+    r = subprocess.run([sys.executable, "-c", code, *packages], capture_output=True, text=True, timeout=120,
+                       cwd=tmp_path, env={"PYTHONPATH": str(tmp_path / "site"), "PATH": "/usr/bin:/bin"})
+    assert r.returncode == 0, r.stderr[-2000:]
