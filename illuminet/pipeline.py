@@ -16,7 +16,7 @@ from illuminet.runtime.stage import Sink, Stage
 
 
 def build_stages(cfg: Config, *, render: bool = True) -> list[Stage]:
-    """Planes -> anchor -> plane light -> shading -> render, as configured (unopened).
+    """Planes -> anchor -> plane light -> light estimate -> shading -> render, as configured (unopened).
 
     Parameters
     ----------
@@ -43,8 +43,12 @@ def build_stages(cfg: Config, *, render: bool = True) -> list[Stage]:
     # full_masks=False: no stage of this chain reads Plane.inlier_mask at full resolution (the anchor
     # uses the cloud-resolution cloud_mask); upsampling one mask per plane cost ~1.4 ms per 1280x800
     # frame (profile of `illuminet bench demo`)
-    stages += [PlaneStage(cfg, full_masks=False), AnchorStage(cfg), PlaneLightStage(cfg, response_lut=lut),
-               ShadingStage(cfg)]
+    stages += [PlaneStage(cfg, full_masks=False), AnchorStage(cfg), PlaneLightStage(cfg, response_lut=lut)]
+    if cfg.light.enabled:
+        from illuminet.runtime.stages.light_estimate import LightEstimateStage
+
+        stages.append(LightEstimateStage(cfg, response_lut=lut))
+    stages.append(ShadingStage(cfg))
     if render:
         from illuminet.runtime.render.stage import RenderStage
 

@@ -57,7 +57,7 @@ def test_default_chain_is_wired_and_every_key_is_declared():
         for k in (*st.requires, *st.optional, *st.provides):
             assert RESULT_KEYS[k.name] is k
     names = [s.name for s in stages]
-    assert names == ["planes", "anchor", "plane_light", "shading"]
+    assert names == ["planes", "anchor", "plane_light", "light", "shading"]
 
 
 def test_missing_producer_names_both_stages():
@@ -66,7 +66,7 @@ def test_missing_producer_names_both_stages():
     with pytest.raises(PipelineError, match=r"stage 'consumer' reads results\['planes'\], which stage 'producer' "
                                             r"provides only after it: put 'producer' before 'consumer'"):
         check_chain([_Consumer(), _Producer()])
-    with pytest.raises(PipelineError, match="shading"):
+    with pytest.raises(PipelineError, match=r"requires results\[.plane_light.\]"):
         StageChain([s for s in build_stages(defaults(), render=False) if s.name != "plane_light"])
 
 

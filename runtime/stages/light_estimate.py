@@ -1,0 +1,673 @@
+"""The per-frame lighting estimate: the room's light at the anchor, from everything the frame shows.
+
+What this module owns
+---------------------
+:class:`LightEstimateStage` reads the anchor, the plane light and the frame's colour and depth, and
+writes a :class:`~illuminet.runtime.scene.LightEstimate` (results key ``LIGHT``): ambient irradiance
+as SH9 x RGB plus one primary light, in the anchor's gravity-aligned object frame (+Y up).
+
+Observations (each switchable in ``[light]`` for the ablation in ``illuminet eval``)
+------------------------------------------------------------------------------------
+* **environment** -- every valid pixel of the depth cloud is a surface point whose radiance the camera
+  measures (linear pixel / exposure scale). Seen from the object's centre it is the radiance arriving
+  from that direction: walls, the floor around the object (its bounce onto the object's underside),
+  furniture. Pixels without depth (sky, windows, far) arrive from the camera ray's direction. The
+  samples are binned on a latitude-longitude grid in the object frame and fused over frames: the
+  object frame is world-locked (odometry), so looking around fills the map (ARKit's environment
+  texturing, LitAR). The radiance is used as measured: no albedo assumption.
+* **planes** -- the irradiance of every tracked plane (the anchor plane's fused grid from
+  :class:`~illuminet.runtime.stages.plane_light.PlaneLightStage`, and pixel samples of the other
+  planes: walls, table tops) with each plane's normal: a wall sees directions the floor cannot.
+  Irradiance needs an albedo: ``[plane_light] assumed_albedo``, with the plane's colour divided by
+  the scene's illuminant colour (grey world over all surfaces) so that a beige floor does not make a
+  beige light.
+* **near light** -- a lamp near the object makes the irradiance on the planes fall off as
+  ``cos / r^2``: a grid search over light positions, scored by how much of the planes' spatial
+  variation ``max(0, n.(p-x)) / |p-x|^3`` explains (with a per-plane intercept for the ambient part,
+  so albedo and distant light do not matter), refined locally every frame. This gives direction,
+  distance and (from the fit's slope against the intercepts) the primary/ambient split and colour.
+* **emitters** -- bins far brighter than the rest of the map (a lamp shade, a window, the sky's sun
+  region) give a direction.
+* **shadows** -- (when :mod:`illuminet.runtime.stages.shadow_cue` is present) real cast shadows
+  scored against the caster geometry from depth: the sun's azimuth on a uniform floor.
+
+Solve
+-----
+For the chosen primary light (a near position, a direction, or none), one weighted linear least
+squares gives the ambient *radiance* SH (9 x RGB) and the primary's RGB irradiance together: the
+environment bins constrain the radiance directly (rows ``Y(w) . L = L_bin``); the plane samples
+constrain its cosine convolution plus the primary's term (rows ``A_hat Y(n) . L + g . E_p = E``);
+a Laplacian band penalty keeps unseen directions smooth. Without any cue for a primary light, the
+primary is extracted from the first SH band (direction of the luminance gradient), with a confidence
+that says how directional the light is.
+
+Temporal filter: exponential in time (``[light] time_constant_s``, default 0.12 s: a light switched on
+or off is followed within 0.5 s, to 98 %), reset when the anchor is placed again.
+
+Costs on this machine (``illuminet bench light``): see docs/lighting.md.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import logging
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from illuminet.runtime.frame import Frame
+from illuminet.runtime.physics import linearize
+from illuminet.runtime.scene import ANCHOR, LIGHT, ODOMETRY, PLANE_LIGHT, PLANES, Anchor, LightEstimate, PlaneLight
+from illuminet.runtime.sh import SH_A_HAT, sh9
+from illuminet.runtime.stage import LogOnce, Stage
+
+log = logging.getLogger(__name__)
+
+LUMA = np.array([0.2126, 0.7152, 0.0722])
+_BAND = np.array([0, 1, 1, 1, 2, 2, 2, 2, 2])
+
+#: latitude-longitude bins of the environment map (theta from +Y, phi around it)
+ENV_THETA, ENV_PHI = 12, 24
+#: where the object is summarised (object frame, metres): a little above the plane
+CENTRE = np.array([0.0, 0.1, 0.0])
+#: depth beyond this (m) is treated as distant (its direction from the camera ray)
+FAR_M = 8.0
+#: candidate lamp positions of the coarse near-light search (object frame, metres)
+_NEAR_XZ = np.linspace(-1.2, 1.2, 13)
+_NEAR_Y = np.array([0.12, 0.3, 0.55, 0.9, 1.4])
+NEAR_GRID = np.stack([a.ravel() for a in np.meshgrid(_NEAR_XZ, _NEAR_Y, _NEAR_XZ, indexing="ij")], 1)
+#: plane samples the near-light fit uses per frame (a random subset, fixed per frame number)
+NEAR_ROWS = 300
+
+
+def _subsample(n: int, k: int, seed: int) -> np.ndarray:
+    """Indices of at most ``k`` of ``n`` rows, deterministic per ``seed`` (replays are repeatable)."""
+    if n <= k:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(seed).choice(n, k, replace=False))
+
+
+def _bin_geometry() -> tuple[np.ndarray, np.ndarray]:
+    """Centre directions (B, 3) and solid angles (B,) of the lat-long bins."""
+    t0 = np.arange(ENV_THETA) * np.pi / ENV_THETA
+    t1 = t0 + np.pi / ENV_THETA
+    tc = 0.5 * (t0 + t1)
+    pc = (np.arange(ENV_PHI) + 0.5) * 2 * np.pi / ENV_PHI - np.pi
+    T, P = np.meshgrid(tc, pc, indexing="ij")
+    dirs = np.stack([np.sin(T) * np.cos(P), np.cos(T), np.sin(T) * np.sin(P)], -1).reshape(-1, 3)
+    omega = np.repeat((np.cos(t0) - np.cos(t1)) * 2 * np.pi / ENV_PHI, ENV_PHI)
+    return dirs, omega
+
+
+BIN_DIRS, BIN_OMEGA = _bin_geometry()
+
+
+def bin_index(w: np.ndarray) -> np.ndarray:
+    """Lat-long bin of unit directions (N, 3), object frame (+Y up)."""
+    th = np.arccos(np.clip(w[:, 1], -1.0, 1.0))
+    ph = np.arctan2(w[:, 2], w[:, 0])
+    i = np.minimum((th * (ENV_THETA / np.pi)).astype(np.int64), ENV_THETA - 1)
+    j = np.minimum(((ph + np.pi) * (ENV_PHI / (2 * np.pi))).astype(np.int64), ENV_PHI - 1)
+    return i * ENV_PHI + j
+
+
+@dataclass
+class Samples:
+    """One frame's pixel samples in the object frame."""
+
+    radiance: np.ndarray  # (N, 3) scene-referred linear RGB
+    direction: np.ndarray  # (N, 3) unit, from CENTRE towards the sample (object frame)
+    position: np.ndarray | None  # (N, 3) object-frame point, NaN rows for distant samples
+    plane: np.ndarray  # (N,) index into the frame's planes tuple, -1 when on none
+    saturated: np.ndarray  # (N,) bool: some channel at the top of the range
+
+
+def frame_samples(frame: Frame, anchor: Anchor, exposure_scale: float, planes: tuple,
+                  response_lut: np.ndarray | None = None, stride: int = 2) -> Samples:
+    """Pixel samples on the planes' depth-cloud grid (every ``stride``-th cloud point).
+
+    The cloud grid is the one :class:`~illuminet.runtime.stages.planes.PlaneStage` fitted planes on
+    (``Plane.cloud_stride`` depth pixels per cloud point), so plane membership comes for free.
+    """
+    depth = frame.depth
+    H, W = frame.color.shape[:2]
+    if depth is None:
+        cs = max(1, int(round(W / 160)))
+        dH, dW = H, W
+    else:
+        dH, dW = depth.shape[:2]
+        cs = next((p.cloud_stride for p in planes if getattr(p, "cloud_stride", 0)), max(1, int(round(dW / 160))))
+    s = cs * stride
+    vv, uu = np.mgrid[0:dH:s, 0:dW:s]
+    sy, sx = H / dH, W / dW
+    cu = np.minimum((uu * sx).astype(np.int64), W - 1)
+    cv = np.minimum((vv * sy).astype(np.int64), H - 1)
+    lin = linearize(frame.color[cv, cu], response_lut).reshape(-1, 3).astype(np.float64)
+    sat = (frame.color[cv, cu].reshape(-1, 3) >= 250).any(1)
+    intr = frame.intrinsics
+    if (intr.width, intr.height) != (W, H):
+        intr = intr.scaled(W, H)
+    x = ((uu * sx).ravel() - intr.cx) / intr.fx
+    y = ((vv * sy).ravel() - intr.cy) / intr.fy
+    rays = np.stack([x, y, np.ones_like(x)], 1)
+    if depth is not None:
+        z = np.asarray(depth[vv, uu], np.float64).ravel()
+        if depth.dtype == np.uint16:
+            z = z * 0.001
+    else:
+        z = np.zeros(len(x))
+    near = np.isfinite(z) & (z > 0.05) & (z < FAR_M)
+    R, t = anchor.R, anchor.t
+    pts = (rays * np.where(near, z, 0.0)[:, None] - t) @ R  # object frame
+    pts[~near] = np.nan
+    w = np.where(near[:, None], pts - CENTRE, rays @ R)
+    w /= np.maximum(np.linalg.norm(w, axis=1, keepdims=True), 1e-12)
+    plane_idx = np.full(len(x), -1, np.int64)
+    if depth is not None:
+        ci, cj = (vv // cs).ravel(), (uu // cs).ravel()
+        for k, p in enumerate(planes):
+            m = getattr(p, "cloud_mask", None)
+            if m is None:
+                continue
+            ok = (ci < m.shape[0]) & (cj < m.shape[1])
+            on = np.zeros(len(x), bool)
+            on[ok] = m[ci[ok], cj[ok]]
+            plane_idx[on & near] = k
+    return Samples(radiance=lin / max(exposure_scale, 1e-12), direction=w, position=pts, plane=plane_idx,
+                   saturated=sat)
+
+
+class EnvMap:
+    """Radiance per lat-long bin, fused over frames (object frame, so world-locked)."""
+
+    def __init__(self, keep: float = 0.9) -> None:
+        self.keep = keep
+        self.reset()
+
+    def reset(self) -> None:
+        n = ENV_THETA * ENV_PHI
+        self.radiance = np.zeros((n, 3))
+        self.weight = np.zeros(n)
+        self.saturated = np.zeros(n)
+
+    def update(self, s: Samples) -> None:
+        idx = bin_index(s.direction)
+        n = ENV_THETA * ENV_PHI
+        cnt = np.bincount(idx, minlength=n).astype(np.float64)
+        tot = np.stack([np.bincount(idx, s.radiance[:, c], minlength=n) for c in range(3)], 1)
+        sat = np.bincount(idx, s.saturated.astype(np.float64), minlength=n)
+        seen = cnt > 0
+        mean = tot[seen] / cnt[seen, None]
+        # a bin seen now is mostly this frame's value (lights change); unseen bins keep their memory
+        old = self.weight[seen] > 0
+        a = np.where(old, self.keep, 0.0)[:, None]
+        self.radiance[seen] = a * self.radiance[seen] + (1 - a) * mean
+        self.saturated[seen] = a[:, 0] * self.saturated[seen] + (1 - a[:, 0]) * (sat[seen] / cnt[seen])
+        self.weight[seen] = np.minimum(self.weight[seen] + cnt[seen], 50.0)
+
+    @property
+    def seen(self) -> np.ndarray:
+        return self.weight > 0
+
+    def coverage(self) -> float:
+        return float(BIN_OMEGA[self.seen].sum() / (4 * np.pi))
+
+
+def _near_basis(pos: np.ndarray, x: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """cos / r^2 of point lights at ``pos`` (C, 3) seen from points ``x`` (K, 3) with normals ``n``: (C, K)."""
+    d = pos[:, None, :] - x[None, :, :]
+    r2 = np.maximum((d * d).sum(-1), 1e-4)
+    cos = np.maximum((d * n[None]).sum(-1), 0.0) / np.sqrt(r2)
+    return cos / r2
+
+
+def _centred(v: np.ndarray, groups: np.ndarray, w: np.ndarray, G: int) -> np.ndarray:
+    """Subtract each group's weighted mean along the last axis."""
+    sw = np.bincount(groups, w, minlength=G)
+    if v.ndim == 1:
+        m = np.bincount(groups, v * w, minlength=G) / np.maximum(sw, 1e-12)
+        return v - m[groups]
+    out = np.empty_like(v)
+    for c in range(v.shape[0]):
+        m = np.bincount(groups, v[c] * w, minlength=G) / np.maximum(sw, 1e-12)
+        out[c] = v[c] - m[groups]
+    return out
+
+
+@dataclass
+class NearFit:
+    position: np.ndarray
+    r2: float  # share of the planes' spatial variation the lamp explains
+    slope: np.ndarray  # (3,) RGB intensity (irradiance * m^2) of the lamp
+    intercepts: np.ndarray  # (G, 3) per-plane ambient irradiance
+
+
+def fit_near_light(x: np.ndarray, n: np.ndarray, e: np.ndarray, w: np.ndarray, groups: np.ndarray,
+                   seeds: np.ndarray) -> NearFit | None:
+    """Point light explaining the spatial variation of plane irradiance (see module docstring).
+
+    Parameters
+    ----------
+    x, n : (K, 3) sample positions and normals (object frame); e : (K, 3) RGB irradiance;
+    w : (K,) weights; groups : (K,) plane index per sample;
+    seeds : (S, 3) candidate positions to start from (a slice of the coarse grid and the last answer):
+        the best of them is refined locally (3x3x3 steps, halved twice).
+    """
+    G = int(groups.max()) + 1 if len(groups) else 0
+    if len(x) < 30 or len(seeds) == 0:
+        return None
+    x = x.astype(np.float32)
+    n = n.astype(np.float32)
+    lum = (e @ LUMA).astype(np.float32)
+    w = w.astype(np.float32)
+    oc = _centred(lum, groups, w, G)
+    var = float((w * oc * oc).sum())
+    if var <= 1e-12:
+        return None
+
+    def score(cands: np.ndarray) -> np.ndarray:
+        g = _near_basis(cands.astype(np.float32), x, n)
+        gc = _centred(g, groups, w, G)
+        num = gc @ (w * oc)
+        den = (gc * gc) @ w
+        return np.where((num > 0) & (den > 1e-12), num * num / np.maximum(den, 1e-12) / var, 0.0)
+
+    r2 = score(seeds)
+    best = seeds[np.argsort(r2)[-2:]]
+    step = np.array([0.1, 0.1, 0.1])
+    offs = np.stack(np.meshgrid(*([np.array([-1.0, 0.0, 1.0])] * 3), indexing="ij"), -1).reshape(-1, 3)
+    for _ in range(2):
+        cands = (best[:, None, :] + (offs * step)[None]).reshape(-1, 3)
+        cands[:, 1] = np.maximum(cands[:, 1], 0.05)
+        r2 = score(cands)
+        best = cands[np.argsort(r2)[-1:]]
+        step = step / 2
+    p = best[-1].astype(np.float64)
+    r2 = float(score(best[-1:])[0])
+    g = _near_basis(p[None], x.astype(np.float64), n.astype(np.float64))[0]
+    w64 = w.astype(np.float64)
+    gc = _centred(g, groups, w64, G)
+    den = max(float((w64 * gc * gc).sum()), 1e-12)
+    slope = np.array([(w64 * gc * _centred(e[:, c], groups, w64, G)).sum() / den for c in range(3)])
+    sw = np.maximum(np.bincount(groups, w64, minlength=G), 1e-12)
+    inter = np.stack([np.bincount(groups, w64 * (e[:, c] - slope[c] * g), minlength=G) / sw for c in range(3)], 1)
+    return NearFit(position=p, r2=r2, slope=slope, intercepts=inter)
+
+
+def _sh_extract_primary(L_rad: np.ndarray) -> tuple[np.ndarray | None, float]:
+    """Direction of the luminance gradient of radiance SH and how directional the light is (0-1)."""
+    lum = L_rad @ LUMA
+    d = np.array([lum[3], lum[1], lum[2]])  # (x, y, z) from Y11, Y1-1, Y10
+    nd = float(np.linalg.norm(d))
+    if nd <= 1e-12 or lum[0] <= 1e-12:
+        return None, 0.0
+    # a single direction gives |L1| / L0 = 0.4886 / 0.2821 = sqrt(3); uniform light gives 0
+    return d / nd, float(np.clip(nd / lum[0] / math.sqrt(3.0), 0.0, 1.0))
+
+
+class LightEstimateStage(Stage):
+    """Estimates the room's lighting at the anchor every frame; writes ``results["light"]``.
+
+    Parameters
+    ----------
+    cfg : Config
+        ``[light]`` (cues on/off, filter) and ``[plane_light] assumed_albedo``.
+    response_lut : (256, 3) array, optional
+        Camera response (else sRGB), as the plane light stage uses.
+    """
+
+    name = "light"
+    requires = (ANCHOR, PLANE_LIGHT)
+    optional = (PLANES, ODOMETRY)
+    provides = (LIGHT,)
+
+    def __init__(self, cfg, response_lut: np.ndarray | None = None) -> None:
+        c = cfg.light
+        self.use_env, self.use_planes, self.use_near = bool(c.environment), bool(c.planes), bool(c.near_light)
+        self.use_emitters, self.use_shadows = bool(c.emitters), bool(c.shadows)
+        self.tau = float(c.time_constant_s)
+        self.search_every = max(1, int(c.search_every))
+        self.lam = float(c.smoothness)
+        self.albedo = float(cfg.plane_light.assumed_albedo)
+        if not 0 < self.albedo <= 1:
+            raise ValueError(f"[plane_light] assumed_albedo: expected a number in (0, 1], got {self.albedo!r}")
+        self.lut = response_lut
+        self.env = EnvMap()
+        self._warn = LogOnce(log, "light")
+        self._near: NearFit | None = None
+        self._shadow_prior: np.ndarray | None = None
+        self._state: dict[str, Any] | None = None
+        self._t_prev: int | None = None
+        self._anchor_T: np.ndarray | None = None
+        self.frames = 0
+        self.skipped = 0
+        self.ms: list[float] = []
+        rate = float(c.rate_hz)
+        self.period_ns = int(1e9 / rate) if rate > 0 else 0
+        self._last: LightEstimate | None = None
+        self._t_est: int | None = None
+        self.pipelined = bool(c.pipelined)
+        self._pool: concurrent.futures.ThreadPoolExecutor | None = None
+        self._pending: concurrent.futures.Future | None = None
+
+    # ------------------------------------------------------------------ per frame
+
+    def open(self) -> None:
+        if self.pipelined and self._pool is None:
+            self._pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="illuminet-light")
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+        self._pending = None
+
+    def process(self, frame: Frame) -> Frame:
+        """Schedule (``[light] rate_hz``) and, when ``pipelined``, overlap the estimate with the loop.
+
+        An update is due when ``1 / rate_hz`` has passed in the frames' own timestamps (so a replay
+        gives the same estimates however fast it runs). Pipelined, the estimate computed from the
+        frame of one update is collected at the next update (one period later: 0.1 s at 10 Hz) while
+        a worker thread computes the next one; the output is the same whatever the machine's speed.
+        Frames in between reuse the last estimate with their own anchor pose.
+        """
+        anchor: Anchor = self.require(frame, ANCHOR)
+        pl: PlaneLight = self.require(frame, PLANE_LIGHT)
+        t = frame.t_device_ns or frame.t_host_ns
+        due = (self._last is None or self.period_ns <= 0 or t is None or self._t_est is None
+               or not 0 <= t - self._t_est < self.period_ns or self._moved(anchor))
+        if due:
+            self._t_est = t
+            if self._pending is not None:
+                self._last = self._pending.result()
+                self._pending = None
+            if self._pool is not None and self._last is not None and not self._moved(anchor):
+                self._pending = self._pool.submit(self._estimate, frame, anchor, pl)
+            else:  # first estimate, a re-placed anchor, or not pipelined: compute now
+                self._last = self._estimate(frame, anchor, pl)
+        else:
+            self.skipped += 1
+        est = self._last if self._last.T_cam_obj is anchor.T_cam_obj else \
+            dataclasses.replace(self._last, T_cam_obj=anchor.T_cam_obj)
+        return frame.with_result(LIGHT, est)
+
+    def _estimate(self, frame: Frame, anchor: Anchor, pl: PlaneLight) -> LightEstimate:
+        """One estimate from one frame (the body of the stage; runs on the worker when pipelined)."""
+        t0 = time.perf_counter()
+        planes = tuple(frame.results.get(PLANES.name, ()))
+        self._maybe_reset(anchor, frame)
+        scale = float(pl.exposure_scale) if pl.exposure_scale and pl.exposure_scale > 0 else 1.0
+        s = frame_samples(frame, anchor, scale, planes, self.lut)
+        if self.use_env and not anchor.synthetic:
+            self.env.update(s)
+        illum = self._illuminant(s)
+        xs, ns, es, ws, gs, labels = self._plane_rows(pl, s, planes, anchor, illum)
+        cues: list[str] = []
+        primary_dir = primary_pos = None
+        near = None
+        if self.use_near and len(xs):
+            # the coarse search is spread over search_every frames (a lamp is fixed in the world), and
+            # the last answer is refined every frame; at most NEAR_ROWS samples keep it cheap.
+            k = self.frames % self.search_every
+            seeds = NEAR_GRID[k::self.search_every]  # the coarse grid, spread over search_every frames
+            if self._near is not None:
+                seeds = np.concatenate([seeds, self._near.position[None]])
+            sub = _subsample(len(xs), NEAR_ROWS, self.frames)
+            near = fit_near_light(xs[sub], ns[sub], es[sub], ws[sub], gs[sub], seeds)
+            if self._near is not None and near is not None and near.r2 < self._near.r2 - 0.2:
+                near = fit_near_light(xs[sub], ns[sub], es[sub], ws[sub], gs[sub], self._near.position[None])
+            self._near = near if (near is not None and near.r2 >= 0.3) else None
+        if near is not None and near.r2 >= 0.5 and np.linalg.norm(near.position - CENTRE) < 3.0:
+            primary_pos = near.position
+            v = near.position - CENTRE
+            primary_dir = v / np.linalg.norm(v)
+            cues.append("near_light")
+        shadow = None
+        if primary_dir is None and self.use_shadows:
+            shadow = self._shadow_cue(frame, anchor, planes, s)
+            if shadow is not None:
+                primary_dir = shadow[0]
+                cues.append("shadow")
+        emitters = 0
+        if primary_dir is None and self.use_emitters:
+            d, emitters = self._emitter()
+            if d is not None:
+                primary_dir = d
+                cues.append("emitter")
+        L_rad, E_p = self._solve(xs, ns, es, ws, primary_dir, primary_pos)
+        conf_dir = 0.0
+        if primary_dir is None:
+            d, directional = _sh_extract_primary(L_rad)
+            if d is not None and directional > 0.25:
+                # move the directional part of the ambient into a primary light (it casts the shadow)
+                primary_dir = d
+                cues.append("sh_gradient")
+                L_rad, E_p = self._solve(xs, ns, es, ws, primary_dir, None)
+                conf_dir = 0.5 * directional
+        else:
+            conf_dir = {"near_light": min(1.0, near.r2) if near else 0.0, "shadow": shadow[1] if shadow else 0.0,
+                        "emitter": 0.6}.get(cues[0], 0.5)
+        if primary_dir is not None and float(E_p @ LUMA) <= 0:
+            primary_dir, primary_pos, E_p, conf_dir = None, None, np.zeros(3), 0.0
+        raw = {"sh9": L_rad * SH_A_HAT[:, None], "dir": primary_dir, "rgb": E_p, "pos": primary_pos}
+        filt = self._filter(raw, frame)
+        obs = {"planes": len(set(labels)), "plane_labels": sorted(set(labels)),
+               "shadow": None if shadow is None else round(float(shadow[1]), 3),
+               "env_coverage": round(self.env.coverage(), 3), "emitters": int(emitters), "cues": cues}
+        n_rows = len(xs)
+        est = LightEstimate(
+            sh9=filt["sh9"].astype(np.float32),
+            primary_dir=None if filt["dir"] is None else filt["dir"].astype(np.float32),
+            primary_rgb=np.asarray(filt["rgb"], np.float32),
+            primary_pos=None if filt["pos"] is None else np.asarray(filt["pos"], np.float32),
+            confidence={"ambient": float(np.clip(0.3 + 0.7 * self.env.coverage() + 0.1 * (n_rows > 100), 0, 1)),
+                        "direction": float(conf_dir), "intensity": float(0.7 * conf_dir),
+                        "colour": float(np.clip(0.4 + 0.6 * self.env.coverage() * 2, 0, 1)),
+                        "position": float(near.r2) if (near is not None and primary_pos is not None) else 0.0},
+            observed=obs, exposure_scale=scale, method="scene", T_cam_obj=anchor.T_cam_obj,
+        )
+        self.frames += 1
+        self.ms.append((time.perf_counter() - t0) * 1e3)
+        if len(self.ms) > 2000:
+            del self.ms[:1000]
+        return est
+
+    # ------------------------------------------------------------------ pieces
+
+    def _moved(self, anchor: Anchor) -> bool:
+        """The anchor jumped (re-placed) since the last estimate: do not reuse it."""
+        T = self._last.T_cam_obj if self._last is not None else None
+        return T is None or float(np.linalg.norm(np.asarray(T)[:3, 3] - anchor.t)) > 0.3
+
+    def _maybe_reset(self, anchor: Anchor, frame: Frame) -> None:
+        """A new placement (the anchor jumped in the world) starts the map and the filter again."""
+        odo = frame.results.get(ODOMETRY.name)
+        T = anchor.T_cam_obj
+        if odo is not None and getattr(odo, "T_cam_world", None) is not None:
+            T = np.linalg.inv(odo.T_cam_world) @ T  # world pose of the object: fixed while locked
+        if self._anchor_T is not None and odo is not None:
+            if np.linalg.norm(T[:3, 3] - self._anchor_T[:3, 3]) > 0.15:
+                self.env.reset()
+                self._state = None
+                self._near = None
+        elif self._anchor_T is not None and odo is None:
+            # camera-locked anchor: the object frame moves with the camera; keep the map short-lived
+            self.env.keep = 0.5
+        self._anchor_T = T
+
+    def _illuminant(self, s: Samples) -> np.ndarray:
+        """Scene illuminant chroma (unit luminance RGB) by grey world over all surface samples."""
+        rad = s.radiance[np.isfinite(s.position[:, 0]) & ~s.saturated]
+        if len(rad) < 20:
+            return np.ones(3)
+        m = rad.mean(0)
+        lum = float(m @ LUMA)
+        if lum <= 1e-12:
+            return np.ones(3)
+        c = m / lum
+        return np.clip(c, 0.2, 5.0)
+
+    def _plane_rows(self, pl: PlaneLight, s: Samples, planes: tuple, anchor: Anchor, illum: np.ndarray):
+        """Plane irradiance observations: positions, normals, RGB irradiance, weights, plane groups."""
+        xs, ns, es, ws, gs, labels = [], [], [], [], [], []
+        if not self.use_planes and not self.use_near:
+            z3 = np.zeros((0, 3))
+            return z3, z3, z3, np.zeros(0), np.zeros(0, np.int64), labels
+        g = 0
+        slices = pl.plane_slices or (slice(0, len(pl.irradiance)),)
+        for k, sl in enumerate(slices):
+            m = np.asarray(pl.mask[sl], bool)
+            if m.sum() < 8:
+                continue
+            e = np.asarray(pl.irradiance[sl], np.float64)[m]
+            xs.append(np.asarray(pl.vertices[sl], np.float64)[m])
+            ns.append(np.asarray(pl.normals[sl], np.float64)[m])
+            es.append(self._neutral(e, illum))
+            conf = np.asarray(pl.confidence[sl], np.float64)[m] if pl.confidence is not None else np.ones(m.sum())
+            ws.append(np.clip(conf, 0.05, 1.0))
+            gs.append(np.full(m.sum(), g))
+            labels.append(pl.labels[k] if k < len(pl.labels) else "plane")
+            g += 1
+        if self.use_planes and not anchor.synthetic:
+            R = anchor.R
+            for k, p in enumerate(planes):
+                if p.id == anchor.plane_id:
+                    continue  # measured by the plane light grid above
+                on = s.plane == k
+                if on.sum() < 20:
+                    continue
+                n_obj = np.asarray(p.normal, np.float64) @ R
+                e = s.radiance[on] * (np.pi / self.albedo)
+                xs.append(s.position[on])
+                ns.append(np.repeat(n_obj[None], on.sum(), 0))
+                es.append(self._neutral(e, illum))
+                ws.append(np.full(on.sum(), 0.5))
+                gs.append(np.full(on.sum(), g))
+                labels.append(p.label)
+                g += 1
+        if not xs:
+            z3 = np.zeros((0, 3))
+            return z3, z3, z3, np.zeros(0), np.zeros(0, np.int64), labels
+        return (np.concatenate(xs), np.concatenate(ns), np.concatenate(es), np.concatenate(ws),
+                np.concatenate(gs).astype(np.int64), labels)
+
+    @staticmethod
+    def _neutral(e: np.ndarray, illum: np.ndarray) -> np.ndarray:
+        """Divide a plane's mean colour out and give it the illuminant's (grey-world albedo)."""
+        m = e.mean(0)
+        lum = float(m @ LUMA)
+        if lum <= 1e-12:
+            return e
+        albedo_chroma = np.clip((m / lum) / illum, 0.2, 5.0)
+        return e / albedo_chroma
+
+    def _emitter(self) -> tuple[np.ndarray | None, int]:
+        """Direction of bins far brighter than the map's median (lamps, windows, the sun's region)."""
+        seen = self.env.seen
+        if seen.sum() < 10:
+            return None, 0
+        lum = self.env.radiance @ LUMA
+        med = float(np.median(lum[seen]))
+        hot = seen & (lum > 8.0 * max(med, 1e-9)) & (BIN_DIRS[:, 1] > -0.1)
+        if not hot.any():
+            return None, 0
+        w = lum[hot] * BIN_OMEGA[hot]
+        d = (BIN_DIRS[hot] * w[:, None]).sum(0)
+        nd = float(np.linalg.norm(d))
+        return (d / nd if nd > 0 else None), int(hot.sum())
+
+    def _shadow_cue(self, frame, anchor, planes, s) -> tuple[np.ndarray, float] | None:
+        try:
+            from illuminet.runtime.stages import shadow_cue
+        except ImportError:  # the shadow cue module is optional in this build
+            return None
+        return shadow_cue.from_stage(self, frame, anchor, planes, self.lut)
+
+    def _solve(self, xs, ns, es, ws, primary_dir, primary_pos) -> tuple[np.ndarray, np.ndarray]:
+        """Ambient radiance SH (9, 3) and primary RGB irradiance (3,) by one weighted least squares."""
+        rows, rhs, wts = [], [], []
+        has_p = primary_dir is not None
+        ncol = 10 if has_p else 9
+        env_scale = 1.0
+        if self.use_env and self.env.seen.any():
+            seen = self.env.seen
+            B = sh9(BIN_DIRS[seen])
+            L = self.env.radiance[seen].copy()
+            if has_p:  # the emitter itself is the primary light, not ambient
+                lum = L @ LUMA
+                med = float(np.median(lum))
+                L = np.where((lum > 8.0 * max(med, 1e-9))[:, None], med * L / np.maximum(lum, 1e-12)[:, None], L)
+            A = np.zeros((len(B), ncol))
+            A[:, :9] = B
+            rows.append(A)
+            rhs.append(L)
+            wts.append(BIN_OMEGA[seen] / (4 * np.pi) * 4.0)
+            env_scale = max(float(np.median(L @ LUMA)), 1e-9)
+        if len(xs) and self.use_planes:
+            B = sh9(ns) * SH_A_HAT[None, :]
+            A = np.zeros((len(xs), ncol))
+            A[:, :9] = B
+            if has_p:
+                if primary_pos is not None:
+                    A[:, 9] = _near_basis(primary_pos[None], xs, ns)[0] * float(np.sum((primary_pos - CENTRE) ** 2))
+                else:
+                    A[:, 9] = np.maximum(ns @ primary_dir, 0.0)
+            rows.append(A / np.pi)  # irradiance rows in radiance units, comparable with the bins
+            rhs.append(es / np.pi)
+            wts.append(ws / max(ws.sum(), 1e-12))
+        if not rows:
+            return np.zeros((9, 3)), np.zeros(3)
+        A = np.concatenate(rows)
+        b = np.concatenate(rhs)
+        w = np.sqrt(np.concatenate(wts))[:, None]
+        Aw, bw = A * w, b * w
+        G = Aw.T @ Aw
+        reg = np.zeros(ncol)
+        reg[:9] = (self.lam * (_BAND * (_BAND + 1.0)) ** 2 + 1e-6) * (np.trace(G[:9, :9]) / 9 + 1e-12)
+        reg[9:] = 1e-6 * (np.trace(G) / ncol + 1e-12)
+        # a weak prior towards uniform light at the map's level keeps a barely observed scene sane
+        prior = np.zeros((ncol, 3))
+        prior[0] = env_scale / 0.282095 if self.env.seen.any() else 0.0
+        sol = np.linalg.solve(G + np.diag(reg), Aw.T @ bw + reg[:, None] * prior)
+        L_rad = sol[:9]
+        E_p = np.maximum(sol[9], 0.0) if has_p else np.zeros(3)
+        return L_rad, E_p
+
+    def _filter(self, raw: dict, frame: Frame) -> dict:
+        """Exponential smoothing in time; direction by normalised blend, reset after a jump."""
+        t = frame.t_device_ns or frame.t_host_ns
+        if self._state is None or self._t_prev is None or t is None or t <= self._t_prev:
+            a = 0.0 if self._state is None else 0.6
+        else:
+            a = math.exp(-((t - self._t_prev) * 1e-9) / max(self.tau, 1e-6))
+        self._t_prev = t
+        prev = self._state
+        if prev is None or a == 0.0:
+            self._state = {k: (None if v is None else np.array(v, np.float64)) for k, v in raw.items()}
+            return self._state
+        out = {"sh9": a * prev["sh9"] + (1 - a) * raw["sh9"], "rgb": a * prev["rgb"] + (1 - a) * raw["rgb"]}
+        if raw["dir"] is None:
+            out["dir"] = prev["dir"] if float(out["rgb"] @ LUMA) > 0.05 * float(raw["sh9"][0] @ LUMA) else None
+            out["pos"] = prev["pos"]
+        elif prev["dir"] is None:
+            out["dir"], out["pos"] = raw["dir"], raw["pos"]
+        else:
+            d = a * prev["dir"] + (1 - a) * raw["dir"]
+            out["dir"] = d / max(np.linalg.norm(d), 1e-12)
+            out["pos"] = raw["pos"] if prev["pos"] is None or raw["pos"] is None else a * prev["pos"] + (1 - a) * raw["pos"]
+        self._state = out
+        return out
+
+    def stats(self) -> dict[str, Any]:
+        st: dict[str, Any] = {"frames": self.frames, "reused": self.skipped, "env_coverage": round(self.env.coverage(), 3),
+                              "warnings": dict(self._warn.counts)}
+        if self.ms:
+            st["median_ms"] = round(float(np.median(self.ms)), 2)
+        s = self._state
+        if s is not None and s.get("dir") is not None:
+            st["primary_dir"] = [round(float(v), 2) for v in s["dir"]]
+        return st
