@@ -421,7 +421,7 @@ class LightEstimateStage(Stage):
             if self._near is not None and near is not None and near.r2 < self._near.r2 - 0.2:
                 near = fit_near_light(xs[sub], ns[sub], es[sub], ws[sub], gs[sub], self._near.position[None])
             self._near = near if (near is not None and near.r2 >= 0.3) else None
-        if near is not None and near.r2 >= 0.5 and np.linalg.norm(near.position - CENTRE) < 3.0:
+        if near is not None and self._plausible(near, es, gs):
             primary_pos = near.position
             v = near.position - CENTRE
             primary_dir = v / np.linalg.norm(v)
@@ -478,6 +478,16 @@ class LightEstimateStage(Stage):
 
     # ------------------------------------------------------------------ pieces
 
+    @staticmethod
+    def _plausible(near: NearFit, es: np.ndarray, gs: np.ndarray) -> bool:
+        """A lamp, not texture or vignetting: most of the variation explained, a falloff worth
+        measuring (>= 8 % of the mean), the lamp above the object's horizon and within 3 m."""
+        v = near.position - CENTRE
+        r = float(np.linalg.norm(v))
+        lum = es @ LUMA
+        spread = float(np.std(lum) / max(float(np.mean(lum)), 1e-12))
+        return near.r2 >= 0.5 and spread >= 0.08 and r < 3.0 and v[1] / max(r, 1e-12) > 0.17
+
     def _moved(self, anchor: Anchor) -> bool:
         """The anchor jumped (re-placed) since the last estimate: do not reuse it."""
         T = self._last.T_cam_obj if self._last is not None else None
@@ -508,8 +518,12 @@ class LightEstimateStage(Stage):
         lum = float(m @ LUMA)
         if lum <= 1e-12:
             return np.ones(3)
-        c = m / lum
-        return np.clip(c, 0.2, 5.0)
+        c = np.clip(m / lum, 0.2, 5.0)
+        # real illuminants lie near the Planckian locus (warm to cool, little green/magenta): grey
+        # world on a green lawn must not give a green light, so the green excess is limited to +-10 %
+        g_mid = 0.5 * (c[0] + c[2])
+        c[1] = np.clip(c[1], 0.9 * g_mid, 1.1 * g_mid)
+        return c / float(c @ LUMA)
 
     def _plane_rows(self, pl: PlaneLight, s: Samples, planes: tuple, anchor: Anchor, illum: np.ndarray):
         """Plane irradiance observations: positions, normals, RGB irradiance, weights, plane groups."""
