@@ -15,10 +15,10 @@ from illuminet.bench.planes import AnalyticScene, plane_errors
 from illuminet.runtime.stages.anchor import SYNTHETIC_HEIGHT_M, AnchorStage, object_frame, synthetic_plane
 from illuminet.runtime.config import apply_overrides, defaults
 from illuminet.runtime.frame import Frame, Intrinsics
-from illuminet.runtime.stages.planes import (
-    METHODS, DetectParams, PlaneStage, check_depth, detect_planes, estimate_up, fit_plane_disparity,
-    label_planes, make_cloud,
+from illuminet.runtime.stages.plane_fit import (
+    METHODS, DetectParams, check_depth, detect_planes, estimate_up, fit_plane_disparity, label_planes, make_cloud,
 )
+from illuminet.runtime.stages.planes import PlaneStage
 
 
 @pytest.fixture(scope="module")
@@ -313,14 +313,6 @@ def test_pixel_outside_the_image_falls_back_to_the_centre_once(scene, caplog, lo
     assert caplog.text.count("outside the 640x400 image") == 1
     # camera lock chooses (and checks the pixel) every frame; world lock places the object once
     assert an.stats()["warnings"] == {"pixel_outside": 3 if lock == "camera" else 1}
-
-
-def test_anchor_stage_is_also_importable_from_the_planes_module():
-    from illuminet.runtime.stages import planes
-
-    assert planes.AnchorStage is AnchorStage
-    with pytest.raises(AttributeError):
-        planes.NoSuchThing
 
 
 def test_smoothing_does_not_lag_behind_a_moving_camera():

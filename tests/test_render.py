@@ -15,15 +15,10 @@ from illuminet.runtime.stage import MissingInput, StageChain
 from illuminet.runtime.frame import Frame, Intrinsics
 from illuminet.runtime.render.gl import GLError, create_context, get_context
 from illuminet.runtime.physics import srgb_to_linear
-from illuminet.runtime.render.stage import (
-    Compositor,
-    RenderMesh,
-    RenderStage,
-    crop_projection,
-    decode_lut,
-    encode_lut,
-    load_render_mesh,
-)
+from illuminet.runtime.render.compositor import Compositor, crop_projection
+from illuminet.runtime.render.mesh import DEFAULT_ALBEDO, RenderMesh, load_render_mesh, mesh_from_bundle
+from illuminet.runtime.render.shaders import decode_lut, encode_lut
+from illuminet.runtime.render.stage import RenderStage
 from illuminet.runtime.scene import Anchor, ObjectShading, PlaneLight
 from illuminet.runtime.render.shadow import dominant_light, shadow_patch
 
@@ -199,8 +194,6 @@ def test_doubling_the_exposure_doubles_the_objects_linear_value(gl):
     win = (slice(int(cv) - 10, int(cv) + 10), slice(int(cu) - 10, int(cu) + 10))
     la, lb = srgb_to_linear(a[win]).mean(), srgb_to_linear(b[win]).mean()
     # default albedo (a mesh without colours), E = 0.5: linear = albedo * 0.5 / pi * k
-    from illuminet.runtime.render.stage import DEFAULT_ALBEDO
-
     assert la == pytest.approx(DEFAULT_ALBEDO * 0.5 / np.pi * 0.4, rel=0.03)
     assert lb / la == pytest.approx(2.0, rel=0.03)
 
@@ -422,8 +415,6 @@ def test_edges_are_antialiased(gl, antialias):
 
 def test_shading_on_a_proxy_is_carried_to_the_render_mesh(gl):
     from types import SimpleNamespace
-
-    from illuminet.runtime.render.stage import mesh_from_bundle
 
     render = sphere_mesh()
     proxy_index = np.arange(0, render.n_vertices, 7)  # a coarse lighting proxy: every 7th vertex

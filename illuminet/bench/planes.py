@@ -197,7 +197,7 @@ def plane_errors(found, truth: list[TruePlane]) -> list[tuple[str, float, float]
 
 def compare_methods(cfg: Config, scene: AnalyticScene, frames: int = 10) -> dict:
     """Detection accuracy and time of each method on the same frames (full detection every frame)."""
-    from illuminet.runtime.stages.planes import DetectParams, METHODS, detect_planes, make_cloud
+    from illuminet.runtime.stages.plane_fit import METHODS, DetectParams, detect_planes, make_cloud
 
     params = DetectParams.from_config(cfg)
     truth = scene.true_planes()

@@ -253,7 +253,7 @@ def demo_stages(cfg: Config) -> list[Stage]:
         if not str(spec).startswith("builtin:"):
             raise
         from illuminet.runtime.assets.objects import load_object
-        from illuminet.runtime.render.stage import load_render_mesh
+        from illuminet.runtime.render.mesh import load_render_mesh
 
         print(f"demo: the learned model is not available ({e}); the SH baseline drives the shading")
         normals = load_render_mesh(load_object(spec)).normals

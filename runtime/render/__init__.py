@@ -1,3 +1,6 @@
-"""Drawing the shaded object into the frame: GL context, meshes and shaders, the compositor passes,
-the cast shadow, and the :class:`~illuminet.runtime.render.stage.RenderStage` that ties them together.
+"""Drawing the shaded object into the frame.
+
+``gl`` (the context), ``mesh`` (drawable meshes and their loading), ``shaders`` (GLSL sources and
+colour-transfer tables), ``shadow`` (the cast and contact shadow), ``compositor`` (the GPU passes)
+and ``stage`` (the :class:`~illuminet.runtime.render.stage.RenderStage` that ties them together).
 """

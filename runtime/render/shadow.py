@@ -12,8 +12,9 @@ What this module owns
   coordinates), both redrawn only when the direction moves by more than
   :attr:`ShadowCaster.REDRAW_DEG`; a **contact map** (ambient-occlusion-like darkening under the
   object's base), computed once per mesh from a height map of the object's underside seen from
-  below. The **receiver program** (:data:`RECEIVER_VS` / :data:`RECEIVER_FS`, drawn by
-  :mod:`illuminet.runtime.render.stage`) looks both up per pixel and multiplies the camera picture by
+  below. The **receiver program** (:data:`RECEIVER_VS` / :data:`RECEIVER_FS`, drawn by the
+  compositor, :mod:`illuminet.runtime.render.compositor`) looks both up per pixel and multiplies
+  the camera picture by
 
       f = share * visible_fraction(PCF) + (1 - share) * (1 - contact_strength * ao)
 

@@ -48,7 +48,7 @@ from illuminet.runtime.stages.anchor import object_frame
 from illuminet.runtime.config import Config
 from illuminet.runtime.frame import Frame
 from illuminet.runtime.physics import linearize, load_response_lut
-from illuminet.runtime.stages.planes import inlier_threshold
+from illuminet.runtime.stages.plane_fit import inlier_threshold
 from illuminet.runtime.scene import ANCHOR, ODOMETRY, PLANE_LIGHT, PLANES, Anchor, PlaneLight
 from illuminet.runtime.stage import LogOnce, Stage
 
