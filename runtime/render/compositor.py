@@ -326,7 +326,7 @@ class Compositor:
 
         sp = None
         if self.shadow is not None:
-            self.shadow.update(light_dir)
+            self.shadow.update(light_dir, share)
             sp = self.shadow.params(light_dir, share)
         region = self._region(K, cam_from_obj, sp, color.shape[1], color.shape[0])
         self.info = DrawInfo(drawn=region is not None, shadow=bool(sp is not None and sp.use_shadow),

@@ -329,6 +329,7 @@ class ShadowCaster:
         self.center = 0.5 * (self.bbox_min + self.bbox_max)
         self.radius = float(max(np.linalg.norm(v - self.center, axis=1).max(), 1e-4))
         self.softness = float(softness)
+        self._soft: float | None = None  # the penumbra the visibility was last drawn with
         self.closed = bool(closed)
         self.size = int(size)
         self.redraws = 0
@@ -433,16 +434,31 @@ class ShadowCaster:
                          max(p[2], self.ao_rect[2]), max(p[3], self.ao_rect[3])])
 
     # -- cast shadow -------------------------------------------------------------------------------
-    def update(self, direction: np.ndarray | None) -> bool:
-        """Redraw the shadow map and the patch's visibility when the light moved; True when redrawn."""
+    def penumbra(self, share: float | None) -> float:
+        """PCF radius (fraction of the object's radius) for a primary light carrying ``share``.
+
+        A light that dominates (a sun, a bare bulb close by) casts a crisp shadow; as the ambient
+        part grows the visible edge softens (the shadow is the primary's only, and the ambient fills
+        it in unevenly): up to 4x the base penumbra at share 0.
+        """
+        if share is None:
+            return self.softness
+        return self.softness * (1.0 + 3.0 * (1.0 - float(np.clip(share, 0.0, 1.0))))
+
+    def update(self, direction: np.ndarray | None, share: float | None = None) -> bool:
+        """Redraw the shadow map and the patch's visibility when the light moved (or its penumbra,
+        which follows the primary light's share, changed by a quarter); True when redrawn."""
         import moderngl
 
         if direction is None or direction[1] <= MIN_ELEVATION_SIN:
             return False
         d = np.asarray(direction, dtype=np.float64)
-        if self._dir is not None and float(np.dot(self._dir, d)) > np.cos(np.radians(self.REDRAW_DEG)):
+        soft = self.penumbra(share)
+        same_soft = self._soft is not None and abs(soft - self._soft) <= 0.25 * self._soft
+        if self._dir is not None and same_soft and float(np.dot(self._dir, d)) > np.cos(np.radians(self.REDRAW_DEG)):
             return False
         self._dir = d.copy()
+        self._soft = soft
         self._light_from_obj = look_at_ortho(d, self.center, self.radius)
         self.patch = self._patch(d)
         ctx = self.ctx
@@ -466,7 +482,7 @@ class ShadowCaster:
         self.shadow_tex.use(0)
         self._vis_prog["u_shadow"].value = 0
         self._vis_prog["u_light_from_obj"].write(self._light_from_obj.T.astype(np.float32).tobytes())
-        self._vis_prog["u_softness"].value = self.softness / 2.0  # the light's box spans 2 radii
+        self._vis_prog["u_softness"].value = soft / 2.0  # the light's box spans 2 radii
         self._vis_prog["u_patch"].value = tuple(float(x) for x in self.patch)
         self._vis_vao.render(moderngl.TRIANGLE_STRIP)
         # the receiver is drawn only over the part of the patch that is darkened at all: the
