@@ -63,42 +63,11 @@ def parse_depthai(data: dict, where: str = "<depthai json>", left_socket: int | 
         raise CalibrationError(f"{where}: cameraData: expected a non-empty list of [socket, camera] pairs")
     sockets: list[int] = []
     for n, entry in enumerate(entries):
-        key = f"cameraData[{n}]"
-        if not (isinstance(entry, list) and len(entry) == 2 and isinstance(entry[0], int) and isinstance(entry[1], dict)):
-            raise CalibrationError(f"{where}: {key}: expected [socket number, {{camera}}], got {str(entry)[:80]}")
-        sock, c = entry
-        for k in ("width", "height", "intrinsicMatrix", "distortionCoeff"):
-            if k not in c:
-                raise CalibrationError(f"{where}: {key}: missing key {k!r}")
-        ctype = int(c.get("cameraType", 0))
-        if ctype not in CAMERA_TYPES:
-            raise CalibrationError(
-                f"{where}: {key}.cameraType: expected 0 (perspective) or 1 (fisheye), got {ctype}"
-            )
-        model = CAMERA_TYPES[ctype]
-        w, h = int(c["width"]), int(c["height"])
-        if w <= 0 or h <= 0:
-            raise CalibrationError(f"{where}: {key}: width/height must be positive, got {w}x{h}")
-        K = _mat(where, f"{key}.intrinsicMatrix", c["intrinsicMatrix"], (3, 3))
-        if K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise CalibrationError(f"{where}: {key}.intrinsicMatrix: focal lengths must be positive, got {K.tolist()}")
-        D = np.asarray(c["distortionCoeff"], float).ravel()
-        if model == "fisheye":
-            if len(D) < 4:
-                raise CalibrationError(f"{where}: {key}.distortionCoeff: fisheye needs 4 coefficients, got {len(D)}")
-            D = D[:4]
-        else:
-            if len(D) not in (4, 5, 8, 12, 14):
-                raise CalibrationError(f"{where}: {key}.distortionCoeff: expected 4/5/8/12/14 coefficients, got {len(D)}")
-        cams[socket_name(sock)] = CameraCalib(w, h, K, D, model)
+        sock, cam, link = _parse_camera(where, f"cameraData[{n}]", entry)
+        cams[socket_name(sock)] = cam
         sockets.append(sock)
-        ex = c.get("extrinsics") or {}
-        to = int(ex.get("toCameraSocket", -1))
-        if to >= 0:
-            R = _mat(where, f"{key}.extrinsics.rotationMatrix", ex.get("rotationMatrix"), (3, 3))
-            if abs(np.linalg.det(R) - 1.0) > 1e-3:
-                raise CalibrationError(f"{where}: {key}.extrinsics.rotationMatrix: not a rotation (det {np.linalg.det(R):.4f})")
-            T = _xyz(where, f"{key}.extrinsics.translation", ex.get("translation")) / 100.0  # cm -> m
+        if link is not None:
+            to, R, T = link
             links.setdefault(sock, []).append((to, R, T))
             links.setdefault(to, []).append((sock, R.T, -R.T @ T))
     rect = data.get("stereoRectificationData") or {}
@@ -128,6 +97,46 @@ def parse_depthai(data: dict, where: str = "<depthai json>", left_socket: int | 
         if missing:
             raise CalibrationError(f"{where}: stereo socket(s) {missing} not in cameraData (sockets {sockets})")
     return Calibration(cameras=cams, stereo=stereo, meta=meta)
+
+
+def _parse_camera(where: str, key: str, entry) -> tuple[int, CameraCalib, tuple[int, np.ndarray, np.ndarray] | None]:
+    """One ``cameraData`` entry: (socket, intrinsics, (to socket, R, T in metres) or None without extrinsics)."""
+    if not (isinstance(entry, list) and len(entry) == 2 and isinstance(entry[0], int) and isinstance(entry[1], dict)):
+        raise CalibrationError(f"{where}: {key}: expected [socket number, {{camera}}], got {str(entry)[:80]}")
+    sock, c = entry
+    for k in ("width", "height", "intrinsicMatrix", "distortionCoeff"):
+        if k not in c:
+            raise CalibrationError(f"{where}: {key}: missing key {k!r}")
+    ctype = int(c.get("cameraType", 0))
+    if ctype not in CAMERA_TYPES:
+        raise CalibrationError(
+            f"{where}: {key}.cameraType: expected 0 (perspective) or 1 (fisheye), got {ctype}"
+        )
+    model = CAMERA_TYPES[ctype]
+    w, h = int(c["width"]), int(c["height"])
+    if w <= 0 or h <= 0:
+        raise CalibrationError(f"{where}: {key}: width/height must be positive, got {w}x{h}")
+    K = _mat(where, f"{key}.intrinsicMatrix", c["intrinsicMatrix"], (3, 3))
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise CalibrationError(f"{where}: {key}.intrinsicMatrix: focal lengths must be positive, got {K.tolist()}")
+    D = np.asarray(c["distortionCoeff"], float).ravel()
+    if model == "fisheye":
+        if len(D) < 4:
+            raise CalibrationError(f"{where}: {key}.distortionCoeff: fisheye needs 4 coefficients, got {len(D)}")
+        D = D[:4]
+    elif len(D) not in (4, 5, 8, 12, 14):
+        raise CalibrationError(f"{where}: {key}.distortionCoeff: expected 4/5/8/12/14 coefficients, got {len(D)}")
+    ex = c.get("extrinsics") or {}
+    to = int(ex.get("toCameraSocket", -1))
+    link = None
+    if to >= 0:
+        R = _mat(where, f"{key}.extrinsics.rotationMatrix", ex.get("rotationMatrix"), (3, 3))
+        if abs(np.linalg.det(R) - 1.0) > 1e-3:
+            raise CalibrationError(
+                f"{where}: {key}.extrinsics.rotationMatrix: not a rotation (det {np.linalg.det(R):.4f})")
+        T = _xyz(where, f"{key}.extrinsics.translation", ex.get("translation")) / 100.0  # cm -> m
+        link = (to, R, T)
+    return sock, CameraCalib(w, h, K, D, model), link
 
 
 def _chain(links, a: int, b: int) -> tuple[np.ndarray, np.ndarray] | None:

@@ -81,6 +81,77 @@ def pair_views(left: Sequence[Detection], right: Sequence[Detection]) -> list[tu
     return list(zip(sorted(left, key=lambda d: d.path), sorted(right, key=lambda d: d.path)))
 
 
+def _common_corners(pairs, spec: BoardSpec, left: CameraCalib, right: CameraCalib, min_common: int):
+    """Board points and their pixels in both images for every pair with at least ``min_common``
+    corners seen by both cameras: (object points, left pixels, right pixels, (left path, right path)) lists."""
+    obj, pl, pr, used = [], [], [], []
+    for dl, dr in pairs:
+        for d, cam, side in ((dl, left, "left"), (dr, right, "right")):
+            if d.image_size != cam.size:
+                raise CalibrationError(
+                    f"{d.path}: {side} image is {d.image_size[0]}x{d.image_size[1]}, its intrinsics are for "
+                    f"{cam.width}x{cam.height}"
+                )
+        common, il, ir = np.intersect1d(dl.ids, dr.ids, return_indices=True)
+        if len(common) < min_common:
+            continue
+        obj.append(spec.corner_points()[common].astype(np.float64))
+        pl.append(dl.corners[il].astype(np.float64))
+        pr.append(dr.corners[ir].astype(np.float64))
+        used.append((dl.path, dr.path))
+    return obj, pl, pr, used
+
+
+def _solve_pinhole(obj, pl, pr, left: CameraCalib, right: CameraCalib):
+    """(R, T, rms px, per-pair rms px) from OpenCV's stereo calibration with the intrinsics fixed."""
+    try:
+        rms, _, _, _, _, R, T, _, _, _, _, per_view = cv2.stereoCalibrateExtended(
+            [o.astype(np.float32) for o in obj], [p.astype(np.float32) for p in pl],
+            [p.astype(np.float32) for p in pr], left.K, left.dist, right.K, right.dist, left.size,
+            np.eye(3), np.zeros((3, 1)), flags=cv2.CALIB_FIX_INTRINSIC, criteria=_CRITERIA,
+        )
+    except cv2.error as e:
+        raise CalibrationError(f"stereo calibration failed ({len(obj)} pairs): {e.err or e}") from None
+    per = [float(np.sqrt(np.mean(np.square(v)))) for v in np.asarray(per_view).reshape(len(obj), -1)]
+    return R, T, rms, per
+
+
+def _solve_fisheye(obj, pl, pr, left: CameraCalib, right: CameraCalib):
+    """(R, T, rms px, per-pair rms px) for fisheye lenses, errors measured through the fisheye model.
+
+    cv2.fisheye.stereoCalibrate (OpenCV 5.0) fails when views have different numbers of points,
+    which partial ChArUco views always do. With the intrinsics fixed, the fisheye lens can be taken
+    out exactly: undistort to normalised rays, then solve the pose with the pinhole stereoCalibrate
+    on a distortion-free virtual camera of the same focal length.
+    """
+    D1 = left.dist.reshape(4, 1).astype(np.float64)
+    D2 = right.dist.reshape(4, 1).astype(np.float64)
+    f = float(left.K[0, 0])
+    Kv = np.array([[f, 0, 0], [0, f, 0], [0, 0, 1.0]])
+    nl = [cv2.fisheye.undistortPoints(p.reshape(-1, 1, 2), left.K, D1).reshape(-1, 2) * f for p in pl]
+    nr = [cv2.fisheye.undistortPoints(p.reshape(-1, 1, 2), right.K, D2).reshape(-1, 2) * f for p in pr]
+    try:
+        _, _, _, _, _, R, T, _, _, rvecs, tvecs, _ = cv2.stereoCalibrateExtended(
+            [o.astype(np.float32) for o in obj], [p.astype(np.float32) for p in nl],
+            [p.astype(np.float32) for p in nr], Kv, np.zeros(5), Kv, np.zeros(5), left.size,
+            np.eye(3), np.zeros((3, 1)), flags=cv2.CALIB_FIX_INTRINSIC, criteria=_CRITERIA,
+        )
+    except cv2.error as e:
+        raise CalibrationError(f"fisheye stereo calibration failed ({len(obj)} pairs): {e.err or e}") from None
+    per, sq, n = [], 0.0, 0
+    for o, a, b, rv, tv in zip(obj, pl, pr, rvecs, tvecs):
+        Rl = cv2.Rodrigues(rv)[0]
+        rv2 = cv2.Rodrigues(R @ Rl)[0]
+        tv2 = R @ np.asarray(tv).reshape(3, 1) + np.asarray(T).reshape(3, 1)
+        p1, _ = cv2.fisheye.projectPoints(o.reshape(-1, 1, 3), rv, tv, left.K, D1)
+        p2, _ = cv2.fisheye.projectPoints(o.reshape(-1, 1, 3), rv2, tv2, right.K, D2)
+        e = np.concatenate([p1.reshape(-1, 2) - a, p2.reshape(-1, 2) - b])
+        per.append(float(np.sqrt(np.mean(np.sum(e ** 2, axis=1)))))
+        sq += float(np.sum(e ** 2))
+        n += len(e)
+    return R, T, float(np.sqrt(sq / n)), per
+
+
 def calibrate_stereo(left_dets: Sequence[Detection], right_dets: Sequence[Detection], spec: BoardSpec,
                      left: CameraCalib, right: CameraCalib, names: tuple[str, str] = ("left", "right"),
                      min_pairs: int = 3, min_common: int = 6) -> StereoResult:
@@ -106,68 +177,14 @@ def calibrate_stereo(left_dets: Sequence[Detection], right_dets: Sequence[Detect
     if left.model != right.model:
         raise CalibrationError(f"stereo calibration needs one lens model, got {left.model} and {right.model}")
     pairs = pair_views(left_dets, right_dets)
-    obj, pl, pr, used = [], [], [], []
-    for dl, dr in pairs:
-        for d, cam, side in ((dl, left, "left"), (dr, right, "right")):
-            if d.image_size != cam.size:
-                raise CalibrationError(
-                    f"{d.path}: {side} image is {d.image_size[0]}x{d.image_size[1]}, its intrinsics are for "
-                    f"{cam.width}x{cam.height}"
-                )
-        common, il, ir = np.intersect1d(dl.ids, dr.ids, return_indices=True)
-        if len(common) < min_common:
-            continue
-        obj.append(spec.corner_points()[common].astype(np.float64))
-        pl.append(dl.corners[il].astype(np.float64))
-        pr.append(dr.corners[ir].astype(np.float64))
-        used.append((dl.path, dr.path))
+    obj, pl, pr, used = _common_corners(pairs, spec, left, right, min_common)
     if len(used) < min_pairs:
         raise CalibrationError(
             f"too few stereo pairs: {len(used)} pair(s) where both cameras see >= {min_common} common corners "
             f"(of {len(pairs)} pairs), need at least {min_pairs}"
         )
-    size = left.size
-    if left.model == "fisheye":
-        # cv2.fisheye.stereoCalibrate (OpenCV 5.0) fails when views have different numbers of points,
-        # which partial ChArUco views always do. With the intrinsics fixed, the fisheye lens can be
-        # taken out exactly: undistort to normalised rays, then solve the pose with the pinhole
-        # stereoCalibrate on a distortion-free virtual camera of the same focal length.
-        D1 = left.dist.reshape(4, 1).astype(np.float64)
-        D2 = right.dist.reshape(4, 1).astype(np.float64)
-        f = float(left.K[0, 0])
-        Kv = np.array([[f, 0, 0], [0, f, 0], [0, 0, 1.0]])
-        nl = [cv2.fisheye.undistortPoints(p.reshape(-1, 1, 2), left.K, D1).reshape(-1, 2) * f for p in pl]
-        nr = [cv2.fisheye.undistortPoints(p.reshape(-1, 1, 2), right.K, D2).reshape(-1, 2) * f for p in pr]
-        try:
-            _, _, _, _, _, R, T, _, _, rvecs, tvecs, _ = cv2.stereoCalibrateExtended(
-                [o.astype(np.float32) for o in obj], [p.astype(np.float32) for p in nl],
-                [p.astype(np.float32) for p in nr], Kv, np.zeros(5), Kv, np.zeros(5), size,
-                np.eye(3), np.zeros((3, 1)), flags=cv2.CALIB_FIX_INTRINSIC, criteria=_CRITERIA,
-            )
-        except cv2.error as e:
-            raise CalibrationError(f"fisheye stereo calibration failed ({len(used)} pairs): {e.err or e}") from None
-        per, sq, n = [], 0.0, 0
-        for o, a, b, rv, tv in zip(obj, pl, pr, rvecs, tvecs):
-            Rl = cv2.Rodrigues(rv)[0]
-            rv2 = cv2.Rodrigues(R @ Rl)[0]
-            tv2 = R @ np.asarray(tv).reshape(3, 1) + np.asarray(T).reshape(3, 1)
-            p1, _ = cv2.fisheye.projectPoints(o.reshape(-1, 1, 3), rv, tv, left.K, D1)
-            p2, _ = cv2.fisheye.projectPoints(o.reshape(-1, 1, 3), rv2, tv2, right.K, D2)
-            e = np.concatenate([p1.reshape(-1, 2) - a, p2.reshape(-1, 2) - b])
-            per.append(float(np.sqrt(np.mean(np.sum(e ** 2, axis=1)))))
-            sq += float(np.sum(e ** 2))
-            n += len(e)
-        rms = float(np.sqrt(sq / n))  # in real pixels, through the fisheye model
-    else:
-        try:
-            rms, _, _, _, _, R, T, _, _, _, _, per_view = cv2.stereoCalibrateExtended(
-                [o.astype(np.float32) for o in obj], [p.astype(np.float32) for p in pl],
-                [p.astype(np.float32) for p in pr], left.K, left.dist, right.K, right.dist, size,
-                np.eye(3), np.zeros((3, 1)), flags=cv2.CALIB_FIX_INTRINSIC, criteria=_CRITERIA,
-            )
-        except cv2.error as e:
-            raise CalibrationError(f"stereo calibration failed ({len(used)} pairs): {e.err or e}") from None
-        per = [float(np.sqrt(np.mean(np.square(v)))) for v in np.asarray(per_view).reshape(len(used), -1)]
+    solve = _solve_fisheye if left.model == "fisheye" else _solve_pinhole
+    R, T, rms, per = solve(obj, pl, pr, left, right)
     R = np.asarray(R, float)
     T = np.asarray(T, float).ravel()
     st = StereoCalib(names[0], names[1], R, T, rms_px=float(rms))

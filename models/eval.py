@@ -325,17 +325,8 @@ def run_camera(ev: Evaluator, cfg, kinds=CAMERA_KINDS, n_scenes: int = 8, frames
     """
     import trimesh
 
-    from illuminet.hw.synthetic import open_url
-    from illuminet.runtime.groundtruth import baselines as BL
-    from illuminet.runtime.stages.anchor import AnchorStage
-    from illuminet.runtime.config import apply_overrides
-    from illuminet.runtime.physics import linearize
-    from illuminet.runtime.stages.plane_light import PlaneLightStage
-    from illuminet.runtime.stages.planes import PlaneStage
-
     b = ev.bundle
     mesh = trimesh.Trimesh(b.vertices, b.faces, process=False)
-    albedo = float(cfg.plane_light.assumed_albedo)
     out = {}
     done = 0
     for kind in kinds:
@@ -343,20 +334,7 @@ def run_camera(ev: Evaluator, cfg, kinds=CAMERA_KINDS, n_scenes: int = 8, frames
         ang: dict[str, list] = {}
         failed = 0
         for i in range(n_scenes):
-            src = open_url(f"synthetic://{kind}?seed={SEED_BASE % 100_000 + 31 * seed + i}&frames={frames}")
-            src.open()
-            sc = src.scene
-            T0 = sc.default_anchor(0, position=i % len(sc.object_positions))
-            c = apply_overrides(cfg, [("anchor", "mode", "point"), ("anchor", "point", [float(x) for x in T0[:3, 3]])])
-            stages = [PlaneStage(c), AnchorStage(c), PlaneLightStage(c)]
-            for st in stages:
-                st.open()
-            f, chain = None, StageChain(stages, source=src)
-            for _ in range(frames):
-                f = chain(src.read())
-            for st in stages:
-                st.close()
-            src.close()
+            f, sc = _camera_scene_frame(cfg, kind, SEED_BASE % 100_000 + 31 * seed + i, i, frames)
             done += 1
             if progress:
                 progress(done, len(kinds) * n_scenes)
@@ -368,21 +346,7 @@ def run_camera(ev: Evaluator, cfg, kinds=CAMERA_KINDS, n_scenes: int = 8, frames
             fi = frames - 1
             true_e = sc.true_object_shading(mesh, T, frame=fi, normals=b.normals)
             k = float(f.exposure.scale) if f.exposure.scale else float(pl.exposure_scale)
-            x, s = preprocess_plane(pl.irradiance, pl.mask, b.grid, b.pool, pl.confidence)
-            preds = {}
-            for prec, ch in ev.chains.items():
-                oi, sh = ch(x)
-                preds[f"ours_{prec}"] = (b.carry(np.maximum(sh, 0) * s), dominant_light_from_oi(oi)[0])
-            preds["constant"] = (b.carry(b.prior_shading * s), None)
-            lin = linearize(f.color)
-            preds["ambient"] = (BL.ambient_shading(BL.ambient_from_image(lin, albedo, k), len(b.vertices)), None)
-            nrm, e = BL.sh_samples_from_rgbd(lin, f.depth, f.intrinsics, albedo, T[:3, :3].T, k)
-            for lam in CAMERA_SH_LAMBDAS:
-                coef = sh_fit_rgbd(nrm, e, lam=lam)
-                preds[f"sh_rgbd@{lam}"] = (sh_eval(coef, b.normals), sh_dominant(coef))
-            lights = sc.object_lights(T, fi)
-            coef_o = BL.sh_from_lights(lights, ev.centre)
-            preds["oracle_sh"] = (sh_eval(coef_o, b.normals), sh_dominant(coef_o))
+            preds = _camera_predictions(ev, cfg, f, sc, T, fi, k)
             oi_true = sc.true_object_oi(mesh, T, frame=fi, points=b.proxy_vertices, normals=b.proxy_normals)
             d_true = dominant_light_from_oi(oi_true)[0]
             for m, (pe, pd) in preds.items():
@@ -390,18 +354,74 @@ def run_camera(ev: Evaluator, cfg, kinds=CAMERA_KINDS, n_scenes: int = 8, frames
                 a = angle_deg(pd, d_true)
                 if a is not None:
                     ang.setdefault(m, []).append(a)
-        res = {}
-        for m, lst in acc.items():
-            res[m] = {key: float(np.mean([d[key] for d in lst])) for key in ("mae", "rmse", "si_rmse")}
-            res[m]["angle_deg"] = float(np.median(ang[m])) if m in ang else None
-        if res:
-            best = min(CAMERA_SH_LAMBDAS, key=lambda lam: res[f"sh_rgbd@{lam}"]["mae"])
-            res["sh_rgbd"] = dict(res[f"sh_rgbd@{best}"], lam=best)
-            for lam in CAMERA_SH_LAMBDAS:
-                res.pop(f"sh_rgbd@{lam}")
-        res["_scenes"] = {"evaluated": n_scenes - failed, "no_plane": failed}
-        out[kind] = res
+        out[kind] = _camera_summary(acc, ang)
+        out[kind]["_scenes"] = {"evaluated": n_scenes - failed, "no_plane": failed}
     return out
+
+
+def _camera_scene_frame(cfg, kind: str, scene_seed: int, i: int, frames: int):
+    """The last of ``frames`` frames of one synthetic scene through planes, anchor (the object at the
+    scene's ``i``-th default position, cycling) and plane light; returns (frame, scene)."""
+    from illuminet.hw.synthetic import open_url
+    from illuminet.runtime.config import apply_overrides
+    from illuminet.runtime.stages.anchor import AnchorStage
+    from illuminet.runtime.stages.plane_light import PlaneLightStage
+    from illuminet.runtime.stages.planes import PlaneStage
+
+    src = open_url(f"synthetic://{kind}?seed={scene_seed}&frames={frames}")
+    src.open()
+    sc = src.scene
+    T0 = sc.default_anchor(0, position=i % len(sc.object_positions))
+    c = apply_overrides(cfg, [("anchor", "mode", "point"), ("anchor", "point", [float(x) for x in T0[:3, 3]])])
+    stages = [PlaneStage(c), AnchorStage(c), PlaneLightStage(c)]
+    for st in stages:
+        st.open()
+    f, chain = None, StageChain(stages, source=src)
+    for _ in range(frames):
+        f = chain(src.read())
+    for st in stages:
+        st.close()
+    src.close()
+    return f, sc
+
+
+def _camera_predictions(ev: Evaluator, cfg, f, sc, T: np.ndarray, fi: int, k: float) -> dict:
+    """method -> (shading per render vertex, dominant light direction or None) for one camera frame."""
+    from illuminet.runtime.groundtruth import baselines as BL
+    from illuminet.runtime.physics import linearize
+
+    b = ev.bundle
+    pl = f.results[PLANE_LIGHT.name]
+    albedo = float(cfg.plane_light.assumed_albedo)
+    x, s = preprocess_plane(pl.irradiance, pl.mask, b.grid, b.pool, pl.confidence)
+    preds = {}
+    for prec, ch in ev.chains.items():
+        oi, sh = ch(x)
+        preds[f"ours_{prec}"] = (b.carry(np.maximum(sh, 0) * s), dominant_light_from_oi(oi)[0])
+    preds["constant"] = (b.carry(b.prior_shading * s), None)
+    lin = linearize(f.color)
+    preds["ambient"] = (BL.ambient_shading(BL.ambient_from_image(lin, albedo, k), len(b.vertices)), None)
+    nrm, e = BL.sh_samples_from_rgbd(lin, f.depth, f.intrinsics, albedo, T[:3, :3].T, k)
+    for lam in CAMERA_SH_LAMBDAS:
+        coef = sh_fit_rgbd(nrm, e, lam=lam)
+        preds[f"sh_rgbd@{lam}"] = (sh_eval(coef, b.normals), sh_dominant(coef))
+    coef_o = BL.sh_from_lights(sc.object_lights(T, fi), ev.centre)
+    preds["oracle_sh"] = (sh_eval(coef_o, b.normals), sh_dominant(coef_o))
+    return preds
+
+
+def _camera_summary(acc: dict[str, list], ang: dict[str, list]) -> dict:
+    """Mean metrics and median angle per method over a kind's scenes; the SH baseline with its best lambda."""
+    res = {}
+    for m, lst in acc.items():
+        res[m] = {key: float(np.mean([d[key] for d in lst])) for key in ("mae", "rmse", "si_rmse")}
+        res[m]["angle_deg"] = float(np.median(ang[m])) if m in ang else None
+    if res:
+        best = min(CAMERA_SH_LAMBDAS, key=lambda lam: res[f"sh_rgbd@{lam}"]["mae"])
+        res["sh_rgbd"] = dict(res[f"sh_rgbd@{best}"], lam=best)
+        for lam in CAMERA_SH_LAMBDAS:
+            res.pop(f"sh_rgbd@{lam}")
+    return res
 
 
 def camera_markdown(cam: dict) -> str:

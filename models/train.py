@@ -221,20 +221,43 @@ class Trainer:
             self.data[split] = d
         self.timings["data_s"] = time.time() - t0
 
-    # ------------------------------------------------------------- generic epoch loop
-    def _run_stage(self, name: str, params, opt, step_fn, eval_fn, epochs: int, key):
-        """Epoch loop with per-epoch checkpoints; ``step_fn(params, opt_state, batch_idx, key)``."""
+    # ------------------------------------------------------------- the epoch loop (every stage)
+    def _epoch_loop(self, name: str, state, step, evaluate, epochs: int, key, terms: tuple[str, ...],
+                    bar_text, seed_offset: int = 0):
+        """Epochs over the training set with a checkpoint after each; resumes from ``<work>/<name>.npz``.
+
+        Parameters
+        ----------
+        name : str
+            Stage name (checkpoint file, log records, progress bar, ``timings``).
+        state : pytree
+            Everything the stage updates (parameters and optimiser states); what is checkpointed.
+        step : callable
+            ``step(state, batch_idx, key) -> (state, losses)`` with ``losses`` one value per name in
+            ``terms`` for this batch.
+        evaluate : callable
+            ``evaluate(state) -> dict`` of validation figures, logged after each epoch.
+        terms : tuple of str
+            Names of the losses ``step`` returns; their epoch means are logged under these names.
+        bar_text : callable
+            ``bar_text(running_means) -> str`` shown on the progress bar.
+        seed_offset : int
+            Offsets the seed of the per-epoch shuffles (stages that must not share them).
+
+        Returns
+        -------
+        The final state (loaded unchanged when an earlier run finished the stage).
+        """
         import jax
 
         ckpt = self.work / f"{name}.npz"
-        opt_state = opt.init(params)
         start = 0
         if ckpt.is_file():
-            (params, opt_state), meta = load_tree(ckpt, (params, opt_state))
+            state, meta = load_tree(ckpt, state)
             start = int(meta.get("epoch", 0))
             if start >= epochs:
                 log.info("stage %s: done in an earlier run (checkpoint %s)", name, ckpt)
-                return params
+                return state
             log.info("stage %s: resuming at epoch %d/%d", name, start, epochs)
         n = len(self.data["train"]["plane"])
         bs = min(self.cfg.batch, n)
@@ -242,24 +265,65 @@ class Trainer:
         t0 = time.time()
         bar = Progress(name, epochs * steps, self.show)
         for ep in range(start, epochs):
-            perm = np.random.default_rng(self.cfg.seed * 7919 + ep).permutation(n)
-            tot = 0.0
+            perm = np.random.default_rng(self.cfg.seed * 7919 + seed_offset + ep).permutation(n)
+            acc = np.zeros(len(terms))
             for i in range(steps):
                 key, sub = jax.random.split(key)
-                idx = perm[i * bs:(i + 1) * bs]
-                params, opt_state, loss = step_fn(params, opt_state, idx, sub)
-                tot += float(loss)
-                bar(ep * steps + i + 1, extra=f"loss {tot / (i + 1):.4f}")
-            val = eval_fn(params)
-            self.log(stage=name, epoch=ep + 1, train_loss=tot / steps, **val)
-            log.debug("stage %s epoch %d: loss %.4f %s", name, ep + 1, tot / steps, val)
-            save_tree(ckpt, (params, opt_state), {"epoch": ep + 1})
+                state, losses = step(state, perm[i * bs:(i + 1) * bs], sub)
+                acc += np.array([float(x) for x in losses])
+                bar(ep * steps + i + 1, extra=bar_text(acc / (i + 1)))
+            acc /= steps
+            val = evaluate(state)
+            self.log(stage=name, epoch=ep + 1, **{t: float(v) for t, v in zip(terms, acc)}, **val)
+            log.debug("stage %s epoch %d: %s %s", name, ep + 1, dict(zip(terms, acc.round(4))), val)
+            save_tree(ckpt, state, {"epoch": ep + 1})
         self.timings[f"{name}_s"] = self.timings.get(f"{name}_s", 0.0) + time.time() - t0
+        return state
+
+    def _run_stage(self, name: str, params, opt, step_fn, eval_fn, epochs: int, key):
+        """A stage of one parameter set and its optimiser: ``step_fn(params, opt_state, batch_idx, key)
+        -> (params, opt_state, loss)``, ``eval_fn(params) -> dict``; returns the trained parameters."""
+
+        def step(state, idx, k):
+            params, opt_state, loss = step_fn(state[0], state[1], idx, k)
+            return (params, opt_state), (loss,)
+
+        params, _ = self._epoch_loop(name, (params, opt.init(params)), step, lambda st: eval_fn(st[0]), epochs,
+                                     key, ("train_loss",), lambda m: f"loss {m[0]:.4f}")
         return params
 
     # ------------------------------------------------------------- stages
     def train(self, stop_after: str | None = None) -> dict:
         """All stages; returns the trained parameters (``plane``, ``object``, ``colour``, ``gen``...)."""
+        import jax
+
+        c = self.cfg
+        if not hasattr(self, "data"):
+            self.prepare()
+        keys = jax.random.split(jax.random.PRNGKey(c.seed), 8)
+        result = {"plane": self.train_plane_gae(keys[0], keys[1])}
+        if stop_after == "plane_gae":
+            return result
+        result["object"] = self.train_object_gae(keys[2], keys[3])
+        if stop_after == "object_gae":
+            return result
+        result["colour"] = self.train_colour_gae(keys[4], keys[5])
+        if stop_after == "colour_gae":
+            return result
+        # 4. transfer GAN on frozen encoders / decoders
+        result.update(self.train_gan(result, keys[6], c.beta_shading, c.beta_smooth, "gan"))
+        if stop_after == "gan" or c.epochs_finetune <= 0:
+            return result
+        # 5. (deviation) end-to-end fine-tuning of the inference chain on the shading loss
+        return self.finetune(result, keys[7])
+
+    def _gae_adam(self):
+        import optax
+
+        return optax.adam(self.cfg.lr_gae, b1=self.cfg.betas_gae[0], b2=self.cfg.betas_gae[1])
+
+    def train_plane_gae(self, init_key, key):
+        """Stage 1, the plane GAE: reconstruct the observed normalised irradiance."""
         import jax
         import jax.numpy as jnp
         import optax
@@ -267,28 +331,15 @@ class Trainer:
         from illuminet.models import gae
 
         c = self.cfg
-        if not hasattr(self, "data"):
-            self.prepare()
-        tr, va = self.data["train"], self.data["val"]
-        a_p, a_o = jnp.asarray(self.a_plane), jnp.asarray(self.a_obj)
-        normals = jnp.asarray(self.normals)
-        P, V = self.a_plane.shape[0], self.a_obj.shape[0]
-        key = jax.random.PRNGKey(c.seed)
-        keys = jax.random.split(key, 8)
-        X, OI, SH = (jnp.asarray(tr[k]) for k in ("plane", "oi", "shading"))
-        Xv, OIv, SHv = (jnp.asarray(va[k]) for k in ("plane", "oi", "shading"))
-        adam = lambda lr, b: optax.adam(lr, b1=b[0], b2=b[1])  # noqa: E731
-        rate = c.dropout
-        result = {}
+        a_p = jnp.asarray(self.a_plane)
+        X, Xv = jnp.asarray(self.data["train"]["plane"]), jnp.asarray(self.data["val"]["plane"])
+        opt = self._gae_adam()
 
-        # ---- 1. plane GAE: reconstruct the observed normalised irradiance
         def plane_loss(p, x, k, train=True):
-            z = gae.plane_encode(p["enc"], a_p, x, k, train, rate)
+            z = gae.plane_encode(p["enc"], a_p, x, k, train, c.dropout)
             rec = gae.plane_decode(p["dec"], a_p, z)
             w = x[..., 3:4]
             return jnp.sum(jnp.abs(rec - x[..., :3]) * w) / (jnp.sum(w) * 3 + 1e-6)
-
-        opt = adam(c.lr_gae, c.betas_gae)
 
         @jax.jit
         def plane_step(p, s, idx, k):
@@ -296,19 +347,29 @@ class Trainer:
             u, s = opt.update(g, s, p)
             return optax.apply_updates(p, u), s, loss
 
-        pp = gae.init_plane_gae(keys[0], P)
-        pp = self._run_stage("plane_gae", pp, opt, plane_step,
-                             lambda p: {"val_rec_l1": float(plane_loss(p, Xv, None, False))}, c.epochs_gae, keys[1])
-        result["plane"] = pp
-        if stop_after == "plane_gae":
-            return result
+        pp = gae.init_plane_gae(init_key, self.a_plane.shape[0])
+        return self._run_stage("plane_gae", pp, opt, plane_step,
+                               lambda p: {"val_rec_l1": float(plane_loss(p, Xv, None, False))}, c.epochs_gae, key)
 
-        # ---- 2. object GAE: OI -> z -> OI (decoder conditioned on the target's normals)
+    def train_object_gae(self, init_key, key):
+        """Stage 2, the object GAE: OI -> z -> OI (decoder conditioned on the target's normals)."""
+        import jax
+        import jax.numpy as jnp
+        import optax
+
+        from illuminet.models import gae
+
+        c = self.cfg
+        a_o, normals = jnp.asarray(self.a_obj), jnp.asarray(self.normals)
+        tr, va = self.data["train"], self.data["val"]
+        OI, SH = jnp.asarray(tr["oi"]), jnp.asarray(tr["shading"])
+        OIv, SHv = jnp.asarray(va["oi"]), jnp.asarray(va["shading"])
         F = gae.object_features(OI, normals)
         Fv = gae.object_features(OIv, normals)
+        opt = self._gae_adam()
 
         def obj_loss(p, f, oi, sh, k, train=True):
-            z = gae.object_encode(p["enc"], a_o, f, k, train, rate)
+            z = gae.object_encode(p["enc"], a_o, f, k, train, c.dropout)
             rec = gae.object_decode(p["dec"], a_o, normals, z)
             return jnp.mean(jnp.abs(rec - oi)) + jnp.mean(jnp.abs(gae.shade(rec, normals) - sh))
 
@@ -318,14 +379,25 @@ class Trainer:
             u, s = opt.update(g, s, p)
             return optax.apply_updates(p, u), s, loss
 
-        po = gae.init_object_gae(keys[2], V)
-        po = self._run_stage("object_gae", po, opt, obj_step,
-                             lambda p: {"val_rec": float(obj_loss(p, Fv, OIv, SHv, None, False))}, c.epochs_gae, keys[3])
-        result["object"] = po
-        if stop_after == "object_gae":
-            return result
+        po = gae.init_object_gae(init_key, self.a_obj.shape[0])
+        return self._run_stage("object_gae", po, opt, obj_step,
+                               lambda p: {"val_rec": float(obj_loss(p, Fv, OIv, SHv, None, False))}, c.epochs_gae, key)
 
-        # ---- 3. colour GAE: OI -> per-channel shading
+    def train_colour_gae(self, init_key, key):
+        """Stage 3, the colour GAE: OI -> per-channel shading."""
+        import jax
+        import jax.numpy as jnp
+        import optax
+
+        from illuminet.models import gae
+
+        c = self.cfg
+        a_o, normals = jnp.asarray(self.a_obj), jnp.asarray(self.normals)
+        tr, va = self.data["train"], self.data["val"]
+        OI, SH = jnp.asarray(tr["oi"]), jnp.asarray(tr["shading"])
+        OIv, SHv = jnp.asarray(va["oi"]), jnp.asarray(va["shading"])
+        opt = self._gae_adam()
+
         def col_loss(p, oi, sh):
             return jnp.mean(jnp.abs(gae.colour(p, a_o, normals, oi) - sh))
 
@@ -335,20 +407,9 @@ class Trainer:
             u, s = opt.update(g, s, p)
             return optax.apply_updates(p, u), s, loss
 
-        pc = gae.init_colour(keys[4])
-        pc = self._run_stage("colour_gae", pc, opt, col_step,
-                             lambda p: {"val_l1": float(col_loss(p, OIv, SHv))}, c.epochs_colour, keys[5])
-        result["colour"] = pc
-        if stop_after == "colour_gae":
-            return result
-
-        # ---- 4. transfer GAN on frozen encoders / decoders
-        result.update(self.train_gan(result, keys[6], c.beta_shading, c.beta_smooth, "gan"))
-        if stop_after == "gan" or c.epochs_finetune <= 0:
-            return result
-
-        # ---- 5. (deviation) end-to-end fine-tuning of the inference chain on the shading loss
-        return self.finetune(result, keys[7])
+        pc = gae.init_colour(init_key)
+        return self._run_stage("colour_gae", pc, opt, col_step,
+                               lambda p: {"val_l1": float(col_loss(p, OIv, SHv))}, c.epochs_colour, key)
 
     def finetune(self, result, key) -> dict:
         """Fine-tune plane encoder + generator (BN statistics frozen) + decoder + colour end to end.
@@ -388,9 +449,9 @@ class Trainer:
 
         @jax.jit
         def step(p, s, idx, k):
-            l, g = jax.value_and_grad(loss)(p, X[idx], OI[idx], SH[idx], k)
+            value, g = jax.value_and_grad(loss)(p, X[idx], OI[idx], SH[idx], k)
             u, s = opt.update(g, s, p)
-            return optax.apply_updates(p, u), s, l
+            return optax.apply_updates(p, u), s, value
 
         @jax.jit
         def val(p):
@@ -424,6 +485,37 @@ class Trainer:
     def train_gan(self, result, key, beta_shading: float, beta_smooth: float, name: str) -> dict:
         """Stage 4 (also used for the ablation with other loss weights)."""
         import jax
+        import optax
+
+        from illuminet.models import gan
+
+        c = self.cfg
+        kg, kd = jax.random.split(key)
+        gp, gs = gan.init_generator(kg)
+        dp, ds = gan.init_discriminator(kd, self.a_obj.shape[0])
+        opt_g = optax.adam(c.lr_g, b1=c.betas_gan[0], b2=c.betas_gan[1])
+        opt_d = optax.adam(c.lr_d, b1=c.betas_gan[0], b2=c.betas_gan[1])
+        step, val_mae = self._gan_functions(result, beta_shading, beta_smooth, opt_g, opt_d)
+
+        def gan_step(state, idx, k):
+            state, lg, ld, parts = step(state, idx, k)
+            return state, (lg, ld, *parts)
+
+        state = (gp, gs, dp, ds, opt_g.init(gp), opt_d.init(dp))
+        state = self._epoch_loop(name, state, gan_step,
+                                 lambda st: {"val_shading_mae": float(val_mae(st[0], st[1]))}, c.epochs_gan, key,
+                                 ("g_loss", "d_loss", "lsgan", "pair", "shading", "smooth"),
+                                 lambda m: f"G {m[0]:.3f} D {m[1]:.3f}", seed_offset=17)
+        gp, gs = state[0], state[1]
+        return {"gen": gp, "gen_state": gs}
+
+    def _gan_functions(self, result, beta_shading: float, beta_smooth: float, opt_g, opt_d):
+        """The GAN's jitted training step and validation error on the frozen GAEs' latents.
+
+        ``step((gp, gs, dp, ds, opt_g_state, opt_d_state), batch_idx, key) -> (state, g_loss, d_loss,
+        [lsgan, pair, shading, smooth])``; ``val_mae(gp, gs)``: the validation set's shading MAE.
+        """
+        import jax
         import jax.numpy as jnp
         import optax
 
@@ -433,18 +525,12 @@ class Trainer:
         a_o = jnp.asarray(self.a_obj)
         nb_o = jnp.asarray(self.nb_obj)
         normals = jnp.asarray(self.normals)
-        V = self.a_obj.shape[0]
         lat = self.latents(result)
         ZP, ZO = lat["train"]
-        ZPv, ZOv = lat["val"]
+        ZPv, _ = lat["val"]
         OI, SH = jnp.asarray(self.data["train"]["oi"]), jnp.asarray(self.data["train"]["shading"])
         SHv = jnp.asarray(self.data["val"]["shading"])
         dec, col = result["object"]["dec"], result["colour"]
-        kg, kd = jax.random.split(key)
-        gp, gs = gan.init_generator(kg)
-        dp, ds = gan.init_discriminator(kd, V)
-        opt_g = optax.adam(c.lr_g, b1=c.betas_gan[0], b2=c.betas_gan[1])
-        opt_d = optax.adam(c.lr_d, b1=c.betas_gan[0], b2=c.betas_gan[1])
 
         def d_loss(dp, ds, real, fake):
             sr, ds1 = gan.discriminator(dp, ds, a_o, normals, real)
@@ -485,34 +571,7 @@ class Trainer:
             oi = gae.object_decode(dec, a_o, normals, zg)
             return jnp.mean(jnp.abs(gae.colour(col, a_o, normals, oi) - SHv))
 
-        # GAN state is not a plain (params, opt) pair: its own loop with the same checkpointing
-        ckpt = self.work / f"{name}.npz"
-        state = (gp, gs, dp, ds, opt_g.init(gp), opt_d.init(dp))
-        start = 0
-        if ckpt.is_file():
-            state, meta = load_tree(ckpt, state)
-            start = int(meta.get("epoch", 0))
-        n = len(ZP)
-        bs = min(c.batch, n)
-        steps = max(n // bs, 1)
-        t0 = time.time()
-        bar = Progress(name, c.epochs_gan * steps, self.show)
-        for ep in range(start, c.epochs_gan):
-            perm = np.random.default_rng(c.seed * 7919 + 17 + ep).permutation(n)
-            acc = np.zeros(6)
-            for i in range(steps):
-                key, sub = jax.random.split(key)
-                state, lg, ld, parts = step(state, perm[i * bs:(i + 1) * bs], sub)
-                acc += np.concatenate([[float(lg), float(ld)], np.asarray(parts)])
-                bar(ep * steps + i + 1, extra=f"G {acc[0] / (i + 1):.3f} D {acc[1] / (i + 1):.3f}")
-            acc /= steps
-            vm = float(val_mae(state[0], state[1]))
-            self.log(stage=name, epoch=ep + 1, g_loss=acc[0], d_loss=acc[1], lsgan=acc[2], pair=acc[3],
-                     shading=acc[4], smooth=acc[5], val_shading_mae=vm)
-            save_tree(ckpt, state, {"epoch": ep + 1})
-        self.timings[f"{name}_s"] = self.timings.get(f"{name}_s", 0.0) + time.time() - t0
-        gp, gs = state[0], state[1]
-        return {"gen": gp, "gen_state": gs}
+        return step, val_mae
 
 
 def predict_jax(result: dict, a_plane, a_obj, normals, x):

@@ -299,16 +299,8 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
     from illuminet.runtime.stream.loop import LoopStats, run_loop
     from illuminet.runtime.stream.sinks import SinkError
 
-    from illuminet.runtime.stream.session import SessionError
-
     if args.make_default_session:
-        try:
-            out = make_default_session(args.make_default_session, seed=args.seed)
-        except (SourceError, SessionError, OSError) as e:
-            print(f"illuminet demo: --make-default-session: {e}", file=sys.stderr)
-            return 1
-        print(f"default session: {out} ({default_session_source_url(args.seed)}, seed {args.seed})")
-        return 0
+        return _make_session(args)
     if args.seed != DEFAULT_SESSION_SEED:
         print(f"illuminet demo: --seed {args.seed} only applies with --make-default-session DIR "
               f"(the demo replays the shipped session, seed {DEFAULT_SESSION_SEED})", file=sys.stderr)
@@ -317,22 +309,8 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
         print(f"illuminet demo: --frames must be at least 1, got {args.frames}", file=sys.stderr)
         return 2
     cfg = demo_config(args, cfg)
-    if args.source:
-        url = args.source
-    elif (DEFAULT_SESSION / "manifest.json").is_file():
-        url = default_source_url()
-    else:  # an install without the package data: the synthetic camera still gives a demo
-        print(f"demo: the default session {DEFAULT_SESSION} is missing; using the synthetic camera "
-              f"(slow: it renders every frame)")
-        url = SYNTHETIC_SOURCE.format(frames=args.frames)
-    if args.still is not None:
-        still = args.still
-    elif not args.no_video:
-        p = Path(args.out)
-        still = str(p.with_name(p.stem + "_still.png"))
-    else:
-        still = "out/demo_still.png"
-    probe = StillSink(still, index=args.frames // 2)
+    url = _source_url(args)
+    probe = StillSink(_still_path(args), index=args.frames // 2)
     stats = LoopStats()
     try:
         if cfg.output.video:
@@ -354,21 +332,62 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
         print(f"illuminet demo: {e}", file=sys.stderr)
         rc = 1
     finally:
-        print(stats.format_stats())
-        for st in stages:
-            s = st.stats()
-            if s:
-                print(f"  {st.name}: " + ", ".join(f"{k}={v}" for k, v in s.items()))
-        print(f"shading: {describe_shading(probe.methods, cfg)}")
-        if cfg.output.video and rc == 0:
-            print(f"video: {cfg.output.video}")
-        if probe.written is not None:
-            print(f"still: {probe.written}")
-        rss = peak_rss_mb()
-        print(f"peak resident memory: {rss:.0f} MB (target <= {RSS_TARGET_MB:.0f} MB)"
-              + ("" if rss <= RSS_TARGET_MB else "  ** over target **"))
-        if cfg.logging.stats_json:
-            Path(cfg.logging.stats_json).write_text(stats.to_json() + "\n")
+        _print_report(stats, stages, probe, cfg, rc)
     if stats.end_reason.startswith("source error"):
         rc = 1
     return rc
+
+
+def _make_session(args: argparse.Namespace) -> int:
+    """``--make-default-session DIR``: write the default session and exit."""
+    from illuminet.hw import SourceError
+    from illuminet.runtime.stream.session import SessionError
+
+    try:
+        out = make_default_session(args.make_default_session, seed=args.seed)
+    except (SourceError, SessionError, OSError) as e:
+        print(f"illuminet demo: --make-default-session: {e}", file=sys.stderr)
+        return 1
+    print(f"default session: {out} ({default_session_source_url(args.seed)}, seed {args.seed})")
+    return 0
+
+
+def _source_url(args: argparse.Namespace) -> str:
+    """--source, else the shipped default session, else the synthetic camera."""
+    if args.source:
+        return args.source
+    if (DEFAULT_SESSION / "manifest.json").is_file():
+        return default_source_url()
+    # an install without the package data: the synthetic camera still gives a demo
+    print(f"demo: the default session {DEFAULT_SESSION} is missing; using the synthetic camera "
+          f"(slow: it renders every frame)")
+    return SYNTHETIC_SOURCE.format(frames=args.frames)
+
+
+def _still_path(args: argparse.Namespace) -> str:
+    """--still, else next to the video (NAME_still.png), else out/demo_still.png."""
+    if args.still is not None:
+        return args.still
+    if not args.no_video:
+        p = Path(args.out)
+        return str(p.with_name(p.stem + "_still.png"))
+    return "out/demo_still.png"
+
+
+def _print_report(stats, stages, probe: StillSink, cfg: Config, rc: int) -> None:
+    """The end-of-run report: timing table, stage statistics, shading used, outputs, peak memory."""
+    print(stats.format_stats())
+    for st in stages:
+        s = st.stats()
+        if s:
+            print(f"  {st.name}: " + ", ".join(f"{k}={v}" for k, v in s.items()))
+    print(f"shading: {describe_shading(probe.methods, cfg)}")
+    if cfg.output.video and rc == 0:
+        print(f"video: {cfg.output.video}")
+    if probe.written is not None:
+        print(f"still: {probe.written}")
+    rss = peak_rss_mb()
+    print(f"peak resident memory: {rss:.0f} MB (target <= {RSS_TARGET_MB:.0f} MB)"
+          + ("" if rss <= RSS_TARGET_MB else "  ** over target **"))
+    if cfg.logging.stats_json:
+        Path(cfg.logging.stats_json).write_text(stats.to_json() + "\n")

@@ -80,7 +80,7 @@ def _ablation(ev, epochs: int) -> None:
 
 def run(args: argparse.Namespace, cfg) -> int:
     from illuminet.commands.train import DEFAULT_HDR
-    from illuminet.models.eval import LABELS, Evaluator, finish, markdown, write_outputs
+    from illuminet.models.eval import Evaluator, finish, markdown, write_outputs
     from illuminet.models.train import Progress
     from illuminet.runtime.assets.bundle import BundleError
 
@@ -113,36 +113,49 @@ def run(args: argparse.Namespace, cfg) -> int:
     report["eval_wall_s"] = round(time.time() - t0, 1)
     out = Path(args.out or Path("eval") / ev.bundle.name)
     out.mkdir(parents=True, exist_ok=True)
-    fig = None
-    if not args.no_figure and ev.examples:
-        try:
-            from illuminet.models.figure import figure
-
-            suite = "outdoor" if "outdoor" in ev.examples else next(iter(ev.examples))
-            ex = ev.examples[suite]
-            order = ["true", "constant", "ambient", "sh_rgbd", "oracle_sh", "ours_int8"]
-            names = {"true": "Ground truth", **LABELS}
-            panels = [(names[m], ex[m] / 3.14159265 * ex["k"]) for m in order if m in ex]
-            fig = out / "eval.png"
-            figure(fig, ev.bundle.vertices, ev.bundle.faces, panels,
-                   title=f"{ev.bundle.name}: {suite} test case (front row, back row)")
-            report["figure"] = fig.name
-        except Exception as e:  # no EGL: the report is still written
-            print(f"illuminet eval: figure skipped ({e})", file=sys.stderr)
-            fig = None
+    fig = None if args.no_figure else _figure(ev, report, out)
     paths = write_outputs(report, out, fig)
     print(markdown(report))
     print(f"wrote {paths['md']}, {paths['json']}" + (f", {fig}" if fig else ""))
     if args.update_bundle:
-        from illuminet.models.export import finalize_bundle
-
-        (ev.bundle.path / "eval.json").write_text(json.dumps(report, indent=2) + "\n")
-        meta = dict(ev.bundle.meta)
-        meta["evaluation"] = {s: {m: {k: v for k, v in r.items()} for m, r in res.items()
-                                  if m in ("ours_int8", "ours_fp32", "constant", "ambient", "sh_rgbd", "oracle_sh")}
-                              for s, res in report["suites"].items()}
-        meta["evaluation"]["n_cases"] = report["n_cases"]
-        meta["evaluation"]["int8_vs_fp32_mae_max_diff"] = report["int8_vs_fp32_mae_max_diff"]
-        finalize_bundle(ev.bundle.path, meta)
-        print(f"updated {ev.bundle.path / 'bundle.json'}")
+        _update_bundle(ev, report)
     return 0
+
+
+def _figure(ev, report: dict, out: Path) -> Path | None:
+    """The rendered comparison (ground truth, baselines, ours) of one test case; None without one."""
+    from illuminet.models.eval import LABELS
+
+    if not ev.examples:
+        return None
+    try:
+        from illuminet.models.figure import figure
+
+        suite = "outdoor" if "outdoor" in ev.examples else next(iter(ev.examples))
+        ex = ev.examples[suite]
+        order = ["true", "constant", "ambient", "sh_rgbd", "oracle_sh", "ours_int8"]
+        names = {"true": "Ground truth", **LABELS}
+        panels = [(names[m], ex[m] / 3.14159265 * ex["k"]) for m in order if m in ex]
+        fig = out / "eval.png"
+        figure(fig, ev.bundle.vertices, ev.bundle.faces, panels,
+               title=f"{ev.bundle.name}: {suite} test case (front row, back row)")
+    except Exception as e:  # no EGL: the report is still written
+        print(f"illuminet eval: figure skipped ({e})", file=sys.stderr)
+        return None
+    report["figure"] = fig.name
+    return fig
+
+
+def _update_bundle(ev, report: dict) -> None:
+    """--update-bundle: the report as the bundle's eval.json, its headline figures in bundle.json."""
+    from illuminet.models.export import finalize_bundle
+
+    (ev.bundle.path / "eval.json").write_text(json.dumps(report, indent=2) + "\n")
+    meta = dict(ev.bundle.meta)
+    meta["evaluation"] = {s: {m: {k: v for k, v in r.items()} for m, r in res.items()
+                              if m in ("ours_int8", "ours_fp32", "constant", "ambient", "sh_rgbd", "oracle_sh")}
+                          for s, res in report["suites"].items()}
+    meta["evaluation"]["n_cases"] = report["n_cases"]
+    meta["evaluation"]["int8_vs_fp32_mae_max_diff"] = report["int8_vs_fp32_mae_max_diff"]
+    finalize_bundle(ev.bundle.path, meta)
+    print(f"updated {ev.bundle.path / 'bundle.json'}")

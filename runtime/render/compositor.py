@@ -143,8 +143,6 @@ class Compositor:
     def __init__(self, ctx, mesh: RenderMesh, msaa: int = 4, shadow: bool = True, shadow_map: int = 1024,
                  occlusion: bool = True, depth_tolerance_m: float = 0.03, shadow_softness: float = 0.05,
                  contact_shadow: float = 0.75, response_lut: np.ndarray | None = None, antialias: str = "edge"):
-        import moderngl
-
         make_current(ctx)
         self.ctx = ctx
         self.mesh = mesh
@@ -169,14 +167,32 @@ class Compositor:
         self._ofbos: dict[str, Any] = {}
         self._bbox = (mesh.vertices.min(axis=0).astype(float), mesh.vertices.max(axis=0).astype(float))
 
-        # --- colour tables (camera response and its inverse)
+        custom = response_lut is not None
+        self._upload_colour_tables(response_lut)
+        self._upload_mesh(custom)
+        self.shadow = (ShadowCaster(ctx, mesh.vertices, mesh.faces, shadow_map, shadow_softness,
+                                    closed=bool(mesh.closed)) if shadow else None)
+        self._make_screen_programs(custom)
+        check_gl(ctx, f"setting up the renderer for {mesh.source}")
+
+    # -- set-up ------------------------------------------------------------------------------------
+    def _upload_colour_tables(self, response_lut: np.ndarray | None) -> None:
+        """The camera response (decode) and its inverse (encode) as 1-D textures."""
+        import moderngl
+
+        ctx = self.ctx
         self._dec_lut = ctx.texture((256, 1), 3, decode_lut(response_lut).tobytes(), dtype="f4")
         self._dec_lut.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self._enc_lut = ctx.texture((ENCODE_LUT_SIZE, 1), 3, encode_lut(response_lut).tobytes(), dtype="f4")
         self._enc_lut.filter = (moderngl.LINEAR, moderngl.LINEAR)
         self._enc_lut.repeat_x = self._enc_lut.repeat_y = False
 
-        # --- mesh buffers: static attributes once, irradiance rewritten per frame
+    def _upload_mesh(self, custom: bool) -> None:
+        """Mesh buffers (static attributes once, irradiance rewritten per frame), the object
+        programs (plain, and textured when a part has a texture) and the parts' textures."""
+        import moderngl
+
+        ctx, mesh = self.ctx, self.mesh
         n = mesh.n_vertices
         uv = mesh.uv if mesh.uv is not None else np.zeros((n, 2), np.float32)
         alb = srgb_to_linear(mesh.colors) if mesh.colors is not None else np.ones((n, 3), np.float32)
@@ -184,7 +200,6 @@ class Compositor:
         self._vbo = ctx.buffer(static.tobytes())
         self._ibo = ctx.buffer(mesh.faces.astype(np.uint32).tobytes())
         self._irr = ctx.buffer(reserve=n * 12, dynamic=True)
-        custom = response_lut is not None
         attrs = [(self._vbo, "3f 2f 3f", "in_pos", "in_uv", "in_albedo"), (self._irr, "3f", "in_irr")]
         self._obj_progs = {}
         for textured, (vs, fs) in ((False, (OBJ_VS_PLAIN, OBJ_FS_PLAIN)), (True, (OBJ_VS_TEX, OBJ_FS_TEX))):
@@ -204,6 +219,9 @@ class Compositor:
             t.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
             self._part_tex.append(t)
 
+    def _make_screen_programs(self, custom: bool) -> None:
+        """The full-screen passes' programs on one quad: background, layer-over-picture, shadow receiver."""
+        ctx = self.ctx
         quad = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], dtype=np.float32)
         self._quad = ctx.buffer(quad.tobytes())
         self._bg_prog = ctx.program(vertex_shader=BG_VS, fragment_shader=BG_FS)
@@ -211,13 +229,10 @@ class Compositor:
         self._over_prog = ctx.program(vertex_shader=BG_VS,
                                       fragment_shader=OVER_EDGE_FS if self.antialias == "edge" else OVER_FS)
         self._over_vao = ctx.vertex_array(self._over_prog, [(self._quad, "2f", "in_uv")])
-        self.shadow = (ShadowCaster(ctx, mesh.vertices, mesh.faces, shadow_map, shadow_softness,
-                                    closed=bool(mesh.closed)) if shadow else None)
         if self.shadow is not None:
             self._rcv_prog = ctx.program(vertex_shader=RECEIVER_VS,
                                          fragment_shader=with_transfer(RECEIVER_FS, custom))
             self._rcv_vao = ctx.vertex_array(self._rcv_prog, [(self._quad, "2f", "in_uv")])
-        check_gl(ctx, f"setting up the renderer for {mesh.source}")
 
     # -- framebuffers sized to the largest crop seen so far ------------------------------------------
     def _ensure_capacity(self, w: int, h: int, ow: int, oh: int) -> None:

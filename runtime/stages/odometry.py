@@ -338,6 +338,36 @@ class Odometry:
             self._start(grey, depth, intr)
             return self._result("ok", 0, 0, False)
         # 1. track the landmarks from the last good image
+        p1, good = self._track(grey, intr)
+        # 2. lift to 3D with this frame's depth and fit the pose to the landmarks
+        X, valid = self._lift(p1, depth, intr)
+        use = good & valid
+        n_track = int(use.sum())
+        constrained = plane_cam is not None and plane_world is not None
+        fit = self._fit(self._lm[use], X[use], plane_cam, plane_world) if n_track >= MIN_INLIERS else None
+        if fit is None or fit[2].sum() < max(MIN_INLIERS, MIN_INLIER_SHARE * n_track):
+            return self._not_tied(grey, depth, intr, 0 if fit is None else int(fit[2].sum()), n_track)
+        R, t, inl = fit
+        if REPROJ_REFINE:
+            idx_in = np.nonzero(use)[0][inl]
+            uv = (p1[idx_in].astype(np.float64) + 0.5) * DOWNSCALE - 0.5
+            R, t = _refine_reprojection(R, t, self._lm[idx_in], uv, intr,
+                                        np.asarray(plane_cam[0], np.float64) if constrained else None)
+        self._bad_run = 0
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, t
+        # velocity for the next frame's LK guess (only between consecutive good frames)
+        self._velocity = T @ invert(self.T_cam_world) if self.state == "ok" else None
+        self.T_cam_world = T
+        # 3. keep tracked landmarks (inliers refined, outliers dropped; untracked-but-good-2D kept)
+        self._keep_landmarks(p1, X, good, np.nonzero(use)[0], inl, R, t)
+        self._grey = grey
+        if len(self._pts) < MIN_FEATURES:
+            self._detect(grey, depth, intr)
+        return self._result("ok", int(inl.sum()), n_track, constrained)
+
+    def _track(self, grey: np.ndarray, intr) -> tuple[np.ndarray, np.ndarray]:
+        """Step 1: the landmarks' pixels in ``grey`` (downscaled, (N, 2)) and which were tracked well."""
         if GAIN_COMPENSATION:
             # auto exposure changes the brightness from frame to frame; LK assumes it constant
             m0, m1 = float(self._grey[::4, ::4].mean()), float(grey[::4, ::4].mean())
@@ -364,40 +394,31 @@ class Odometry:
         p1 = p1.reshape(-1, 2)
         hs, ws = grey.shape
         good &= (p1[:, 0] >= 0) & (p1[:, 1] >= 0) & (p1[:, 0] <= ws - 1) & (p1[:, 1] <= hs - 1)
-        # 2. lift to 3D with this frame's depth
-        X, valid = self._lift(p1, depth, intr)
-        use = good & valid
-        n_track = int(use.sum())
-        constrained = plane_cam is not None and plane_world is not None
-        fit = self._fit(self._lm[use], X[use], plane_cam, plane_world) if n_track >= MIN_INLIERS else None
-        if fit is None or fit[2].sum() < max(MIN_INLIERS, MIN_INLIER_SHARE * n_track):
-            n_in = 0 if fit is None else int(fit[2].sum())
-            self._bad_run += 1
-            if self._bad_run >= RESET_AFTER:
-                # cannot tie this view to the landmarks: restart on it with the held pose
-                self.resets += 1
-                log.info("odometry: lost for %d frames (%d inliers of %d tracked); restarting tracking "
-                         "with the last pose", self._bad_run, n_in, n_track)
-                self._start(grey, depth, intr)
-                # if the next frame cannot be tied to this one either (it was garbage too), restart
-                # again at once rather than waiting another RESET_AFTER frames
-                self._bad_run = RESET_AFTER - 1
-            return self._lose(f"{n_in} inliers of {n_track} tracked (need {MIN_INLIERS} and "
-                              f"{100 * MIN_INLIER_SHARE:.0f} %)", tracked=n_track)
-        R, t, inl = fit
-        if REPROJ_REFINE:
-            idx_in = np.nonzero(use)[0][inl]
-            uv = (p1[idx_in].astype(np.float64) + 0.5) * DOWNSCALE - 0.5
-            R, t = _refine_reprojection(R, t, self._lm[idx_in], uv, intr,
-                                        np.asarray(plane_cam[0], np.float64) if constrained else None)
-        self._bad_run = 0
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = R, t
-        # velocity for the next frame's LK guess (only between consecutive good frames)
-        self._velocity = T @ invert(self.T_cam_world) if self.state == "ok" else None
-        self.T_cam_world = T
-        # 3. keep tracked landmarks (inliers refined, outliers dropped; untracked-but-good-2D kept)
-        idx = np.nonzero(use)[0]
+        return p1, good
+
+    def _not_tied(self, grey: np.ndarray, depth: np.ndarray, intr, n_in: int, n_track: int) -> OdometryResult:
+        """Step 2 failed (too few inliers): the frame is lost; after :data:`RESET_AFTER` such frames in a
+        row, tracking restarts on this view with the held pose."""
+        self._bad_run += 1
+        if self._bad_run >= RESET_AFTER:
+            # cannot tie this view to the landmarks: restart on it with the held pose
+            self.resets += 1
+            log.info("odometry: lost for %d frames (%d inliers of %d tracked); restarting tracking "
+                     "with the last pose", self._bad_run, n_in, n_track)
+            self._start(grey, depth, intr)
+            # if the next frame cannot be tied to this one either (it was garbage too), restart
+            # again at once rather than waiting another RESET_AFTER frames
+            self._bad_run = RESET_AFTER - 1
+        return self._lose(f"{n_in} inliers of {n_track} tracked (need {MIN_INLIERS} and "
+                          f"{100 * MIN_INLIER_SHARE:.0f} %)", tracked=n_track)
+
+    def _keep_landmarks(self, p1: np.ndarray, X: np.ndarray, good: np.ndarray, idx: np.ndarray, inl: np.ndarray,
+                        R: np.ndarray, t: np.ndarray) -> None:
+        """Step 3: refine the inlier landmarks' world positions (running mean over at most
+        :data:`MAX_OBS` observations), drop the outliers, keep the untracked ones that were good in 2D.
+
+        ``idx`` indexes the landmarks the pose was fitted on, ``inl`` marks its inliers among them.
+        """
         inlier_idx = idx[inl]
         outlier_idx = idx[~inl]
         Xw = (X[inlier_idx] - t) @ R  # = R^T (x - t)
@@ -409,10 +430,6 @@ class Odometry:
         self._pts = p1[keep].astype(np.float32)
         self._lm = self._lm[keep]
         self._nobs = self._nobs[keep]
-        self._grey = grey
-        if len(self._pts) < MIN_FEATURES:
-            self._detect(grey, depth, intr)
-        return self._result("ok", int(inl.sum()), n_track, constrained)
 
     def _predict(self, intr, shape) -> np.ndarray | None:
         """Landmark pixels (downscaled) under a constant-velocity pose, or None without a velocity."""

@@ -312,6 +312,187 @@ class _FailureLog:
                     stage, frame.seq, what)
 
 
+class _StreamEnded(Exception):
+    """The source has no more frames (``reason`` says why); raised by :meth:`_Loop.next_frame`."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+class _Loop:
+    """One run of :func:`run_loop`: its components, its state, and one method per step of a frame."""
+
+    def __init__(self, source: Source, stages: Sequence[Stage], sinks: Sequence[Sink], *, strict: bool,
+                 max_frames: int, stop: threading.Event, on_stats: Callable[[dict[str, Any]], None] | None,
+                 stats: LoopStats, stats_interval_s: float) -> None:
+        self.source = source
+        self.stages = list(stages)
+        self.sinks = list(sinks)
+        self.sink_names = [_name(s, f"sink{i}") for i, s in enumerate(sinks)]
+        self.strict = strict
+        self.max_frames = max_frames
+        self.stop = stop
+        self.on_stats = on_stats
+        self.stats = stats
+        self.stats_interval_s = stats_interval_s
+        self.failures = _FailureLog()
+        self.chain = StageChain(stages, strict=strict, source=source)  # checks the wiring before anything opens
+        self.reader_stop = threading.Event()
+        self.reader: threading.Thread | None = None
+        self.slot: _NewestFrameSlot | None = None  # set for a live source (flow limiting)
+        self.current: Frame | None = None  # the frame being processed, for messages
+        self.reason = "end of stream"
+        self.next_report = time.perf_counter() + stats_interval_s
+
+    # -- opening and closing
+
+    def open(self, stack: contextlib.ExitStack) -> None:
+        """Open the source, the stages and the sinks on ``stack``, and prepare the reader of a live source.
+
+        The close order is the reverse: sinks, stages, reader stop, source, last reader join. The
+        reader thread may be blocked inside read() (waiting for a camera, or replay sleeping until a
+        timestamp): it gets a moment to notice the stop, then closing the source unblocks it.
+        """
+        stack.callback(self._join_reader)
+        stack.enter_context(self.source)
+        stack.callback(self._stop_reader)
+        for st in self.stages:
+            stack.enter_context(st)
+        for sk in self.sinks:
+            stack.enter_context(sk)
+        if getattr(self.source, "live", False):
+            self.slot = _NewestFrameSlot()
+            self.reader = threading.Thread(target=_reader, args=(self.source, self.slot, self.stats, self.reader_stop),
+                                           name="illuminet-source-reader", daemon=True)
+
+    def _stop_reader(self) -> None:
+        self.reader_stop.set()
+        if self.reader is not None:
+            self.reader.join(timeout=0.5)
+
+    def _join_reader(self) -> None:
+        if self.reader is not None:
+            self.reader.join(timeout=2.0)
+            if self.reader.is_alive():
+                log.warning("source %r did not return from read() within 2 s of being closed",
+                            _name(self.source, "source"))
+
+    # -- running
+
+    def run(self) -> None:
+        """Process frames until the stream ends, ``max_frames`` or a stop; the reason goes into the stats."""
+        self.stats.start()
+        if self.reader is not None:
+            self.reader.start()
+        try:
+            self.reason = self._frames()
+        except BaseException as e:
+            self.reason = f"error: {type(e).__name__}: {e}" if not isinstance(e, KeyboardInterrupt) else "interrupted"
+            raise
+        finally:
+            self.stats.stop(self.reason)
+            try:
+                self.report()
+            except Exception:  # strict: a failing stats callback must not hide the real outcome
+                log.exception("stats callback failed")
+
+    def _frames(self) -> str:
+        """The frame loop; returns why it ended."""
+        while True:
+            if self.stop.is_set():
+                return "stopped"
+            if self.max_frames and self.stats.frames >= self.max_frames:
+                return "max_frames"
+            try:
+                frame, t_frame = self.next_frame()
+            except _StreamEnded as e:
+                return e.reason
+            if frame is not None:  # None: a live source had nothing new yet; check the stop flags again
+                frame = self.run_stages(frame)
+                self.write_sinks(frame)
+                self.stats.add("total", time.perf_counter() - t_frame)
+                self.stats.frame_done()
+            if time.perf_counter() >= self.next_report:
+                self.report()
+                self.next_report = time.perf_counter() + self.stats_interval_s
+
+    def next_frame(self) -> tuple[Frame | None, float]:
+        """The next frame and when it was taken (the start of its ``total`` time).
+
+        A live source's frame comes from the newest-frame slot (None when none arrived within
+        0.1 s); any other source is read here. Raises :class:`_StreamEnded` at the end of the
+        stream (or an :class:`~illuminet.runtime.stage.EndOfStream` error, which is logged), and
+        re-raises any other error of the source.
+        """
+        if self.slot is not None:
+            frame, finished, err = self.slot.take(timeout=0.1)
+            if err is not None and frame is None:
+                if isinstance(err, EndOfStream):
+                    log.error("source ended: %s", err)
+                    raise _StreamEnded(f"source error: {err}")
+                raise err
+            if finished:
+                raise _StreamEnded("end of stream")
+            return frame, time.perf_counter()
+        t_frame = time.perf_counter()
+        try:
+            frame = self.source.read()
+        except EndOfStream as e:
+            log.error("source ended: %s", e)
+            raise _StreamEnded(f"source error: {e}") from None
+        self.stats.add("source", time.perf_counter() - t_frame)
+        if frame is None:
+            raise _StreamEnded("end of stream")
+        return frame, t_frame
+
+    def run_stages(self, frame: Frame) -> Frame:
+        """The stages (StageChain: the one failure / missing-input policy); failures and skips counted and logged."""
+        self.current = frame
+        frame, events = self.chain.run(frame, on_time=self._stage_time)
+        counted = False
+        for ev in events:
+            failed = ev.kind == "failed"
+            self.stats.count_failure(ev.key, frame_failed=failed and not counted)
+            counted = counted or failed
+            if failed:
+                self.failures.report(ev.key, frame, ev.error, "The frame goes on with this stage's last good result.")
+            else:
+                self.failures.report_skip(ev.key, frame)
+        return frame
+
+    def _stage_time(self, name: str, seconds: float) -> None:
+        self.stats.add(f"stage:{name}", seconds)
+
+    def write_sinks(self, frame: Frame) -> None:
+        """Every sink gets the frame; a failing sink is counted and logged (raised when strict)."""
+        for sk, name in zip(self.sinks, self.sink_names):
+            t0 = time.perf_counter()
+            try:
+                sk.write(frame)
+            except Exception as e:
+                if self.strict:
+                    raise
+                key = f"sink:{name}: {type(e).__name__}"
+                self.stats.count_failure(key, frame_failed=False)
+                self.failures.report(key, frame, e, "This frame is missing from that output.")
+            finally:
+                self.stats.add(f"sink:{name}", time.perf_counter() - t0)
+
+    def report(self) -> None:
+        """Refresh the source's counters and the drops, and hand a snapshot to ``on_stats``."""
+        try:
+            self.stats.set_source_stats(self.source.stats())
+            if self.slot is not None:
+                self.stats.set_dropped(self.slot.dropped)
+            if self.on_stats is not None:
+                self.on_stats(self.stats.snapshot())
+        except Exception as e:  # statistics must never stop the stream
+            if self.strict:
+                raise
+            self.failures.report(f"stats: {type(e).__name__}", self.current, e, "Statistics may be stale.")
+
+
 def run_loop(
     source: Source,
     stages: Sequence[Stage],
@@ -363,141 +544,14 @@ def run_loop(
         :class:`~illuminet.runtime.stage.EndOfStream` (which ends the stream with a logged error).
     """
     stats = stats if stats is not None else LoopStats()
-    stop = stop_event if stop_event is not None else threading.Event()
-    failures = _FailureLog()
-    chain = StageChain(stages, strict=strict, source=source)  # checks the wiring before anything opens
-    sink_names = [_name(s, f"sink{i}") for i, s in enumerate(sinks)]
-
-    def stage_time(name: str, seconds: float) -> None:
-        stats.add(f"stage:{name}", seconds)
-    reader_stop = threading.Event()
-    reader: threading.Thread | None = None
-    slot: _NewestFrameSlot | None = None
-    next_report = time.perf_counter() + stats_interval_s
-    reason = "end of stream"
-
-    def report() -> None:
-        try:
-            stats.set_source_stats(source.stats())
-            if slot is not None:
-                stats.set_dropped(slot.dropped)
-            if on_stats is not None:
-                on_stats(stats.snapshot())
-        except Exception as e:  # statistics must never stop the stream
-            if strict:
-                raise
-            failures.report(f"stats: {type(e).__name__}", current[0], e, "Statistics may be stale.")
-
-    current: list[Frame | None] = [None]  # the frame being processed, for messages
-
+    loop = _Loop(source, stages, sinks, strict=strict, max_frames=max_frames,
+                 stop=stop_event if stop_event is not None else threading.Event(), on_stats=on_stats,
+                 stats=stats, stats_interval_s=stats_interval_s)
     # signal handlers stay installed until everything is closed: a SIGTERM during finalisation must
     # not kill the process with the default handler half-way through closing a recording
-    with _signals_stop(stop, install_signals), contextlib.ExitStack() as stack:
-        # close order is the reverse of this: sinks, stages, reader stop, source, last reader join.
-        # The reader thread may be blocked inside read() (waiting for a camera, or replay sleeping
-        # until a timestamp): it gets a moment to notice the stop, then closing the source unblocks it.
-        @stack.callback
-        def _join_reader() -> None:
-            if reader is not None:
-                reader.join(timeout=2.0)
-                if reader.is_alive():
-                    log.warning("source %r did not return from read() within 2 s of being closed",
-                                _name(source, "source"))
-
-        stack.enter_context(source)
-
-        @stack.callback
-        def _stop_reader() -> None:
-            reader_stop.set()
-            if reader is not None:
-                reader.join(timeout=0.5)
-
-        for st in stages:
-            stack.enter_context(st)
-        for sk in sinks:
-            stack.enter_context(sk)
-
-        if getattr(source, "live", False):
-            slot = _NewestFrameSlot()
-            reader = threading.Thread(target=_reader, args=(source, slot, stats, reader_stop),
-                                      name="illuminet-source-reader", daemon=True)
-        stats.start()
-        if reader is not None:
-            reader.start()
-        try:
-            while True:
-                if stop.is_set():
-                    reason = "stopped"
-                    break
-                if max_frames and stats.frames >= max_frames:
-                    reason = "max_frames"
-                    break
-                # ---- next frame
-                if slot is not None:
-                    frame, finished, err = slot.take(timeout=0.1)
-                    if err is not None and frame is None:
-                        if isinstance(err, EndOfStream):
-                            log.error("source ended: %s", err)
-                            reason = f"source error: {err}"
-                            break
-                        raise err
-                    if finished:
-                        break
-                    if frame is None:  # timed out: check the stop flags again
-                        if time.perf_counter() >= next_report:
-                            report()
-                            next_report = time.perf_counter() + stats_interval_s
-                        continue
-                    t_frame = time.perf_counter()
-                else:
-                    t_frame = time.perf_counter()
-                    try:
-                        frame = source.read()
-                    except EndOfStream as e:
-                        log.error("source ended: %s", e)
-                        reason = f"source error: {e}"
-                        break
-                    stats.add("source", time.perf_counter() - t_frame)
-                    if frame is None:
-                        break
-                # ---- stages (StageChain: the one failure / missing-input policy)
-                current[0] = frame
-                frame, events = chain.run(frame, on_time=stage_time)
-                counted = False
-                for ev in events:
-                    stats.count_failure(ev.key, frame_failed=ev.kind == "failed" and not counted)
-                    counted = counted or ev.kind == "failed"
-                    if ev.kind == "failed":
-                        failures.report(ev.key, frame, ev.error, "The frame goes on with this stage's last good result.")
-                    else:
-                        failures.report_skip(ev.key, frame)
-                # ---- sinks
-                for k, sk in enumerate(sinks):
-                    t0 = time.perf_counter()
-                    try:
-                        sk.write(frame)
-                    except Exception as e:
-                        if strict:
-                            raise
-                        key = f"sink:{sink_names[k]}: {type(e).__name__}"
-                        stats.count_failure(key, frame_failed=False)
-                        failures.report(key, frame, e, "This frame is missing from that output.")
-                    finally:
-                        stats.add(f"sink:{sink_names[k]}", time.perf_counter() - t0)
-                stats.add("total", time.perf_counter() - t_frame)
-                stats.frame_done()
-                if time.perf_counter() >= next_report:
-                    report()
-                    next_report = time.perf_counter() + stats_interval_s
-        except BaseException as e:
-            reason = f"error: {type(e).__name__}: {e}" if not isinstance(e, KeyboardInterrupt) else "interrupted"
-            raise
-        finally:
-            stats.stop(reason)
-            try:
-                report()
-            except Exception:  # strict: a failing stats callback must not hide the real outcome
-                log.exception("stats callback failed")
+    with _signals_stop(loop.stop, install_signals), contextlib.ExitStack() as stack:
+        loop.open(stack)
+        loop.run()
     # after close: the source's final counters (e.g. frames it dropped itself)
     try:
         stats.set_source_stats(source.stats())
