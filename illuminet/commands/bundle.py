@@ -60,6 +60,17 @@ def _same_object(existing: str, spec: str) -> bool:
 
 
 def run(args: argparse.Namespace, cfg) -> int:
+    try:
+        import scipy  # noqa: F401  (the proxy's nearest neighbours)
+    except ImportError:
+        print("illuminet bundle: needs the bundle extra (scipy is missing): pip install 'illuminet[bundle]'",
+              file=sys.stderr)
+        return 2
+    try:
+        import embreex  # noqa: F401
+    except ImportError:
+        print("illuminet bundle: embreex is not installed: rays are cast with trimesh's own intersector, far "
+              "slower (pip install 'illuminet[bundle]')", file=sys.stderr)
     from illuminet.models.prt import add_prt, new_bundle
     from illuminet.models.train import Progress
     from illuminet.runtime.assets.bundle import METADATA, BundleError
