@@ -128,8 +128,9 @@ def compute_prt(mesh, points: np.ndarray, normals: np.ndarray, carry: Callable[[
     Y = sh9(D)
     cos = np.einsum("px,px->p", N[vi], D[ki])
     b = np.flatnonzero(blocked)
-    T = unoccluded_transfer(N)
-    np.subtract.at(T, vi[b], (dw * cos[b])[:, None] * Y[ki[b]])
+    lost = np.zeros((len(P), transfer_rays))  # dw cos of every blocked (vertex, direction)
+    lost[vi[b], ki[b]] = dw * cos[b]
+    T = unoccluded_transfer(N) - lost @ Y
     timings["transfer_s"] = time.perf_counter() - t0
 
     # the primary light's visibility table: object, floor and the vertex's own tangent plane block
@@ -152,23 +153,20 @@ def compute_prt(mesh, points: np.ndarray, normals: np.ndarray, carry: Callable[[
     hb = b[front_hit]
     if len(hb):
         import trimesh
+        from scipy.sparse import csr_matrix
 
-        tris = np.asarray(mesh.vertices, np.float64)[faces[tri[hb]]]
-        bary = trimesh.triangles.points_to_barycentric(tris, loc[hb])
+        corner = faces[tri[hb]]
+        bary = trimesh.triangles.points_to_barycentric(np.asarray(mesh.vertices, np.float64)[corner], loc[hb])
         bary = np.clip(bary, 0.0, 1.0)
         bary /= np.maximum(bary.sum(1, keepdims=True), 1e-12)
-        corner = faces[tri[hb]]
-        wgt = dw * cos[hb] / np.pi
-        rows = vi[hb]
-        n_points = len(P)
+        # one sparse (V, R) matrix: point i gathers dw cos / pi x barycentric weight of each hit's corners
+        vals = (dw * cos[hb] / np.pi)[:, None] * bary
+        gather = csr_matrix((vals.ravel(), (np.repeat(vi[hb], 3), corner.ravel())),
+                            shape=(len(P), len(mesh.vertices)))  # duplicates are summed
 
         def op(t_points: np.ndarray) -> np.ndarray:
             """Transfer on the points -> the transfer of the light those points reflect onto them (albedo 1)."""
-            t_mesh = np.asarray(carry(t_points) if carry is not None else t_points, np.float64)
-            t_hit = np.einsum("pj,pjc->pc", bary, t_mesh[corner])
-            out = np.zeros((n_points, t_mesh.shape[1]))
-            np.add.at(out, rows, wgt[:, None] * t_hit)
-            return out
+            return gather @ np.asarray(carry(t_points) if carry is not None else t_points, np.float64)
 
         if albedo > 0:
             bounce = (albedo * op(T)).astype(np.float32)
@@ -261,7 +259,7 @@ def add_prt(bundle_dir, transfer_rays: int = DEFAULT_TRANSFER_RAYS, table_direct
     return finalize_bundle(b.path, meta), res
 
 
-def new_bundle(spec: str, out, height: float | None = None, n_proxy: int = 400, seed: int = 0,
+def new_bundle(spec: str, out, height: float | None = None, n_proxy: int = 1000, seed: int = 0,
                transfer_rays: int = DEFAULT_TRANSFER_RAYS, table_directions: int = DEFAULT_TABLE_DIRECTIONS,
                albedo: float = 0.8, command: str = "", progress=None, up: str = "y") -> tuple[Path, PrtResult]:
     """A PRT-only bundle (``mesh.npz`` + ``prt.npz`` + ``bundle.json``, no ONNX) of any mesh.

@@ -115,9 +115,14 @@ class PrtTables:
                    visibility=unpack_visibility(bits, V), bounce=None if bounce is None else bounce.astype(np.float64))
 
     def _weights(self, cos: np.ndarray) -> np.ndarray:
-        """Kernel weights from cosines to table directions: (1 - chord^2 / R^2)^2 inside R, else 0."""
-        c2 = 2.0 - 2.0 * cos
-        return np.square(np.maximum(0.0, 1.0 - c2 / self._chord2))
+        """Kernel weights from cosines to table directions (overwritten): (1 - chord^2 / R^2)^2 inside
+        the radius R, else 0; chord^2 = 2 - 2 cos, so the base is linear in cos (in place: per frame)."""
+        r2 = self._chord2
+        w = np.multiply(cos, 2.0 / r2, out=cos)
+        w += 1.0 - 2.0 / r2
+        np.maximum(w, 0.0, out=w)
+        w *= w
+        return w
 
     def primary_visibility(self, direction: np.ndarray) -> np.ndarray:
         """Visibility (V,) in [0, 1] of a distant light in ``direction`` (unit, object frame)."""

@@ -252,6 +252,9 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
         anchor, pl = fallback_plane_light(frame, anchor_px, cfg.plane_light.grid, cfg.plane_light.extent_m,
                                           cfg.plane_light.assumed_albedo, response_lut)
         source = "fallback"
+    if shading_stage.mode == "prt" and light is None:
+        raise ValueError('[model] shading = "prt" needs a light estimate, and relight\'s chain made none on this '
+                         'image: use shading "auto" or "model"')
     sh = shading_stage.predict(pl, light)
     shading_stage.close()
     R, t = anchor.R, anchor.t

@@ -110,3 +110,14 @@ def test_relight_npz_carries_the_light_estimate_when_the_chain_makes_one(tmp_pat
     assert z["primary_pos"].shape == (3,) and np.isnan(z["primary_pos"]).all()
     assert str(z["light_frame"]).startswith("object: anchor-centred, +Y up")
     assert np.allclose(z["radiance"], z["irradiance"] / np.pi * float(z["exposure_scale"]), rtol=1e-5)
+
+
+def test_relight_prt_mode_without_an_estimate_says_so():
+    import pytest
+
+    from illuminet.runtime.config import apply_overrides
+
+    color, depth, K = floor_rgbd()
+    cfg = apply_overrides(defaults(), [("model", "shading", "prt")])
+    with pytest.raises(ValueError, match='"prt" needs a light estimate'):
+        relight(color, depth, K, (160, 130), cfg, bundle="builtin:vase")

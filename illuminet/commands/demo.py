@@ -273,7 +273,8 @@ def describe_shading(methods: collections.Counter, cfg: Config) -> str:
         return "no frames"
     main, n = methods.most_common(1)[0]
     names = {"sh": "SH baseline (2nd-order spherical harmonics fitted to the RGB-D shading)",
-             "ambient": "ambient baseline (the plane's mean irradiance; the learned model did not load)",
+             "ambient": "ambient baseline (the plane's mean irradiance: no learned model loaded, or a PRT-only bundle "
+                        "without a light estimate)",
              "constant": "constant-prior baseline", "none": "none (no plane light yet)",
              "prt": "precomputed radiance transfer of the light estimate (physical, self-shadowed)"}
     what = f"learned model ({main.split(':', 1)[1]} ONNX)" if main.startswith("model") else names.get(main, main)
