@@ -10,8 +10,9 @@ Per lighting-proxy vertex (the layout and the run-time side are in :mod:`illumin
   no-visibility value, and the quadrature error only touches the occluded part. The floor (y = 0)
   is deliberately not an occluder here: what a ray sees below the horizon is the floor, whose
   radiance is the lower hemisphere of the light estimate's ambient SH (the floor bounce);
-* the primary light's visibility over K table directions: object, floor (``w_y <= 0`` is blocked)
-  and the vertex's own tangent plane (``n_i . w <= 0``) all block;
+* the primary light's visibility over K table directions: the object and the vertex's own tangent
+  plane (``n_i . w <= 0``) block; the floor is applied at run time, exactly at the horizon (a table
+  entry for it would blur the horizon over the interpolation kernel, dimming a low sun);
 * optionally one interreflection bounce: light the object reflects onto itself. For each blocked
   ray, the surface it hits reflects ``albedo / pi`` times that point's own irradiance, which is its
   transfer vector (interpolated: proxy -> render vertices by the bundle's carry weights, then
@@ -133,11 +134,11 @@ def compute_prt(mesh, points: np.ndarray, normals: np.ndarray, carry: Callable[[
     T = unoccluded_transfer(N) - lost @ Y
     timings["transfer_s"] = time.perf_counter() - t0
 
-    # the primary light's visibility table: object, floor and the vertex's own tangent plane block
+    # the primary light's visibility table: the object and the vertex's own tangent plane block (the
+    # floor is applied at run time: runtime/prt.py)
     t0 = time.perf_counter()
     K = fibonacci_sphere(table_directions)
-    above = K[:, 1] > 0.0
-    vj, kj = _front_pairs(N, K, above)
+    vj, kj = _front_pairs(N, K)
     tri_k, _ = cast("visibility", vj, K[kj])
     vis = np.zeros((len(P), table_directions), bool)
     vis[vj, kj] = tri_k < 0
@@ -233,7 +234,8 @@ def prt_meta(result: PrtResult, transfer_rays: int, table_directions: int, comma
         "convention": "E = transfer @ L_radiance (9 SH coefficients, no 1/pi; LightEstimate.radiance_sh9()), object "
                       "frame +Y up; unoccluded: transfer = A_hat_l Y_lm(n)",
         "floor": "transfer: the floor does not occlude (its radiance is the ambient SH's lower hemisphere); "
-                 "visibility table: the floor blocks directions with y <= 0",
+                 "visibility table: object and facing only; the floor blocks the primary light below the "
+                 "horizon at run time (runtime/prt.py floor_factor)",
     }
 
 

@@ -12,11 +12,12 @@ this module only reads and evaluates them, in well under a millisecond per frame
   leave the object downwards meet the floor, whose radiance is the lower hemisphere of the estimate's
   ambient SH (the floor bounce), so that hemisphere is kept.
 * ``visibility`` V_i(w_k) of the primary light over K table directions w_k (a Fibonacci sphere): 1
-  where a ray from the vertex leaves the object *and* the floor (``w_y > 0``) and the vertex faces
-  it (``n_i . w_k > 0``), else 0. For direct light the floor does block the lower hemisphere. A
-  light between table directions is interpolated with a smooth compact kernel over its ~7 nearest
+  where a ray from the vertex leaves the object and the vertex faces it (``n_i . w_k > 0``), else 0.
+  A light between table directions is interpolated with a smooth compact kernel over its ~7 nearest
   directions (:data:`KERNEL_RADIUS` spacings), so a moving light does not make shadows pop. Stored
-  bit-packed (``vis_bits`` (K, ceil(V/8)) uint8, little bit order along the vertices).
+  bit-packed (``vis_bits`` (K, ceil(V/8)) uint8, little bit order along the vertices). For direct
+  light the floor does block the lower hemisphere: :func:`floor_factor` multiplies it in at run time,
+  sharp at the horizon (in the table it would be blurred over the kernel, dimming a low sun).
 * ``bounce`` B_i (9,), optional: one interreflection of the object onto itself for its albedo,
   ``E_i += B_i . (L + primary as SH)``.
 
@@ -39,6 +40,16 @@ PRT_FILE = "prt.npz"
 PRT_KEYS = ("transfer", "vis_directions", "vis_bits")
 #: interpolation kernel radius, in units of the mean table spacing sqrt(4 pi / K)
 KERNEL_RADIUS = 1.5
+
+
+#: the floor's shadow of the primary light ramps from 0 to 1 over this height of the light's direction
+#: above the horizon (~1 degree): sharp, but without a jump when a light crosses it
+FLOOR_RAMP = 0.02
+
+
+def floor_factor(dy: np.ndarray | float) -> np.ndarray:
+    """How much of a light in a direction with y component ``dy`` the floor (y = 0) lets through."""
+    return np.clip(np.asarray(dy, np.float64) / FLOOR_RAMP, 0.0, 1.0)
 
 
 def pack_visibility(vis: np.ndarray) -> np.ndarray:
@@ -125,15 +136,19 @@ class PrtTables:
         return w
 
     def primary_visibility(self, direction: np.ndarray) -> np.ndarray:
-        """Visibility (V,) in [0, 1] of a distant light in ``direction`` (unit, object frame)."""
+        """Visibility (V,) in [0, 1] of a distant light in ``direction`` (unit, object frame), floor included."""
         d = np.asarray(direction, np.float64).reshape(3)
+        f = float(floor_factor(d[1]))
+        if f <= 0.0:
+            return np.zeros(self.n_vertices)
         w = self._weights(self.directions @ d)
         sel = np.flatnonzero(w)
         w = w[sel]
-        return (w @ self.visibility[sel]) / w.sum()
+        return (w @ self.visibility[sel]) * (f / w.sum())
 
     def primary_visibility_per_vertex(self, directions: np.ndarray) -> np.ndarray:
-        """Visibility (V,) of a light seen from each vertex in its own direction ``directions`` (V, 3)."""
+        """Visibility (V,) of a light seen from each vertex in its own direction ``directions`` (V, 3),
+        floor included."""
         d = np.asarray(directions, np.float64)
         centre = d.sum(0)
         n = np.linalg.norm(centre)
@@ -143,7 +158,7 @@ class PrtTables:
         cand = np.flatnonzero(self.directions @ centre >= np.cos(min(reach, np.pi)) - 1e-6)
         w = self._weights(d @ self.directions[cand].T)  # (V, C)
         vis = np.einsum("vc,cv->v", w, self.visibility[cand])
-        return vis / np.maximum(w.sum(1), 1e-12)
+        return vis * floor_factor(d[:, 1]) / np.maximum(w.sum(1), 1e-12)
 
 
 def primary_radiance_sh9(direction: np.ndarray, rgb: np.ndarray) -> np.ndarray:

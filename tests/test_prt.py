@@ -296,3 +296,16 @@ def test_bundle_command_errors_are_one_line(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
     assert main(["bundle", "--object", "builtin:sphere", "--out", str(load_bundle("builtin:vase").path)]) == 2
     assert "holds a bundle of 'builtin:vase'" in capsys.readouterr().err
+
+
+def test_low_sun_is_not_dimmed_by_the_floor_and_below_it_is_dark(sphere):
+    mesh, res = sphere
+    tab = res.tables()
+    n = np.asarray(mesh.vertex_normals)
+    for elev in (3.0, 8.0):
+        d = np.array([np.cos(np.deg2rad(elev)), np.sin(np.deg2rad(elev)), 0.0])
+        facing = n @ d > 0.3
+        assert np.allclose(tab.primary_visibility(d)[facing], 1.0)  # the floor blocks only below the horizon
+    below = np.array([np.cos(np.deg2rad(3.0)), -np.sin(np.deg2rad(3.0)), 0.0])
+    assert np.allclose(tab.primary_visibility(below), 0.0)
+    assert np.allclose(tab.primary_visibility_per_vertex(np.tile(below, (len(n), 1))), 0.0)
