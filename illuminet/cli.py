@@ -28,6 +28,7 @@ COMMAND_MODULES: list[str] = [
     "doctor",     # what hardware/drivers are found           (runtime foundation)
     "calibrate",  # calibrate board|capture|intrinsics|stereo|photometric
     "train",      # train an object bundle                    (learned transfer)
+    "bundle",     # a bundle of any mesh with PRT, no training (physical transfer)
     "eval",       # evaluation report                         (learned transfer)
     "relight",    # one RGB-D image -> placed object + radiance (learned transfer)
     "config",     # print the effective configuration

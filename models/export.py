@@ -207,14 +207,16 @@ def write_bundle(out: str | Path, result: dict, trainer, command: str = "", extr
 
 
 def finalize_bundle(out: Path, meta: dict) -> Path:
-    """(Re)write bundle.json with the sha256 and size of every file (after evaluation adds figures)."""
+    """(Re)write bundle.json with the sha256 and size of every bundle file the folder holds (after
+    evaluation adds figures, or ``illuminet bundle`` adds PRT tables)."""
     from illuminet.runtime.assets.bundle import FILES, METADATA
 
     out = Path(out)
     meta["files"] = {}
     for key, name in FILES.items():
         p = out / name
-        meta["files"][name] = {"sha256": sha256(p), "bytes": p.stat().st_size}
+        if p.is_file():  # the ONNX pair and prt.npz are optional (load_bundle says which a bundle needs)
+            meta["files"][name] = {"sha256": sha256(p), "bytes": p.stat().st_size}
     path = out / METADATA
     path.write_text(json.dumps(meta, indent=2) + "\n")
     return path

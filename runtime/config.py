@@ -101,8 +101,9 @@ SCHEMA: dict[str, dict[str, Field]] = {
     "model": {
         "bundle": _f(str, "builtin:vase", "object bundle: builtin:NAME or a bundle folder"),
         "precision": _f(str, "int8", "ONNX chain used at run time", choices=("int8", "fp32")),
-        "shading": _f(str, "auto", "what drives the object's shading: the learned model, or a baseline",
-                      choices=("auto", "model", "sh", "ambient", "constant")),
+        "shading": _f(str, "auto", "what drives the object's shading: PRT from the light estimate, the learned "
+                      "model, or a baseline (auto: prt when the frame has a light estimate and the bundle PRT, "
+                      "else model)", choices=("auto", "prt", "model", "sh", "ambient", "constant")),
         "temporal_smoothing": _f(float, 0.7, "exponential smoothing of predicted shading, 0 = none"),
     },
     "render": {

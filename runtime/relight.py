@@ -2,9 +2,13 @@
 predicted radiance (what ``illuminet relight`` writes; the way to check results from outside).
 
 Pipeline: the project's plane detection, anchor and plane-light stages (``[planes]``, ``[anchor]``,
-``[plane_light]``) when present in this build, else :func:`fallback_plane_light` (a local plane fit
-around the anchor pixel and direct sampling of the grid; documented below), then the bundle's chain
-(:class:`~illuminet.runtime.stages.shading.ShadingStage`), then carrying proxy shading to the render mesh.
+``[plane_light]``; :func:`lighting_stages`) when present in this build, else
+:func:`fallback_plane_light` (a local plane fit around the anchor pixel and direct sampling of the
+grid; documented below), then the shading
+(:class:`~illuminet.runtime.stages.shading.ShadingStage`: the bundle's PRT from the frame's light
+estimate when the chain produced one, else its learned chain), then carrying proxy shading to the
+render mesh. When the frame has a light estimate (``results["light"]``), the npz also carries it
+(:func:`light_fields`).
 
 Units: ``radiance`` is the linear RGB that a *white Lambertian* surface (albedo 1) would show in the
 input image's own linear units, i.e. ``radiance = E / pi * exposure_scale``; re-encoding with the
@@ -21,7 +25,7 @@ import numpy as np
 from illuminet.runtime.config import Config, apply_overrides
 from illuminet.runtime.frame import Exposure, Frame, Intrinsics
 from illuminet.runtime.physics import INV_PI, linearize
-from illuminet.runtime.scene import ANCHOR, PLANE_LIGHT, Anchor, PlaneLight
+from illuminet.runtime.scene import ANCHOR, LIGHT, PLANE_LIGHT, Anchor, LightEstimate, PlaneLight
 from illuminet.runtime.stage import StageChain
 
 log = logging.getLogger(__name__)
@@ -46,9 +50,12 @@ class RelightResult:
     bundle: str
     plane_source: str         # "stages" or "fallback"
     plane_observed: float     # fraction of the plane grid that was observed
+    light: LightEstimate | None = None  # the frame's light estimate, when the chain made one
 
     def save(self, path) -> None:
-        """Write the documented npz (see docs/models.md, "relight npz")."""
+        """Write the documented npz (see docs/models.md, "relight npz"), with :func:`light_fields` when
+        the frame had a light estimate."""
+        extra = light_fields(self.light) if self.light is not None else {}
         np.savez_compressed(
             path, vertices=self.vertices.astype(np.float32), normals=self.normals.astype(np.float32),
             faces=self.faces.astype(np.int32), radiance=self.radiance.astype(np.float32),
@@ -57,19 +64,49 @@ class RelightResult:
             exposure_scale=np.float64(self.exposure_scale), dominant_dir=self.dominant_dir.astype(np.float32),
             dominant_share=np.float64(self.dominant_share), method=np.str_(self.method),
             bundle=np.str_(self.bundle), plane_source=np.str_(self.plane_source),
-            plane_observed=np.float64(self.plane_observed), format=np.int64(1),
+            plane_observed=np.float64(self.plane_observed), format=np.int64(1), **extra,
         )
 
 
-def _stage_classes():
-    """The project's plane / anchor / plane-light stages, when this build has them."""
+#: the frame the light fields of the relight npz are given in
+LIGHT_FRAME = "object: anchor-centred, +Y up (gravity-aligned), metres"
+
+
+def light_fields(estimate: LightEstimate) -> dict[str, np.ndarray]:
+    """The relight npz's fields of a :class:`~illuminet.runtime.scene.LightEstimate` (object frame).
+
+    ``sh9`` (9, 3) ambient irradiance SH and ``sh9_radiance`` (9, 3) the same as radiance (both
+    without the primary light), ``primary_dir`` (3,) towards the primary light (NaN when there is
+    none), ``primary_rgb`` (3,) its irradiance at the anchor (0 when there is none), ``primary_pos``
+    (3,) its position (NaN when unknown: a distant light), ``light_frame`` (:data:`LIGHT_FRAME`).
+    """
+    nan3 = np.full(3, np.nan, np.float32)
+    has = estimate.primary_dir is not None
+    return {
+        "sh9": np.asarray(estimate.sh9, np.float32).reshape(9, 3),
+        "sh9_radiance": estimate.radiance_sh9().astype(np.float32),
+        "primary_dir": np.asarray(estimate.primary_dir, np.float32).reshape(3) if has else nan3,
+        "primary_rgb": np.asarray(estimate.primary_rgb, np.float32).reshape(3) if has else np.zeros(3, np.float32),
+        "primary_pos": (np.asarray(estimate.primary_pos, np.float32).reshape(3)
+                        if estimate.primary_pos is not None else nan3),
+        "light_frame": np.str_(LIGHT_FRAME),
+    }
+
+
+def lighting_stages(cfg: Config, response_lut=None) -> list | None:
+    """The stages that measure the light for relight (unopened): the project's plane / anchor /
+    plane-light stages, when this build has them (``None``: use :func:`fallback_plane_light`).
+
+    A stage added here that provides ``results["light"]`` (the light estimate) makes relight shade
+    with the bundle's PRT and write the light into the npz.
+    """
     try:
         from illuminet.runtime.stages.anchor import AnchorStage
         from illuminet.runtime.stages.plane_light import PlaneLightStage
         from illuminet.runtime.stages.planes import PlaneStage
     except ImportError:  # a stripped-down build: use the local fallback
         return None
-    return PlaneStage, AnchorStage, PlaneLightStage
+    return [PlaneStage(cfg), AnchorStage(cfg), PlaneLightStage(cfg, response_lut=response_lut)]
 
 
 def fallback_plane_light(frame: Frame, pixel: tuple[float, float], grid: int, extent: float,
@@ -167,6 +204,7 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
     bundle, precision : override ``[model] bundle`` / ``precision``
     exposure : Exposure metadata, when known (else the image's own linear units are used)
     """
+    from illuminet.runtime.assets.bundle import load_bundle
     from illuminet.runtime.stages.shading import ShadingStage
 
     h, w = np.shape(depth)[:2]
@@ -177,9 +215,7 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
         over.append(("model", "bundle", bundle))
     if precision is not None:
         over.append(("model", "precision", precision))
-    if cfg.model.shading == "auto":
-        over.append(("model", "shading", "model"))  # a missing bundle is an error here, not a fallback
-    else:
+    if cfg.model.shading != "auto":
         log.info("relight uses [model] shading = %s", cfg.model.shading)
     cfg = apply_overrides(cfg, over)
     frame = Frame(seq=0, t_device_ns=0, t_host_ns=0, color=color, depth=depth, intrinsics=intrinsics,
@@ -189,15 +225,14 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
         from illuminet.runtime.physics import load_response_lut
 
         response_lut = load_response_lut(cfg.source.response_curve)
+    load_bundle(cfg.model.bundle)  # a missing or damaged bundle is an error here, not a fallback
     shading_stage = ShadingStage(apply_overrides(cfg, [("model", "temporal_smoothing", 0.0)]))
     shading_stage.open()
     b = shading_stage.bundle
-    if b is None:
-        raise RuntimeError("relight: no bundle could be loaded (see the error above)")
-    classes = _stage_classes()
-    if classes is not None:
+    stages = lighting_stages(cfg, response_lut)
+    light = None
+    if stages is not None:
         f = frame
-        stages = [classes[0](cfg), classes[1](cfg), classes[2](cfg, response_lut=response_lut)]
         for st in stages:
             st.open()
         try:
@@ -209,6 +244,7 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
             raise ValueError(f"no plane found under the anchor pixel ({anchor_px[0]}, {anchor_px[1]}): "
                              "the depth there does not belong to a detected plane")
         anchor, pl, source = f.results[ANCHOR.name], f.results[PLANE_LIGHT.name], "stages"
+        light = f.results.get(LIGHT.name)
         if anchor.synthetic or not np.any(pl.mask):
             raise ValueError(f"no real plane observed under the anchor pixel ({anchor_px[0]}, {anchor_px[1]}); "
                              "relight needs the plane under the object to be visible in the image")
@@ -216,7 +252,10 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
         anchor, pl = fallback_plane_light(frame, anchor_px, cfg.plane_light.grid, cfg.plane_light.extent_m,
                                           cfg.plane_light.assumed_albedo, response_lut)
         source = "fallback"
-    sh = shading_stage.predict(pl)
+    if shading_stage.mode == "prt" and light is None:
+        raise ValueError('[model] shading = "prt" needs a light estimate, and relight\'s chain made none on this '
+                         'image: use shading "auto" or "model"')
+    sh = shading_stage.predict(pl, light)
     shading_stage.close()
     R, t = anchor.R, anchor.t
     scale = float(cfg.render.object_scale)
@@ -229,5 +268,5 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
         radiance=irr * INV_PI * pl.exposure_scale, irradiance=irr, proxy_irradiance=sh.irradiance,
         oi=np.einsum("vcx,yx->vcy", oi, R), T_cam_obj=np.asarray(anchor.T_cam_obj), exposure_scale=float(pl.exposure_scale),
         dominant_dir=(R @ dom).astype(np.float32), dominant_share=float(sh.dominant_share), method=sh.method,
-        bundle=str(b.path), plane_source=source, plane_observed=float(np.mean(pl.mask[first])),
+        bundle=str(b.path), plane_source=source, plane_observed=float(np.mean(pl.mask[first])), light=light,
     )

@@ -69,3 +69,55 @@ def test_relight_cli_errors(tmp_path, capsys):
     args[args.index("--intrinsics") + 1] = "256,256"
     assert main(args) == 2
     assert "--intrinsics: expected 4" in capsys.readouterr().err
+
+
+LIGHT_KEYS = {"sh9", "sh9_radiance", "primary_dir", "primary_rgb", "primary_pos", "light_frame"}
+
+
+def test_relight_npz_carries_the_light_estimate_when_the_chain_makes_one(tmp_path, monkeypatch):
+    import illuminet.runtime.relight as R
+    from illuminet.runtime.scene import LIGHT, PLANE_LIGHT, LightEstimate
+    from illuminet.runtime.stage import Stage
+
+    sh = np.zeros((9, 3))
+    sh[0] = [1.0, 0.9, 0.8]
+    d = np.array([0.6, 0.8, 0.0])
+    est = LightEstimate(sh9=sh, primary_dir=d, primary_rgb=np.array([2.0, 1.9, 1.7]))
+
+    class _GivenEstimate(Stage):  # stands where the light-estimate stage goes: a fixed, constructed estimate
+        name = "light"
+        requires = (PLANE_LIGHT,)
+        provides = (LIGHT,)
+
+        def process(self, frame):
+            return frame.with_result(LIGHT, est)
+
+    color, depth, K = floor_rgbd()
+    plain = relight(color, depth, K, (160, 130), defaults(), bundle="builtin:vase")
+    plain.save(tmp_path / "plain.npz")
+    assert not LIGHT_KEYS & set(np.load(tmp_path / "plain.npz").files)  # no estimate, no light fields
+
+    stages = R.lighting_stages
+    monkeypatch.setattr(R, "lighting_stages", lambda cfg, lut=None: stages(cfg, lut) + [_GivenEstimate()])
+    res = relight(color, depth, K, (160, 130), defaults(), bundle="builtin:vase")
+    assert res.method == "prt"  # auto: the bundle's PRT shades from the estimate
+    assert np.allclose(res.dominant_dir, res.T_cam_obj[:3, :3] @ d, atol=1e-5)
+    res.save(tmp_path / "r.npz")
+    z = np.load(tmp_path / "r.npz", allow_pickle=False)
+    assert NPZ_KEYS | LIGHT_KEYS <= set(z.files)
+    assert np.allclose(z["sh9"], sh) and np.allclose(z["sh9_radiance"], est.radiance_sh9())
+    assert np.allclose(z["primary_dir"], d) and np.allclose(z["primary_rgb"], est.primary_rgb)
+    assert z["primary_pos"].shape == (3,) and np.isnan(z["primary_pos"]).all()
+    assert str(z["light_frame"]).startswith("object: anchor-centred, +Y up")
+    assert np.allclose(z["radiance"], z["irradiance"] / np.pi * float(z["exposure_scale"]), rtol=1e-5)
+
+
+def test_relight_prt_mode_without_an_estimate_says_so():
+    import pytest
+
+    from illuminet.runtime.config import apply_overrides
+
+    color, depth, K = floor_rgbd()
+    cfg = apply_overrides(defaults(), [("model", "shading", "prt")])
+    with pytest.raises(ValueError, match='"prt" needs a light estimate'):
+        relight(color, depth, K, (160, 130), cfg, bundle="builtin:vase")

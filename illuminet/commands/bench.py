@@ -23,7 +23,7 @@ BENCHES: dict[str, str] = {
     "planes": "plane detection + tracking + plane illumination per 640x400 frame",
     "odometry": "RGB-D camera odometry per 640x400 frame; drift of the world-locked anchor over an orbit",
     "render": "render + composite at 1280x800 (moderngl)",
-    "transfer": "the int8 ONNX chain per frame (plane OI -> object shading)",
+    "transfer": "the object's shading per frame: the int8 ONNX chain (plane -> shading) and PRT (light estimate -> shading)",
     "light": "the per-frame lighting estimate (one estimate, and per frame at [light] rate_hz)",
     "stereo": "host stereo depth (SGBM + WLS) per 640x400 pair",
     "demo": "the whole demo pipeline end to end, per-stage timing and peak memory",

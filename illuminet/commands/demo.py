@@ -273,8 +273,10 @@ def describe_shading(methods: collections.Counter, cfg: Config) -> str:
         return "no frames"
     main, n = methods.most_common(1)[0]
     names = {"sh": "SH baseline (2nd-order spherical harmonics fitted to the RGB-D shading)",
-             "ambient": "ambient baseline (the plane's mean irradiance; the learned model did not load)",
-             "constant": "constant-prior baseline", "none": "none (no plane light yet)"}
+             "ambient": "ambient baseline (the plane's mean irradiance: no learned model loaded, or a PRT-only bundle "
+                        "without a light estimate)",
+             "constant": "constant-prior baseline", "none": "none (no plane light yet)",
+             "prt": "precomputed radiance transfer of the light estimate (physical, self-shadowed)"}
     what = f"learned model ({main.split(':', 1)[1]} ONNX)" if main.startswith("model") else names.get(main, main)
     others = ", ".join(f"{m} {c}" for m, c in methods.items() if m != main)
     return f"{what} on {n} frames" + (f" (also: {others})" if others else "") + f"; [model] bundle = {cfg.model.bundle}"

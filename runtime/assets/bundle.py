@@ -1,16 +1,23 @@
-"""Object bundles: what a trained object ships as, and loading it with integrity and shape checks.
+"""Object bundles: what an object ships as, and loading it with integrity and shape checks.
 
 A bundle is a folder::
 
-    bundle.json          metadata: object, vertex counts, plane grid, normalisation, ONNX interface,
-                         training config + seed + command, evaluation figures, sha256 + size of
-                         every file, package version
+    bundle.json          metadata: object, vertex counts, sha256 + size of every file, package version;
+                         for a learned transfer also the plane grid, normalisation, ONNX interface,
+                         training config + seed + command and evaluation figures; for PRT how the
+                         tables were made (command, seed, ray counts, timings)
     mesh.npz             render mesh (vertices, normals, faces), the lighting proxy (proxy_index into
                          the render vertices, proxy_edges), the carry mapping (carry_index,
                          carry_weight: each render vertex interpolates k proxy vertices) and
-                         prior_shading (the mean training shading / s: the constant-prior baseline)
-    transfer_fp32.onnx   the inference chain, fp32
+                         prior_shading (the constant-prior baseline, relative to the plane's scale)
+    prt.npz              optional: precomputed radiance transfer of the proxy vertices (layout in
+                         :mod:`illuminet.runtime.prt`; made by ``illuminet bundle``)
+    transfer_fp32.onnx   optional (``illuminet train``): the learned inference chain, fp32
     transfer_int8.onnx   the same with its FC layers dynamically quantised to int8
+
+A bundle has the ONNX pair when its ``bundle.json`` declares an ``onnx`` interface (then both files
+are required); ``illuminet bundle`` makes bundles with ``mesh.npz`` + ``prt.npz`` only, which
+shade physically from a light estimate (``[model] shading = "prt"``) but cannot use mode ``model``.
 
 ``builtin:NAME`` names a bundle shipped in the package (``illuminet/models/bundles/NAME``); any
 other value is a folder path. :func:`load_bundle` says exactly what is wrong when something is
@@ -26,9 +33,13 @@ from pathlib import Path
 
 import numpy as np
 
+from illuminet.runtime.prt import PRT_FILE, PrtTables
+
 BUNDLE_FORMAT = 1
 METADATA = "bundle.json"
-FILES = {"mesh": "mesh.npz", "fp32": "transfer_fp32.onnx", "int8": "transfer_int8.onnx"}
+#: every file a bundle may hold; ``mesh`` always, the ONNX pair when ``bundle.json`` has ``onnx``, ``prt`` optional
+FILES = {"mesh": "mesh.npz", "fp32": "transfer_fp32.onnx", "int8": "transfer_int8.onnx", "prt": PRT_FILE}
+MODEL_FILES = ("fp32", "int8")
 MESH_KEYS = ("vertices", "normals", "faces", "proxy_index", "proxy_edges", "carry_index", "carry_weight",
              "prior_shading")
 
@@ -90,6 +101,7 @@ class Bundle:
     carry_index: np.ndarray
     carry_weight: np.ndarray
     prior_shading: np.ndarray
+    prt: PrtTables | None = None
     extra: dict = field(default_factory=dict)
 
     @property
@@ -109,20 +121,37 @@ class Bundle:
         return self.normals[self.proxy_index]
 
     @property
+    def has_model(self) -> bool:
+        """True when the bundle holds the learned transfer (ONNX chain; ``illuminet train``)."""
+        return "onnx" in self.meta
+
+    def _no_model(self, what: str) -> BundleError:
+        return BundleError(f"bundle {self.name} ({self.path}) has no learned model (made by `illuminet bundle`, "
+                           f"PRT only), so it has no {what}: use [model] shading = \"prt\" or \"auto\", or a "
+                           "bundle made by `illuminet train`")
+
+    def _plane(self, key: str):
+        if "plane" not in self.meta:
+            raise self._no_model("plane input")
+        return self.meta["plane"][key]
+
+    @property
     def grid(self) -> int:
-        return int(self.meta["plane"]["grid"])
+        return int(self._plane("grid"))
 
     @property
     def pool(self) -> int:
-        return int(self.meta["plane"]["pool"])
+        return int(self._plane("pool"))
 
     @property
     def extent_m(self) -> float:
-        return float(self.meta["plane"]["extent_m"])
+        return float(self._plane("extent_m"))
 
     def onnx_path(self, precision: str = "int8") -> Path:
         if precision not in ("int8", "fp32"):
             raise BundleError(f"precision {precision!r}: expected 'int8' or 'fp32'")
+        if not self.has_model:
+            raise self._no_model("ONNX chain for shading mode \"model\"")
         return self.path / FILES[precision]
 
     def carry(self, proxy_values: np.ndarray) -> np.ndarray:
@@ -162,16 +191,20 @@ def load_bundle(spec: str | Path, verify: bool = True) -> Bundle:
     if fmt != BUNDLE_FORMAT:
         raise BundleError(f"{mpath}: bundle format {fmt!r} is not supported (this version reads format "
                           f"{BUNDLE_FORMAT}); retrain or update illuminet")
-    for key in ("files", "vertices", "plane", "onnx"):
+    for key in ("files", "vertices") + (("plane",) if "onnx" in meta else ()):
         if key not in meta:
             raise BundleError(f"{mpath}: missing key {key!r}")
+    required = [FILES["mesh"]] + ([FILES[k] for k in MODEL_FILES] if "onnx" in meta else [])
+    for name in required:
+        if name not in meta["files"]:
+            raise BundleError(f"{mpath}: no checksum recorded for {name}")
     for name in FILES.values():
+        rec = meta["files"].get(name)
+        if rec is None:
+            continue  # an optional file this bundle does not have
         p = path / name
         if not p.is_file():
             raise BundleError(f"{path}: missing file {name}")
-        rec = meta["files"].get(name)
-        if rec is None:
-            raise BundleError(f"{mpath}: no checksum recorded for {name}")
         size = p.stat().st_size
         if size != rec.get("bytes"):
             raise BundleError(f"{p}: size {size} bytes, {METADATA} records {rec.get('bytes')} (file damaged or replaced)")
@@ -192,6 +225,14 @@ def load_bundle(spec: str | Path, verify: bool = True) -> Bundle:
         raise BundleError(f"{path / FILES['mesh']}: cannot read: {e}") from None
     b = Bundle(path=path, meta=meta, **arr)
     _check_shapes(b, path / FILES["mesh"])
+    if PRT_FILE in meta["files"]:
+        try:
+            with np.load(path / PRT_FILE, allow_pickle=False) as z:
+                b.prt = PrtTables.from_arrays({k: z[k] for k in z.files}, b.n_proxy)
+        except ValueError as e:
+            raise BundleError(f"{path / PRT_FILE}: {e}") from None
+        except Exception as e:  # zip/npz errors
+            raise BundleError(f"{path / PRT_FILE}: cannot read: {e}") from None
     return b
 
 
@@ -218,6 +259,8 @@ def _check_shapes(b: Bundle, where: Path) -> None:
     need(b.carry_index.min() >= 0 and b.carry_index.max() < V, f"carry_index outside 0..{V - 1}")
     need(bool(np.allclose(b.carry_weight.sum(1), 1.0, atol=1e-3)), "carry_weight rows must sum to 1")
     need(b.prior_shading.shape == (V, 3), f"prior_shading must be ({V}, 3), got {b.prior_shading.shape}")
+    if not b.has_model:
+        return
     g, pool = b.grid, b.pool
     P = (g // pool) ** 2
     io = b.meta["onnx"]

@@ -45,6 +45,36 @@ def _first_hit_distance(intersector, origins: np.ndarray, directions: np.ndarray
     return out
 
 
+def first_hits(mesh: trimesh.Trimesh, origins: np.ndarray, directions: np.ndarray, chunk: int = 1 << 18,
+               progress=None) -> tuple[np.ndarray, np.ndarray]:
+    """The triangle each ray hits first and where (Embree when installed).
+
+    Parameters
+    ----------
+    mesh : the occluder
+    origins, directions : (N, 3) ray starts and unit directions
+    chunk : rays per call into the intersector
+    progress : callable ``(done, total)``, optional, called after every chunk
+
+    Returns
+    -------
+    tri : (N,) int64, the first triangle hit, -1 where the ray escapes
+    location : (N, 3) float64, the hit point (NaN where the ray escapes)
+    """
+    rmi = _intersector(mesh)
+    n = len(origins)
+    tri = np.full(n, -1, np.int64)
+    loc = np.full((n, 3), np.nan)
+    for s in range(0, n, chunk):
+        o, d = origins[s : s + chunk], directions[s : s + chunk]
+        t, ray, p = rmi.intersects_id(o, d, multiple_hits=False, return_locations=True)
+        if len(ray):
+            tri[s + ray], loc[s + ray] = t, p
+        if progress is not None:
+            progress(min(s + chunk, n), n)
+    return tri, loc
+
+
 def _origins(points: np.ndarray, normals: np.ndarray | None, directions: np.ndarray, eps: float) -> np.ndarray:
     """Ray origins pushed off the surface: along the normal when known, else along the ray."""
     if normals is None:

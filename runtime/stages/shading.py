@@ -1,9 +1,10 @@
-"""The transfer stage: plane illumination -> the object's shading, per frame.
+"""The transfer stage: the room's light -> the object's shading, per frame.
 
-Owns :func:`preprocess_plane` (the plane input normalisation shared by training and run time),
-:class:`TransferChain` (the ONNX chain of a bundle in onnxruntime) and :class:`ShadingStage`
-(``results["plane_light"]`` -> ``results["shading"]`` with temporal smoothing, or a baseline when
-``[model] shading`` asks for one).
+Owns :func:`preprocess_plane` (the plane input normalisation shared by training and run time) and
+:class:`ShadingStage`: ``results["light"]`` (the light estimate) through the bundle's precomputed
+radiance transfer, or ``results["plane_light"]`` through the learned ONNX chain
+(:class:`~illuminet.runtime.assets.bundle.TransferChain`) or a baseline, as ``[model] shading`` asks,
+-> ``results["shading"]`` with temporal smoothing.
 
 Normalisation: the plane's measured irradiance is divided by its mean luminance ``s`` over the
 observed cells, so the network sees lighting *shape and colour*, never absolute brightness (which
@@ -17,7 +18,8 @@ import logging
 
 import numpy as np
 
-from illuminet.runtime.scene import PLANE_LIGHT, SHADING, ObjectShading
+from illuminet.runtime.prt import PRT_FILE, prt_irradiance
+from illuminet.runtime.scene import LIGHT, PLANE_LIGHT, SHADING, ObjectShading
 from illuminet.runtime.sh import sh_eval, sh_fit
 from illuminet.runtime.stage import FrameError, Stage
 
@@ -61,16 +63,9 @@ def preprocess_plane(irradiance: np.ndarray, mask: np.ndarray, grid: int, pool: 
                          f"got {e.shape} and {m.shape}")
     if grid % pool:
         raise ValueError(f"plane grid {grid} is not divisible by the pooling factor {pool}")
-    w = m.astype(np.float32)
-    if confidence is not None:
-        w = w * np.clip(np.asarray(confidence, dtype=np.float32), 0.0, 1.0)
+    w = _cell_weights(m, confidence)
     e = np.where(np.isfinite(e), e, 0.0)
-    wsum = float(w.sum())
-    if wsum <= 0:
-        raise ValueError("no observed plane cells: cannot measure the plane's illumination")
-    s = float((e @ LUMA * w).sum() / wsum)
-    if not s > 0:
-        raise ValueError(f"plane irradiance has non-positive mean luminance {s}")
+    s = plane_scale(e, m, confidence)
     g2 = grid // pool
     ew = (e / s * w[:, None]).reshape(g2, pool, g2, pool, 3).sum((1, 3))
     ws = w.reshape(g2, pool, g2, pool).sum((1, 3))
@@ -78,6 +73,33 @@ def preprocess_plane(irradiance: np.ndarray, mask: np.ndarray, grid: int, pool: 
     x[..., :3] = ew / np.maximum(ws, 1e-6)[..., None]
     x[..., 3] = ws / (pool * pool)
     return x.reshape(g2 * g2, 4), s
+
+
+def _cell_weights(mask: np.ndarray, confidence: np.ndarray | None) -> np.ndarray:
+    w = np.asarray(mask, dtype=bool).astype(np.float32)
+    if confidence is not None:
+        w = w * np.clip(np.asarray(confidence, dtype=np.float32), 0.0, 1.0)
+    return w
+
+
+def plane_scale(irradiance: np.ndarray, mask: np.ndarray, confidence: np.ndarray | None = None) -> float:
+    """The plane's scale ``s``: mean observed luminance (Rec.709) of its irradiance, confidence-weighted.
+
+    Raises
+    ------
+    ValueError
+        When no cell is observed or the mean is not positive.
+    """
+    e = np.asarray(irradiance, dtype=np.float32)
+    e = np.where(np.isfinite(e), e, 0.0)
+    w = _cell_weights(mask, confidence)
+    wsum = float(w.sum())
+    if wsum <= 0:
+        raise ValueError("no observed plane cells: cannot measure the plane's illumination")
+    s = float((e @ LUMA * w).sum() / wsum)
+    if not s > 0:
+        raise ValueError(f"plane irradiance has non-positive mean luminance {s}")
+    return s
 
 
 def dominant_light_from_oi(oi: np.ndarray, normals: np.ndarray | None = None) -> tuple[np.ndarray, float]:
@@ -105,24 +127,35 @@ def plane_mean_shading(plane_irr: np.ndarray, mask: np.ndarray, n_vertices: int)
 
 
 class ShadingStage(Stage):
-    """``results["plane_light"]`` -> ``results["shading"]`` (:class:`ObjectShading` of the proxy mesh).
+    """The object's shading per frame -> ``results["shading"]`` (:class:`ObjectShading` of the proxy mesh).
 
     ``[model] shading``:
 
-    * ``model``: the bundle's ONNX chain (``[model] precision`` int8 or fp32) on the anchor plane's
-      irradiance; ``auto`` does the same and falls back to ``ambient`` when the bundle cannot load;
-    * ``constant``: the bundle's prior (mean training shading) times the plane's scale;
+    * ``prt``: physical shading from the frame's light estimate (``results["light"]``) through the
+      bundle's precomputed radiance transfer (:func:`illuminet.runtime.prt.prt_irradiance`): the
+      ambient SH through each vertex's self-shadowed transfer vector, the primary light through its
+      visibility table, and the bundle's interreflection bounce. The dominant light for the cast
+      shadow is the estimate's primary light and its share. Requires ``light``;
+    * ``model``: the bundle's learned ONNX chain (``[model] precision`` int8 or fp32) on the anchor
+      plane's irradiance (the paper's transfer);
+    * ``auto`` (default): ``prt`` on frames that carry a light estimate when the bundle has PRT
+      tables, else ``model`` when the bundle has one, else ``ambient``; also ``ambient`` when the
+      bundle cannot load (logged once);
+    * ``constant``: the bundle's prior (``prior_shading``) times the plane's scale;
     * ``ambient``: the plane's mean irradiance everywhere;
     * ``sh``: second-order SH fitted (minimum-norm least squares) to the plane-light samples with
       their normals (all planes of the frame's ``plane_light``), evaluated at the proxy normals.
 
+    Contract: ``prt`` requires ``light`` only; every other mode requires ``plane_light``, and
+    ``auto`` also reads ``light`` when present (set per instance from the configuration).
+
     Temporal smoothing: an exponential moving average of the predicted shading and OI with weight
-    ``[model] temporal_smoothing`` on the previous value (0 = none), reset when the anchor plane or
-    the method changes.
+    ``[model] temporal_smoothing`` on the previous value (0 = none), reset when the method changes.
     """
 
     name = "shading"
-    requires = (PLANE_LIGHT,)
+    requires = (PLANE_LIGHT,)  # (LIGHT,) in mode "prt" (set in __init__)
+    optional = ()  # (LIGHT,) in mode "auto"
     provides = (SHADING,)
 
     def __init__(self, cfg):
@@ -133,33 +166,49 @@ class ShadingStage(Stage):
         self.alpha = float(m.temporal_smoothing)
         if not 0.0 <= self.alpha < 1.0:
             raise ValueError(f"[model] temporal_smoothing must be in [0, 1), got {self.alpha}")
+        if self.mode == "prt":
+            self.requires = (LIGHT,)
+        elif self.mode == "auto":
+            self.optional = (LIGHT,)
+        self.object_scale = float(cfg.render.object_scale)
         self.bundle = None
         self.chain = None
+        self.fallback = None  # what "auto" uses on frames without a light estimate (set in open)
+        self._proxy = None
         self._prev: tuple | None = None
         self.frames = 0
-        self.fallbacks = 0
+        self.methods: dict[str, int] = {}
 
     def open(self) -> None:
         from illuminet.runtime.assets.bundle import BundleError, TransferChain, load_bundle
 
         try:
             self.bundle = load_bundle(self.cfg.model.bundle)
-            if self.mode in ("auto", "model"):
+            if self.mode == "model" or (self.mode == "auto" and self.bundle.has_model):
                 self.chain = TransferChain(self.bundle, self.precision)
+            if self.mode == "prt" and self.bundle.prt is None:
+                raise BundleError(f"bundle {self.bundle.name} ({self.bundle.path}) has no PRT tables ({PRT_FILE}) for "
+                                  f"[model] shading = \"prt\": add them with `illuminet bundle --object "
+                                  f"{self.bundle.meta.get('object', 'MESH')} --out {self.bundle.path}`")
         except BundleError as e:
             if self.mode != "auto":
                 raise
             log.error("%s; shading falls back to the ambient baseline", e)
             self.mode = "ambient"
         if self.mode == "auto":
-            self.mode = "model"
+            self.fallback = "model" if self.chain is not None else "ambient"
+            if self.bundle.prt is None:
+                log.info("bundle %s has no PRT tables: shading uses %s", self.bundle.name, self.fallback)
+            elif self.fallback == "ambient":
+                log.info("bundle %s has no learned model: frames without a light estimate use the ambient "
+                         "baseline", self.bundle.name)
 
     def close(self) -> None:
         self.chain = None
 
     def stats(self) -> dict:
-        return {"mode": self.mode, "precision": self.precision if self.mode == "model" else None,
-                "frames": self.frames}
+        return {"mode": self.mode, "precision": self.precision if self.chain is not None else None,
+                "frames": self.frames, "methods": dict(self.methods)}
 
     def _plane_input(self, pl):
         sl = pl.plane_slices[0] if pl.plane_slices else slice(0, len(pl.irradiance))
@@ -167,11 +216,33 @@ class ShadingStage(Stage):
         conf = pl.confidence[sl] if pl.confidence is not None else None
         return irr, mask, conf
 
-    def predict(self, pl) -> ObjectShading:
-        """One prediction from a :class:`~illuminet.runtime.scene.PlaneLight` (no smoothing)."""
+    def method_for(self, pl, light) -> str:
+        """The mode this frame is shaded with (``auto`` resolved by what the frame and bundle have)."""
+        if self.mode != "auto":
+            return self.mode
+        if light is not None and self.bundle is not None and self.bundle.prt is not None:
+            return "prt"
+        return self.fallback or "ambient"
+
+    def predict(self, pl=None, light=None) -> ObjectShading:
+        """One prediction (no smoothing) from a :class:`~illuminet.runtime.scene.PlaneLight` and/or a
+        :class:`~illuminet.runtime.scene.LightEstimate`, as the mode needs."""
         b = self.bundle
+        mode = self.method_for(pl, light)
+        if mode == "prt":
+            if light is None:
+                raise FrameError("shading mode prt needs a light estimate (results['light']) on this frame")
+            if self._proxy is None:  # the proxy's points (at the drawn scale) and normals, once
+                self._proxy = (np.asarray(b.proxy_vertices, np.float64) * self.object_scale,
+                               np.asarray(b.proxy_normals, np.float64))
+            irr = prt_irradiance(b.prt, self._proxy[0], self._proxy[1], light)
+            d = None if light.primary_dir is None else np.asarray(light.primary_dir, np.float32)
+            return ObjectShading(irradiance=irr, method="prt", dominant_dir=d,
+                                 dominant_share=light.primary_share() if d is not None else 0.0)
+        if pl is None:
+            raise FrameError(f"shading mode {mode} needs the plane light (results['plane_light']) on this frame")
         irr, mask, conf = self._plane_input(pl)
-        if self.mode in ("model", "constant"):
+        if mode == "model":
             if pl.grid != b.grid:
                 raise FrameError(f"plane grid is {pl.grid}x{pl.grid} but bundle {b.name} was trained on "
                                  f"{b.grid}x{b.grid}: set [plane_light] grid = {b.grid}")
@@ -179,17 +250,21 @@ class ShadingStage(Stage):
                 x, s = preprocess_plane(irr, mask, b.grid, b.pool, conf)
             except ValueError as e:
                 raise FrameError(str(e)) from None
-            if self.mode == "constant":
-                return ObjectShading(irradiance=b.prior_shading * s, method="constant")
             oi, sh = self.chain(x)
             oi, sh = oi * s, np.maximum(sh, 0.0) * s
             d, share = dominant_light_from_oi(oi)
             return ObjectShading(irradiance=sh, method=f"model:{self.precision}", oi=oi, dominant_dir=d,
                                  dominant_share=share)
-        if self.mode == "ambient":
+        if mode == "constant":
+            try:
+                s = plane_scale(irr, mask, conf)
+            except ValueError as e:
+                raise FrameError(str(e)) from None
+            return ObjectShading(irradiance=b.prior_shading * s, method="constant")
+        if mode == "ambient":
             n = b.n_proxy if b is not None else 1
             return ObjectShading(irradiance=plane_mean_shading(irr, mask, n), method="ambient")
-        if self.mode == "sh":
+        if mode == "sh":
             m = np.asarray(pl.mask, bool)  # every plane's samples, not only the anchor plane
             if not m.any():
                 raise FrameError("no observed plane samples to fit SH lighting to")
@@ -200,13 +275,18 @@ class ShadingStage(Stage):
             return ObjectShading(irradiance=sh_eval(coef, b.proxy_normals), method="sh",
                                  dominant_dir=d / nd if nd > 0 else None,
                                  dominant_share=float(np.clip(nd / max(float(coef[0] @ LUMA), 1e-12), 0, 1)))
-        raise FrameError(f"unknown shading mode {self.mode!r}")
+        raise FrameError(f"unknown shading mode {mode!r}")
 
     def process(self, frame):
-        pl = self.require(frame, PLANE_LIGHT)
-        shading = self.predict(pl)
-        shading = self._smooth(shading)
+        light = frame.results.get(LIGHT.name)
+        if self.mode == "prt":
+            light = self.require(frame, LIGHT)
+        pl = frame.results.get(PLANE_LIGHT.name)
+        if self.method_for(pl, light) != "prt":
+            pl = self.require(frame, PLANE_LIGHT)
+        shading = self._smooth(self.predict(pl, light))
         self.frames += 1
+        self.methods[shading.method] = self.methods.get(shading.method, 0) + 1
         return frame.with_result(SHADING, shading)
 
     def _smooth(self, s: ObjectShading) -> ObjectShading:

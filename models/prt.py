@@ -1,0 +1,325 @@
+"""Precomputing an object's radiance transfer (PRT), offline, once per mesh: what ``illuminet bundle``
+adds to a bundle so that any mesh can be shaded physically, with no training.
+
+Per lighting-proxy vertex (the layout and the run-time side are in :mod:`illuminet.runtime.prt`):
+
+* the SH transfer vector ``T_i(lm) = integral of max(0, n_i . w) V_i(w) Y_lm(w) dw`` with the
+  object's self-visibility V_i, computed as the closed form of an unoccluded vertex,
+  ``A_hat_l Y_lm(n_i)``, minus a quadrature of the blocked directions (equal-weight Fibonacci
+  directions, ``4 pi / N`` each). A vertex the object does not occlude therefore gets the exact
+  no-visibility value, and the quadrature error only touches the occluded part. The floor (y = 0)
+  is deliberately not an occluder here: what a ray sees below the horizon is the floor, whose
+  radiance is the lower hemisphere of the light estimate's ambient SH (the floor bounce);
+* the primary light's visibility over K table directions: the object and the vertex's own tangent
+  plane (``n_i . w <= 0``) block; the floor is applied at run time, exactly at the horizon (a table
+  entry for it would blur the horizon over the interpolation kernel, dimming a low sun);
+* optionally one interreflection bounce: light the object reflects onto itself. For each blocked
+  ray, the surface it hits reflects ``albedo / pi`` times that point's own irradiance, which is its
+  transfer vector (interpolated: proxy -> render vertices by the bundle's carry weights, then
+  barycentric in the hit triangle) applied to the same lighting. Back-face hits (open meshes) add
+  nothing. :func:`interreflection` iterates the same operator to convergence, which is how the
+  bundle command measures what the single bounce leaves out.
+
+Rays are cast with Embree through :func:`illuminet.runtime.groundtruth.visibility.first_hits`,
+starting ``eps`` off the surface along the normal; only directions in front of the vertex are cast.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from illuminet.runtime.groundtruth.lighting import fibonacci_sphere
+from illuminet.runtime.groundtruth.visibility import DEFAULT_EPS, first_hits
+from illuminet.runtime.prt import PrtTables, pack_visibility, unoccluded_transfer
+from illuminet.runtime.sh import sh9
+
+#: directions of the transfer quadrature (only those in front of a vertex are cast: about half)
+DEFAULT_TRANSFER_RAYS = 4096
+#: directions of the primary light's visibility table (~6.3 degrees apart)
+DEFAULT_TABLE_DIRECTIONS = 1024
+
+
+@dataclass
+class PrtResult:
+    """What :func:`compute_prt` returns: the tables and how long each step took.
+
+    ``bounce_operator`` keeps the blocked rays' hits (for :func:`interreflection`); it is not stored.
+    """
+
+    transfer: np.ndarray  # (V, 9) float32
+    vis_directions: np.ndarray  # (K, 3) float32
+    visibility: np.ndarray  # (V, K) bool
+    bounce: np.ndarray | None  # (V, 9) float32, albedo included
+    albedo: float
+    timings_s: dict = field(default_factory=dict)
+    bounce_operator: Callable[[np.ndarray], np.ndarray] | None = None
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The arrays of ``prt.npz`` (:data:`illuminet.runtime.prt.PRT_KEYS`, + ``bounce``)."""
+        out = {"transfer": self.transfer.astype(np.float32), "vis_directions": self.vis_directions.astype(np.float32),
+               "vis_bits": pack_visibility(self.visibility)}
+        if self.bounce is not None:
+            out["bounce"] = self.bounce.astype(np.float32)
+        return out
+
+    def tables(self) -> PrtTables:
+        """The run-time tables, as :func:`illuminet.runtime.assets.bundle.load_bundle` would read them."""
+        return PrtTables.from_arrays(self.arrays(), len(self.transfer))
+
+
+def _front_pairs(normals: np.ndarray, directions: np.ndarray, extra: np.ndarray | None = None):
+    """(vertex, direction) index pairs with ``n . w > 0`` (and ``extra[k]`` when given)."""
+    front = normals @ directions.T > 0.0
+    if extra is not None:
+        front &= extra[None, :]
+    return np.nonzero(front)
+
+
+def compute_prt(mesh, points: np.ndarray, normals: np.ndarray, carry: Callable[[np.ndarray], np.ndarray] | None = None,
+                transfer_rays: int = DEFAULT_TRANSFER_RAYS, table_directions: int = DEFAULT_TABLE_DIRECTIONS,
+                albedo: float = 0.0, eps: float = DEFAULT_EPS,
+                progress: Callable[[str, int, int], None] | None = None) -> PrtResult:
+    """PRT tables of ``points`` on ``mesh`` (see the module docstring).
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The object in its object frame (standing on y = 0, +Y up); the occluder.
+    points, normals : (V, 3)
+        Where to compute (the lighting proxy's vertices) and their unit normals.
+    carry : callable (V, 9) -> (R, 9), optional
+        Maps values on ``points`` to the mesh's R vertices (the bundle's carry); needed for the bounce.
+        ``None``: ``points`` are the mesh's vertices.
+    transfer_rays, table_directions : int
+        Fibonacci direction counts of the transfer quadrature and the visibility table.
+    albedo : float
+        Grey albedo of the object for the interreflection bounce; 0 = no bounce.
+    eps : float
+        Ray start offset along the normal, metres.
+    progress : callable ``(step, done, total)``, optional
+
+    Returns
+    -------
+    PrtResult
+    """
+    P = np.asarray(points, np.float64)
+    N = np.asarray(normals, np.float64)
+    N = N / np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-12)
+    if P.shape != N.shape or P.ndim != 2 or P.shape[1] != 3:
+        raise ValueError(f"points {P.shape} and normals {N.shape} must both be (V, 3)")
+    if not 0.0 <= albedo < 1.0:
+        raise ValueError(f"albedo must be in [0, 1), got {albedo}")
+    timings = {}
+
+    def cast(step, vi, D):
+        cb = (lambda done, total: progress(step, done, total)) if progress else None
+        return first_hits(mesh, P[vi] + eps * N[vi], D, progress=cb)
+
+    # transfer: closed form minus the blocked directions
+    t0 = time.perf_counter()
+    D = fibonacci_sphere(transfer_rays)
+    vi, ki = _front_pairs(N, D)
+    tri, loc = cast("transfer", vi, D[ki])
+    blocked = tri >= 0
+    dw = 4.0 * np.pi / transfer_rays
+    Y = sh9(D)
+    cos = np.einsum("px,px->p", N[vi], D[ki])
+    b = np.flatnonzero(blocked)
+    lost = np.zeros((len(P), transfer_rays))  # dw cos of every blocked (vertex, direction)
+    lost[vi[b], ki[b]] = dw * cos[b]
+    T = unoccluded_transfer(N) - lost @ Y
+    timings["transfer_s"] = time.perf_counter() - t0
+
+    # the primary light's visibility table: the object and the vertex's own tangent plane block (the
+    # floor is applied at run time: runtime/prt.py)
+    t0 = time.perf_counter()
+    K = fibonacci_sphere(table_directions)
+    vj, kj = _front_pairs(N, K)
+    tri_k, _ = cast("visibility", vj, K[kj])
+    vis = np.zeros((len(P), table_directions), bool)
+    vis[vj, kj] = tri_k < 0
+    timings["visibility_s"] = time.perf_counter() - t0
+
+    # one interreflection bounce from the blocked transfer rays' hit points
+    op = None
+    bounce = None
+    t0 = time.perf_counter()
+    faces = np.asarray(mesh.faces, np.int64)
+    fn = np.asarray(mesh.face_normals, np.float64)
+    front_hit = np.einsum("px,px->p", fn[tri[b]], D[ki[b]]) < 0.0
+    hb = b[front_hit]
+    if len(hb):
+        import trimesh
+        from scipy.sparse import csr_matrix
+
+        corner = faces[tri[hb]]
+        bary = trimesh.triangles.points_to_barycentric(np.asarray(mesh.vertices, np.float64)[corner], loc[hb])
+        bary = np.clip(bary, 0.0, 1.0)
+        bary /= np.maximum(bary.sum(1, keepdims=True), 1e-12)
+        # one sparse (V, R) matrix: point i gathers dw cos / pi x barycentric weight of each hit's corners
+        vals = (dw * cos[hb] / np.pi)[:, None] * bary
+        gather = csr_matrix((vals.ravel(), (np.repeat(vi[hb], 3), corner.ravel())),
+                            shape=(len(P), len(mesh.vertices)))  # duplicates are summed
+
+        def op(t_points: np.ndarray) -> np.ndarray:
+            """Transfer on the points -> the transfer of the light those points reflect onto them (albedo 1)."""
+            return gather @ np.asarray(carry(t_points) if carry is not None else t_points, np.float64)
+
+        if albedo > 0:
+            bounce = (albedo * op(T)).astype(np.float32)
+    elif albedo > 0:
+        bounce = np.zeros_like(T, dtype=np.float32)
+    timings["bounce_s"] = time.perf_counter() - t0
+    return PrtResult(transfer=T.astype(np.float32), vis_directions=K.astype(np.float32), visibility=vis,
+                     bounce=bounce, albedo=float(albedo), timings_s=timings, bounce_operator=op)
+
+
+def interreflection(result: PrtResult, albedo: float, bounces: int) -> np.ndarray:
+    """Transfer (V, 9) with ``bounces`` interreflections at ``albedo`` (0: the direct transfer).
+
+    ``bounces`` large (e.g. 50) gives the converged multi-bounce transfer of the same discretisation,
+    the reference against which the single bounce is measured.
+    """
+    T = result.transfer.astype(np.float64)
+    total, term = T.copy(), T
+    if result.bounce_operator is None:
+        return total
+    for _ in range(bounces):
+        term = albedo * result.bounce_operator(term)
+        total += term
+    return total
+
+
+# --------------------------------------------------------------------------- bundles
+
+#: how ``prior_shading`` of a PRT-only bundle is defined (recorded in its bundle.json)
+PRIOR_UNIFORM = ("irradiance under a uniform environment (floor included) relative to an unoccluded upward "
+                 "plane's: 1 - ambient occlusion (+ bounce); no training")
+
+
+def uniform_prior(result: PrtResult) -> np.ndarray:
+    """``prior_shading`` (V, 3) of a PRT-only bundle: :data:`PRIOR_UNIFORM` (the constant baseline's shape)."""
+    t = result.transfer[:, 0] + (result.bounce[:, 0] if result.bounce is not None else 0.0)
+    # uniform radiance 1 has L00 = sqrt(4 pi); an unoccluded upward plane receives pi
+    return np.repeat((t * np.sqrt(4.0 * np.pi) / np.pi)[:, None], 3, axis=1).astype(np.float32)
+
+
+def _carry_fn(carry_index: np.ndarray, carry_weight: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    def carry(values: np.ndarray) -> np.ndarray:
+        return (np.asarray(values)[carry_index] * carry_weight[..., None]).sum(1)
+
+    return carry
+
+
+def prt_meta(result: PrtResult, transfer_rays: int, table_directions: int, command: str, seed: int) -> dict:
+    """The ``prt`` section of bundle.json: how the tables were made, and the conventions they follow."""
+    from illuminet import __version__
+
+    return {
+        "file": "prt.npz",
+        "command": command,
+        "seed": int(seed),
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "package_version": __version__,
+        "vertices": "proxy",
+        "transfer_rays": int(transfer_rays),
+        "table_directions": int(table_directions),
+        "eps_m": DEFAULT_EPS,
+        "bounce_albedo": result.albedo,
+        "timings_s": {k: round(v, 3) for k, v in result.timings_s.items()},
+        "convention": "E = transfer @ L_radiance (9 SH coefficients, no 1/pi; LightEstimate.radiance_sh9()), object "
+                      "frame +Y up; unoccluded: transfer = A_hat_l Y_lm(n)",
+        "floor": "transfer: the floor does not occlude (its radiance is the ambient SH's lower hemisphere); "
+                 "visibility table: object and facing only; the floor blocks the primary light below the "
+                 "horizon at run time (runtime/prt.py floor_factor)",
+    }
+
+
+def add_prt(bundle_dir, transfer_rays: int = DEFAULT_TRANSFER_RAYS, table_directions: int = DEFAULT_TABLE_DIRECTIONS,
+            albedo: float = 0.8, command: str = "", seed: int = 0, progress=None) -> tuple[Path, PrtResult]:
+    """Compute PRT tables for an existing bundle's proxy vertices and add them (``prt.npz``).
+
+    The bundle's other files (mesh, ONNX models, evaluation) are kept as they are; ``bundle.json``
+    gets a ``prt`` section and the new file's checksum. Returns (bundle.json path, result).
+    """
+    import trimesh
+    from illuminet.models.export import finalize_bundle
+    from illuminet.runtime.assets.bundle import load_bundle
+    from illuminet.runtime.prt import PRT_FILE
+
+    b = load_bundle(bundle_dir)
+    mesh = trimesh.Trimesh(np.asarray(b.vertices, np.float64), np.asarray(b.faces), process=False)
+    res = compute_prt(mesh, b.proxy_vertices, b.proxy_normals, carry=b.carry, transfer_rays=transfer_rays,
+                      table_directions=table_directions, albedo=albedo, progress=progress)
+    np.savez_compressed(b.path / PRT_FILE, **res.arrays())
+    meta = dict(b.meta)
+    meta["prt"] = prt_meta(res, transfer_rays, table_directions, command, seed)
+    return finalize_bundle(b.path, meta), res
+
+
+def new_bundle(spec: str, out, height: float | None = None, n_proxy: int = 1000, seed: int = 0,
+               transfer_rays: int = DEFAULT_TRANSFER_RAYS, table_directions: int = DEFAULT_TABLE_DIRECTIONS,
+               albedo: float = 0.8, command: str = "", progress=None, up: str = "y") -> tuple[Path, PrtResult]:
+    """A PRT-only bundle (``mesh.npz`` + ``prt.npz`` + ``bundle.json``, no ONNX) of any mesh.
+
+    Parameters
+    ----------
+    spec : ``builtin:NAME`` or a mesh file (:func:`illuminet.runtime.assets.objects.load_object`)
+    out : the bundle folder to write
+    height : scale the object to this height in metres (files default to 0.25 m; built-ins keep
+        their designed size unless given)
+    n_proxy, seed : lighting proxy size and the seed of its farthest-point selection
+    transfer_rays, table_directions, albedo : see :func:`compute_prt`
+    up : the file's up axis, ``"y"`` or ``"z"``
+
+    Raises
+    ------
+    illuminet.runtime.assets.objects.ObjectLoadError
+        Naming the file when it is missing, unreadable or holds no triangles.
+    """
+    import trimesh
+    from illuminet.models.datagen import build_geometry
+    from illuminet.models.export import finalize_bundle
+    from illuminet.runtime.assets.bundle import BUNDLE_FORMAT, FILES
+    from illuminet.runtime.assets.objects import DEFAULT_HEIGHT, load_object, normalise
+    from illuminet.runtime.prt import PRT_FILE
+
+    from illuminet import __version__
+
+    t0 = time.perf_counter()
+    builtin = spec.startswith("builtin:")
+    mesh = load_object(spec, height=None if builtin else (height or DEFAULT_HEIGHT), up=up)
+    if builtin and height:
+        normalise(mesh, height)
+    name = spec.split(":", 1)[1] if builtin else Path(spec).stem
+    g = build_geometry(mesh, n_proxy=n_proxy, seed=seed, name=name)
+    t_geom = time.perf_counter() - t0
+    occluder = trimesh.Trimesh(np.asarray(g.vertices, np.float64), g.faces, process=False)
+    res = compute_prt(occluder, g.proxy_vertices, g.proxy_normals, carry=_carry_fn(g.carry_index, g.carry_weight),
+                      transfer_rays=transfer_rays, table_directions=table_directions, albedo=albedo,
+                      progress=progress)
+    res.timings_s = {"mesh_and_proxy_s": t_geom, **res.timings_s}
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(out / FILES["mesh"], vertices=g.vertices, normals=g.normals, faces=g.faces,
+                        proxy_index=g.proxy_index, proxy_edges=g.proxy_edges, carry_index=g.carry_index,
+                        carry_weight=g.carry_weight, prior_shading=uniform_prior(res))
+    np.savez_compressed(out / PRT_FILE, **res.arrays())
+    meta = {
+        "format": BUNDLE_FORMAT,
+        "name": name,
+        "object": spec if builtin else str(Path(spec).resolve()),
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "package_version": __version__,
+        "vertices": {"render": len(g.vertices), "faces": len(g.faces), "proxy": len(g.proxy_index)},
+        "height_m": float(np.ptp(g.vertices[:, 1])),
+        "up": up,
+        "proxy": {"seed": int(seed), "method": "farthest points in position + normal space (datagen.build_geometry)"},
+        "prior_shading": PRIOR_UNIFORM,
+        "prt": prt_meta(res, transfer_rays, table_directions, command, seed),
+    }
+    return finalize_bundle(out, meta), res

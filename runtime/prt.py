@@ -1,0 +1,216 @@
+"""Precomputed radiance transfer (PRT) at run time: the layout of a bundle's PRT tables and shading
+the lighting proxy's vertices with them under a :class:`~illuminet.runtime.scene.LightEstimate`.
+
+The tables are computed once per mesh, offline (:mod:`illuminet.models.prt`, ``illuminet bundle``);
+this module only reads and evaluates them, in well under a millisecond per frame. Per proxy vertex i:
+
+* ``transfer`` T_i (9,): ``T_i(lm) = integral over directions w of max(0, n_i . w) V_i(w) Y_lm(w) dw``
+  with V_i the object's **self**-visibility (Sloan, Kautz & Snyder 2002, without their 1/pi), so that
+  ``E_i = T_i . L`` with L the ambient *radiance* coefficients (``LightEstimate.radiance_sh9()``).
+  For a vertex the object does not occlude, ``T_i(lm) = A_hat_l Y_lm(n_i)`` and ``E_i = sh9(n_i) @
+  sh9_irradiance`` (:mod:`illuminet.runtime.sh`). The floor is **not** an occluder in T: rays that
+  leave the object downwards meet the floor, whose radiance is the lower hemisphere of the estimate's
+  ambient SH (the floor bounce), so that hemisphere is kept.
+* ``visibility`` V_i(w_k) of the primary light over K table directions w_k (a Fibonacci sphere): 1
+  where a ray from the vertex leaves the object and the vertex faces it (``n_i . w_k > 0``), else 0.
+  A light between table directions is interpolated with a smooth compact kernel over its ~7 nearest
+  directions (:data:`KERNEL_RADIUS` spacings), so a moving light does not make shadows pop. Stored
+  bit-packed (``vis_bits`` (K, ceil(V/8)) uint8, little bit order along the vertices). For direct
+  light the floor does block the lower hemisphere: :func:`floor_factor` multiplies it in at run time,
+  sharp at the horizon (in the table it would be blurred over the kernel, dimming a low sun).
+* ``bounce`` B_i (9,), optional: one interreflection of the object onto itself for its albedo,
+  ``E_i += B_i . (L + primary as SH)``.
+
+Primary light: ``E_i += rgb * max(0, n_i . d) * V_i(d)``; for a near light (``primary_pos`` known)
+d is the direction from each vertex to the light and ``rgb`` falls off as ``(|pos| / |pos - x_i|)^2``
+(``primary_rgb`` is the irradiance at the anchor, the frame's origin). Visibility to a near light is
+visibility to infinity in its direction, exact for lights outside the object's convex hull.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from illuminet.runtime.sh import SH_A_HAT, sh9
+
+#: file name of the PRT tables in a bundle
+PRT_FILE = "prt.npz"
+#: arrays of ``prt.npz`` (``bounce`` is optional)
+PRT_KEYS = ("transfer", "vis_directions", "vis_bits")
+#: interpolation kernel radius, in units of the mean table spacing sqrt(4 pi / K)
+KERNEL_RADIUS = 1.5
+
+
+#: the floor's shadow of the primary light ramps from 0 to 1 over this height of the light's direction
+#: above the horizon (~1 degree): sharp, but without a jump when a light crosses it
+FLOOR_RAMP = 0.02
+
+
+def floor_factor(dy: np.ndarray | float) -> np.ndarray:
+    """How much of a light in a direction with y component ``dy`` the floor (y = 0) lets through."""
+    return np.clip(np.asarray(dy, np.float64) / FLOOR_RAMP, 0.0, 1.0)
+
+
+def pack_visibility(vis: np.ndarray) -> np.ndarray:
+    """(V, K) bool visibility -> ``vis_bits`` (K, ceil(V/8)) uint8 (rows per direction, little bit order)."""
+    return np.packbits(np.asarray(vis, bool).T, axis=1, bitorder="little")
+
+
+def unpack_visibility(bits: np.ndarray, n_vertices: int) -> np.ndarray:
+    """``vis_bits`` -> (K, V) float32 of 0/1 (the layout :class:`PrtTables` evaluates)."""
+    return np.unpackbits(np.asarray(bits, np.uint8), axis=1, count=n_vertices, bitorder="little").astype(np.float32)
+
+
+@dataclass(frozen=True)
+class PrtTables:
+    """A bundle's PRT tables for its V proxy vertices (see the module docstring).
+
+    Attributes
+    ----------
+    transfer : (V, 9) float64
+    directions : (K, 3) float64 unit table directions
+    visibility : (K, V) float32 0/1 (unpacked ``vis_bits``)
+    bounce : (V, 9) float64 or None
+
+    (float64 once at load: the per-frame products then convert nothing.)
+    """
+
+    transfer: np.ndarray
+    directions: np.ndarray
+    visibility: np.ndarray
+    bounce: np.ndarray | None = None
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.transfer.shape[0])
+
+    @property
+    def _chord2(self) -> float:
+        """Squared chord length of the kernel radius."""
+        r = KERNEL_RADIUS * np.sqrt(4.0 * np.pi / len(self.directions))
+        return float((2.0 * np.sin(min(r, np.pi) / 2.0)) ** 2)
+
+    @classmethod
+    def from_arrays(cls, arrays, n_vertices: int) -> PrtTables:
+        """Check ``prt.npz``'s arrays against the proxy vertex count and unpack them.
+
+        Raises
+        ------
+        ValueError
+            Naming the missing array or the shape that disagrees.
+        """
+        missing = [k for k in PRT_KEYS if k not in arrays]
+        if missing:
+            raise ValueError(f"missing arrays {', '.join(missing)}")
+        V = n_vertices
+        t = np.asarray(arrays["transfer"], np.float32)
+        d = np.asarray(arrays["vis_directions"], np.float32)
+        bits = np.asarray(arrays["vis_bits"])
+        if t.shape != (V, 9):
+            raise ValueError(f"transfer must be ({V}, 9) for the {V} proxy vertices, got {t.shape}")
+        if d.ndim != 2 or d.shape[1] != 3 or len(d) < 8:
+            raise ValueError(f"vis_directions must be (K >= 8, 3), got {d.shape}")
+        if not np.allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-4):
+            raise ValueError("vis_directions must be unit vectors")
+        if bits.dtype != np.uint8 or bits.shape != (len(d), (V + 7) // 8):
+            raise ValueError(f"vis_bits must be uint8 ({len(d)}, {(V + 7) // 8}), got {bits.dtype} {bits.shape}")
+        bounce = None
+        if "bounce" in arrays:
+            bounce = np.asarray(arrays["bounce"], np.float32)
+            if bounce.shape != (V, 9):
+                raise ValueError(f"bounce must be ({V}, 9), got {bounce.shape}")
+        if not (np.isfinite(t).all() and (bounce is None or np.isfinite(bounce).all())):
+            raise ValueError("transfer/bounce hold non-finite values")
+        return cls(transfer=t.astype(np.float64), directions=d.astype(np.float64) / np.linalg.norm(d, axis=1, keepdims=True),
+                   visibility=unpack_visibility(bits, V), bounce=None if bounce is None else bounce.astype(np.float64))
+
+    def _weights(self, cos: np.ndarray) -> np.ndarray:
+        """Kernel weights from cosines to table directions (overwritten): (1 - chord^2 / R^2)^2 inside
+        the radius R, else 0; chord^2 = 2 - 2 cos, so the base is linear in cos (in place: per frame)."""
+        r2 = self._chord2
+        w = np.multiply(cos, 2.0 / r2, out=cos)
+        w += 1.0 - 2.0 / r2
+        np.maximum(w, 0.0, out=w)
+        w *= w
+        return w
+
+    def primary_visibility(self, direction: np.ndarray) -> np.ndarray:
+        """Visibility (V,) in [0, 1] of a distant light in ``direction`` (unit, object frame), floor included."""
+        d = np.asarray(direction, np.float64).reshape(3)
+        f = float(floor_factor(d[1]))
+        if f <= 0.0:
+            return np.zeros(self.n_vertices)
+        w = self._weights(self.directions @ d)
+        sel = np.flatnonzero(w)
+        w = w[sel]
+        return (w @ self.visibility[sel]) * (f / w.sum())
+
+    def primary_visibility_per_vertex(self, directions: np.ndarray) -> np.ndarray:
+        """Visibility (V,) of a light seen from each vertex in its own direction ``directions`` (V, 3),
+        floor included."""
+        d = np.asarray(directions, np.float64)
+        centre = d.sum(0)
+        n = np.linalg.norm(centre)
+        centre = centre / n if n > 1e-9 else d[0]
+        spread = np.arccos(np.clip((d @ centre).min(), -1.0, 1.0))
+        reach = KERNEL_RADIUS * np.sqrt(4.0 * np.pi / len(self.directions)) + spread
+        cand = np.flatnonzero(self.directions @ centre >= np.cos(min(reach, np.pi)) - 1e-6)
+        w = self._weights(d @ self.directions[cand].T)  # (V, C)
+        vis = np.einsum("vc,cv->v", w, self.visibility[cand])
+        return vis * floor_factor(d[:, 1]) / np.maximum(w.sum(1), 1e-12)
+
+
+def primary_radiance_sh9(direction: np.ndarray, rgb: np.ndarray) -> np.ndarray:
+    """Radiance SH (9, 3) of a distant light of irradiance ``rgb`` (at normal incidence) from ``direction``."""
+    d = np.asarray(direction, np.float64).reshape(1, 3)
+    return sh9(d)[0][:, None] * np.asarray(rgb, np.float64)[None, :]
+
+
+def prt_irradiance(tables: PrtTables, points: np.ndarray, normals: np.ndarray, estimate) -> np.ndarray:
+    """Irradiance (V, 3) of the proxy vertices under a :class:`~illuminet.runtime.scene.LightEstimate`.
+
+    Parameters
+    ----------
+    tables : PrtTables
+    points, normals : (V, 3)
+        The proxy vertices (object frame, metres, at the scale the object is drawn) and unit normals.
+    estimate : LightEstimate
+
+    Returns
+    -------
+    (V, 3) float32, clamped at 0: ambient through the transfer vectors, the primary light with its
+    table visibility, and the bounce when the tables have one.
+    """
+    L = estimate.radiance_sh9()
+    E = tables.transfer @ L
+    d = estimate.primary_dir
+    rgb = np.asarray(estimate.primary_rgb, np.float64).reshape(3)
+    if d is not None and np.any(rgb > 0):
+        d = np.asarray(d, np.float64).reshape(3)
+        d = d / max(np.linalg.norm(d), 1e-12)
+        n = np.asarray(normals, np.float64)
+        pos = estimate.primary_pos
+        if pos is not None and float(np.dot(pos, pos)) < 1e-6:
+            pos = None  # a "near" light at the anchor itself says nothing about falloff: treat it as distant
+        if pos is None:
+            cos = np.maximum(n @ d, 0.0)
+            E += (cos * tables.primary_visibility(d))[:, None] * rgb[None, :]
+        else:
+            pos = np.asarray(pos, np.float64).reshape(3)
+            v = pos[None, :] - np.asarray(points, np.float64)
+            r2 = np.maximum(np.einsum("vx,vx->v", v, v), 1e-8)
+            dv = v / np.sqrt(r2)[:, None]
+            cos = np.maximum(np.einsum("vx,vx->v", n, dv), 0.0)
+            fall = float(pos @ pos) / r2
+            E += (cos * fall * tables.primary_visibility_per_vertex(dv))[:, None] * rgb[None, :]
+        if tables.bounce is not None:
+            L = L + primary_radiance_sh9(d, rgb)
+    if tables.bounce is not None:
+        E += tables.bounce @ L
+    return np.maximum(E, 0.0).astype(np.float32)
+
+
+def unoccluded_transfer(normals: np.ndarray) -> np.ndarray:
+    """Transfer (V, 9) of vertices nothing occludes: ``A_hat_l Y_lm(n)`` (then ``E = sh9(n) @ E_irr``)."""
+    return sh9(np.asarray(normals, np.float64)) * SH_A_HAT[None, :]

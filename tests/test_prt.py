@@ -1,0 +1,311 @@
+"""Precomputed radiance transfer: the tables (models/prt.py), their run-time evaluation (runtime/prt.py),
+the shading stage's "prt" mode, PRT-only bundles and `illuminet bundle`."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+from illuminet.models.prt import compute_prt, interreflection
+from illuminet.runtime.assets.bundle import BundleError, TransferChain, load_bundle
+from illuminet.runtime.assets.objects import builtin_object
+from illuminet.runtime.config import apply_overrides, defaults
+from illuminet.runtime.frame import Frame, Intrinsics
+from illuminet.runtime.groundtruth.visibility import exact_visibility
+from illuminet.runtime.prt import prt_irradiance, unoccluded_transfer
+from illuminet.runtime.scene import LIGHT, PLANE_LIGHT, SHADING, LightEstimate
+from illuminet.runtime.sh import SH_A_HAT, sh9
+from illuminet.runtime.stages.shading import ShadingStage
+
+from illuminet.cli import main
+
+from ._learn_helpers import plane_light
+
+FAST = {"transfer_rays": 1024, "table_directions": 512}
+
+
+def _mesh_prt(name: str, albedo: float = 0.0):
+    mesh = builtin_object(name, "proxy")
+    res = compute_prt(mesh, mesh.vertices, mesh.vertex_normals, albedo=albedo, **FAST)
+    return mesh, res
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return _mesh_prt("sphere")
+
+
+@pytest.fixture(scope="module")
+def bowl():
+    return _mesh_prt("bowl", albedo=0.5)
+
+
+def _unit(v):
+    v = np.asarray(v, np.float64)
+    return v / np.linalg.norm(v)
+
+
+def _ambient(level=1.0, seed=0):
+    """Irradiance SH of a smooth, everywhere-positive environment (floor below included)."""
+    sh = np.random.default_rng(seed).normal(size=(9, 3)) * 0.05 * level
+    sh[0] = level * np.array([2.0, 1.9, 1.7])
+    return sh
+
+
+def test_unoccluded_sphere_transfer_is_the_no_visibility_formula(sphere):
+    mesh, res = sphere
+    n = np.asarray(mesh.vertex_normals)
+    # a convex object occludes none of its own directions: the closed form, lower hemisphere included
+    assert np.allclose(res.transfer, unoccluded_transfer(n), atol=1e-6)
+    assert np.allclose(res.transfer, SH_A_HAT * sh9(n), atol=1e-6)
+    # so E_i = T_i . L_radiance = sh9(n_i) @ sh9_irradiance
+    est = LightEstimate(sh9=_ambient(), primary_dir=None, primary_rgb=np.zeros(3))
+    E = prt_irradiance(res.tables(), mesh.vertices, n, est)
+    assert np.allclose(E, np.maximum(sh9(n) @ est.sh9, 0), rtol=1e-5, atol=1e-5)
+    # vertices facing the floor keep the floor's light (the lower hemisphere is not zeroed)
+    down = n[:, 1] < -0.9
+    assert down.any() and (E[down] > 0.3).all()
+
+
+def test_concave_bowl_has_less_transfer_inside(bowl):
+    mesh, res = bowl
+    v, n = np.asarray(mesh.vertices), np.asarray(mesh.vertex_normals)
+    ao = res.transfer[:, 0] / unoccluded_transfer(n)[:, 0]
+    radial = v[:, [0, 2]] / np.maximum(np.linalg.norm(v[:, [0, 2]], axis=1, keepdims=True), 1e-9)
+    inward = np.einsum("vx,vx->v", n[:, [0, 2]], radial)
+    inside = (inward < -0.3) & (v[:, 1] > 0.02)  # the inner wall
+    outside = (inward > 0.3) & (v[:, 1] > 0.02)  # the outer wall
+    assert inside.sum() > 20 and outside.sum() > 20
+    assert ao[inside].mean() < ao[outside].mean() - 0.15
+    assert (ao <= 1.0 + 1e-4).all() and (ao > 0).all()
+    # every transfer is at most the unoccluded one in the DC term, the band-1 vectors shrink too
+    assert np.linalg.norm(res.transfer[inside, 1:4], axis=1).mean() < \
+        np.linalg.norm(unoccluded_transfer(n)[inside, 1:4], axis=1).mean()
+
+
+def test_primary_visibility_table(bowl):
+    mesh, res = bowl
+    tab = res.tables()
+    v, n = np.asarray(mesh.vertices), np.asarray(mesh.vertex_normals)
+    bottom_in = (np.linalg.norm(v[:, [0, 2]], axis=1) < 0.03) & (n[:, 1] > 0.9) & (v[:, 1] > 0.005)
+    facing_down = n[:, 1] < -0.8
+    assert bottom_in.any() and facing_down.any()
+    up = tab.primary_visibility(_unit([0.05, 1.0, 0.02]))
+    assert np.allclose(up[bottom_in], 1.0)  # lit through the opening
+    assert np.allclose(up[facing_down], 0.0)  # facing away
+    low = _unit([np.cos(np.deg2rad(20)), np.sin(np.deg2rad(20)), 0.0])
+    assert np.allclose(tab.primary_visibility(low)[bottom_in], 0.0)  # the bowl's wall is in the way
+    # below the floor nothing is lit
+    assert np.allclose(tab.primary_visibility(_unit([0.3, -0.4, 0.2])), 0.0)
+    # against exact ray casts towards a distant light, away from shadow edges
+    d = _unit([0.6, 0.7, -0.3])
+    exact = exact_visibility(mesh, v, d[None] * 100.0, normals=n)[:, 0] & (n @ d > 0)
+    soft = tab.primary_visibility(d)
+    assert np.mean(np.round(soft) != exact) < 0.05
+    # no popping: a light moving in 0.25 degree steps changes each vertex's visibility gradually
+    angles = np.deg2rad(np.arange(10.0, 80.0, 0.25))
+    sweep = np.stack([tab.primary_visibility(np.array([np.cos(a), np.sin(a), 0.1])) for a in angles])
+    assert np.abs(np.diff(sweep, axis=0)).max() < 0.2
+
+
+def test_near_light_visibility_per_vertex_matches_distant_when_far(bowl):
+    mesh, res = bowl
+    tab = res.tables()
+    d = _unit([0.3, 0.9, 0.2])
+    far = tab.primary_visibility_per_vertex(np.tile(d, (len(mesh.vertices), 1)))
+    assert np.allclose(far, tab.primary_visibility(d), atol=1e-6)
+
+
+def test_primary_light_from_plus_x_lights_plus_x_and_leaves_minus_x_ambient(sphere):
+    mesh, res = sphere
+    n = np.asarray(mesh.vertex_normals)
+    d = _unit([1.0, 0.25, 0.0])  # from +X, a little above the floor's horizon
+    est = LightEstimate(sh9=_ambient(0.3), primary_dir=d, primary_rgb=np.array([3.0, 2.8, 2.5]))
+    E = prt_irradiance(res.tables(), mesh.vertices, n, est)
+    ambient = np.maximum(res.transfer @ est.radiance_sh9(), 0)
+    plus, minus = n @ d > 0.5, n @ d < -0.05
+    assert np.allclose(E[minus], ambient[minus], atol=1e-6)  # only the ambient light: the ambient level
+    assert (E[minus] > 0.1).all()  # not black
+    assert np.allclose(E[plus], ambient[plus] + (n[plus] @ d)[:, None] * est.primary_rgb, rtol=1e-4)
+
+
+def test_near_light_falls_off_with_distance(sphere):
+    mesh, res = sphere
+    n = np.asarray(mesh.vertex_normals)
+    pos = np.array([0.6, 0.4, 0.0])
+    est = LightEstimate(sh9=np.zeros((9, 3)), primary_dir=_unit(pos), primary_rgb=np.ones(3), primary_pos=pos)
+    E = prt_irradiance(res.tables(), mesh.vertices, n, est)[:, 0]
+    v = np.asarray(mesh.vertices)
+    to = pos - v
+    r = np.linalg.norm(to, axis=1)
+    want = np.maximum(np.einsum("vx,vx->v", n, to / r[:, None]), 0) * (pos @ pos) / r**2
+    lit = np.einsum("vx,vx->v", n, to / r[:, None]) > 0.3
+    assert np.allclose(E[lit], want[lit], rtol=1e-4)
+
+
+def test_one_bounce_brings_the_bowl_towards_the_multi_bounce_solution(bowl):
+    _, res = bowl
+    L = np.zeros(9)
+    L[0] = np.sqrt(4 * np.pi)  # a white furnace: uniform radiance 1
+    e0 = res.transfer @ L
+    e1 = interreflection(res, 0.5, 1) @ L
+    ref = interreflection(res, 0.5, 40) @ L
+    assert np.allclose(e1, e0 + res.bounce @ L, atol=1e-4)  # the stored bounce is that one bounce
+    assert (e1 >= e0 - 1e-6).all()
+    assert np.abs(e1 - ref).mean() < 0.5 * np.abs(e0 - ref).mean()
+
+
+# --------------------------------------------------------------------------- bundles and the stage
+
+
+def _write_mesh(path):
+    """A small concave mesh (a torus: its hole shadows its inner side) written as PLY."""
+    trimesh.creation.torus(0.08, 0.03).export(path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def prt_bundle(tmp_path_factory):
+    d = tmp_path_factory.mktemp("prtb")
+    mesh = _write_mesh(d / "thing.ply")
+    out = d / "bundle"
+    rc = main(["bundle", "--object", str(mesh), "--out", str(out), "--height", "0.15", "--n-proxy", "120",
+               "--transfer-rays", "512", "--directions", "256", "--quiet"])
+    assert rc == 0
+    return out
+
+
+def _stage(bundle, **model):
+    cfg = apply_overrides(defaults(), [("model", "bundle", str(bundle))] + [("model", k, v) for k, v in model.items()])
+    st = ShadingStage(cfg)
+    st.open()
+    return st
+
+
+def _frame(pl=None, light=None):
+    f = Frame(seq=0, t_device_ns=0, t_host_ns=0, color=np.zeros((4, 4, 3), np.uint8), depth=None,
+              intrinsics=Intrinsics(1, 1, 1, 1, 4, 4))
+    if pl is not None:
+        f = f.with_result(PLANE_LIGHT, pl)
+    if light is not None:
+        f = f.with_result(LIGHT, light)
+    return f
+
+
+def _estimate():
+    return LightEstimate(sh9=_ambient(0.5), primary_dir=_unit([0.4, 0.8, 0.2]), primary_rgb=np.array([2.0, 1.8, 1.5]))
+
+
+def test_bundle_command_makes_a_prt_only_bundle_that_loads_and_shades(prt_bundle):
+    b = load_bundle(prt_bundle)
+    assert not b.has_model and b.prt is not None and b.n_proxy == 120
+    assert set(b.meta["files"]) == {"mesh.npz", "prt.npz"}
+    assert b.meta["prt"]["seed"] == 0 and "illuminet bundle" in b.meta["prt"]["command"]
+    assert abs(np.ptp(b.vertices[:, 1]) - 0.15) < 1e-4
+    assert len(b.carry(np.ones((b.n_proxy, 3)))) == len(b.vertices)
+    st = _stage(prt_bundle, shading="prt", temporal_smoothing=0.0)
+    est = _estimate()
+    out = st.process(_frame(light=est)).results[SHADING.name]
+    assert out.method == "prt" and out.irradiance.shape == (120, 3) and np.isfinite(out.irradiance).all()
+    assert (out.irradiance > 0).any()
+    assert np.allclose(out.dominant_dir, est.primary_dir) and out.dominant_share == pytest.approx(est.primary_share())
+    # the constant baseline works from the uniform-environment prior (1 - ambient occlusion)
+    c = _stage(prt_bundle, shading="constant").predict(plane_light())
+    assert c.irradiance.shape == (120, 3) and (b.prior_shading <= 1.0 + 1e-4).all()
+
+
+def test_prt_only_bundle_refuses_model_mode_in_one_line(prt_bundle):
+    with pytest.raises(BundleError, match="has no learned model") as e:
+        _stage(prt_bundle, shading="model")
+    assert "\n" not in str(e.value)
+    with pytest.raises(BundleError, match="no learned model"):
+        TransferChain(load_bundle(prt_bundle))
+
+
+def test_stage_contract_follows_the_mode(prt_bundle):
+    assert _stage(prt_bundle, shading="prt").requires == (LIGHT,)
+    st = _stage(prt_bundle, shading="auto", temporal_smoothing=0.0)
+    assert st.requires == (PLANE_LIGHT,) and st.optional == (LIGHT,)
+    assert _stage("builtin:vase", shading="sh").optional == ()
+    # auto: PRT on frames with an estimate; without one a PRT-only bundle falls back to ambient
+    assert st.process(_frame(plane_light(), _estimate())).results[SHADING.name].method == "prt"
+    assert st.process(_frame(plane_light())).results[SHADING.name].method == "ambient"
+    # a trained bundle with PRT: the estimate wins, else its learned model
+    vase = _stage("builtin:vase", shading="auto", temporal_smoothing=0.0)
+    assert vase.process(_frame(plane_light(), _estimate())).results[SHADING.name].method == "prt"
+    assert vase.process(_frame(plane_light())).results[SHADING.name].method == "model:int8"
+    # prt mode without an estimate on the frame is a frame error naming the key
+    with pytest.raises(Exception, match=r"results\['light'\]"):
+        _stage(prt_bundle, shading="prt").process(_frame(plane_light()))
+
+
+def test_prt_mode_on_a_bundle_without_tables_names_the_command(tmp_path):
+    import shutil
+
+    from illuminet.models.export import finalize_bundle
+
+    d = tmp_path / "vase"
+    shutil.copytree(load_bundle("builtin:vase").path, d)
+    (d / "prt.npz").unlink()
+    meta = json.loads((d / "bundle.json").read_text())
+    meta.pop("prt")
+    finalize_bundle(d, meta)
+    with pytest.raises(BundleError, match="illuminet bundle --object builtin:vase"):
+        _stage(d, shading="prt")
+
+
+def test_damaged_prt_table_is_reported(tmp_path, prt_bundle):
+    import shutil
+
+    from illuminet.models.export import finalize_bundle
+
+    d = tmp_path / "b"
+    shutil.copytree(prt_bundle, d)
+    with np.load(d / "prt.npz") as z:
+        arr = {k: z[k] for k in z.files}
+    arr["transfer"] = arr["transfer"][:-1]
+    np.savez_compressed(d / "prt.npz", **arr)
+    finalize_bundle(d, json.loads((d / "bundle.json").read_text()))
+    with pytest.raises(BundleError, match=r"prt\.npz: transfer must be \(120, 9\)"):
+        load_bundle(d)
+
+
+@pytest.mark.parametrize("name", ["vase", "bowl"])
+def test_shipped_bundles_have_prt_made_by_the_command(name):
+    b = load_bundle(f"builtin:{name}")
+    assert b.has_model and b.prt is not None and b.prt.bounce is not None
+    p = b.meta["prt"]
+    assert p["command"].startswith(f"illuminet bundle --object builtin:{name}") and p["seed"] == 0
+    assert (b.path / "prt.npz").stat().st_size < 200 * 1024
+    # the inside of the object is darker in the transfer than outside on average
+    ao = b.prt.transfer[:, 0] / unoccluded_transfer(b.proxy_normals)[:, 0]
+    assert ao.min() < 0.7 and ao.max() > 0.95
+
+
+def test_bundle_command_errors_are_one_line(tmp_path, capsys):
+    (tmp_path / "garbage.ply").write_text("not a mesh")
+    (tmp_path / "empty.obj").write_text("")
+    cases = [(tmp_path / "missing.glb", "no such file"), (tmp_path / "garbage.ply", "cannot read as a mesh"),
+             (tmp_path / "empty.obj", "no geometry")]
+    for path, msg in cases:
+        assert main(["bundle", "--object", str(path), "--out", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert msg in err and len(err.splitlines()) == 1 and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+    assert main(["bundle", "--object", "builtin:sphere", "--out", str(load_bundle("builtin:vase").path)]) == 2
+    assert "holds a bundle of 'builtin:vase'" in capsys.readouterr().err
+
+
+def test_low_sun_is_not_dimmed_by_the_floor_and_below_it_is_dark(sphere):
+    mesh, res = sphere
+    tab = res.tables()
+    n = np.asarray(mesh.vertex_normals)
+    for elev in (3.0, 8.0):
+        d = np.array([np.cos(np.deg2rad(elev)), np.sin(np.deg2rad(elev)), 0.0])
+        facing = n @ d > 0.3
+        assert np.allclose(tab.primary_visibility(d)[facing], 1.0)  # the floor blocks only below the horizon
+    below = np.array([np.cos(np.deg2rad(3.0)), -np.sin(np.deg2rad(3.0)), 0.0])
+    assert np.allclose(tab.primary_visibility(below), 0.0)
+    assert np.allclose(tab.primary_visibility_per_vertex(np.tile(below, (len(n), 1))), 0.0)
