@@ -106,7 +106,12 @@ def lighting_stages(cfg: Config, response_lut=None) -> list | None:
         from illuminet.runtime.stages.planes import PlaneStage
     except ImportError:  # a stripped-down build: use the local fallback
         return None
-    return [PlaneStage(cfg), AnchorStage(cfg), PlaneLightStage(cfg, response_lut=response_lut)]
+    stages = [PlaneStage(cfg), AnchorStage(cfg), PlaneLightStage(cfg, response_lut=response_lut)]
+    if cfg.light.enabled:
+        from illuminet.runtime.stages.light_estimate import LightEstimateStage
+
+        stages.append(LightEstimateStage(cfg, response_lut=response_lut))
+    return stages
 
 
 def fallback_plane_light(frame: Frame, pixel: tuple[float, float], grid: int, extent: float,

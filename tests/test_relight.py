@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 
 from illuminet.cli import main
-from illuminet.runtime.config import defaults
+from illuminet.runtime.config import apply_overrides, defaults
 from illuminet.runtime.frame import depth_to_mm
 from illuminet.runtime.relight import relight
 
@@ -51,7 +51,8 @@ def test_relight_cli_writes_documented_npz(tmp_path):
     z = np.load(out, allow_pickle=False)
     assert NPZ_KEYS <= set(z.files)
     assert z["faces"].max() < len(z["vertices"])
-    assert str(z["method"]) == "model:int8"
+    assert str(z["method"]) == "prt"  # the default: the bundle's PRT lit by the light estimate
+    assert LIGHT_KEYS <= set(z.files)
 
 
 def test_relight_cli_errors(tmp_path, capsys):
@@ -93,13 +94,14 @@ def test_relight_npz_carries_the_light_estimate_when_the_chain_makes_one(tmp_pat
             return frame.with_result(LIGHT, est)
 
     color, depth, K = floor_rgbd()
-    plain = relight(color, depth, K, (160, 130), defaults(), bundle="builtin:vase")
+    no_light = apply_overrides(defaults(), [("light", "enabled", False)])
+    plain = relight(color, depth, K, (160, 130), no_light, bundle="builtin:vase")
     plain.save(tmp_path / "plain.npz")
     assert not LIGHT_KEYS & set(np.load(tmp_path / "plain.npz").files)  # no estimate, no light fields
 
     stages = R.lighting_stages
     monkeypatch.setattr(R, "lighting_stages", lambda cfg, lut=None: stages(cfg, lut) + [_GivenEstimate()])
-    res = relight(color, depth, K, (160, 130), defaults(), bundle="builtin:vase")
+    res = relight(color, depth, K, (160, 130), no_light, bundle="builtin:vase")
     assert res.method == "prt"  # auto: the bundle's PRT shades from the estimate
     assert np.allclose(res.dominant_dir, res.T_cam_obj[:3, :3] @ d, atol=1e-5)
     res.save(tmp_path / "r.npz")
@@ -118,6 +120,6 @@ def test_relight_prt_mode_without_an_estimate_says_so():
     from illuminet.runtime.config import apply_overrides
 
     color, depth, K = floor_rgbd()
-    cfg = apply_overrides(defaults(), [("model", "shading", "prt")])
+    cfg = apply_overrides(defaults(), [("model", "shading", "prt"), ("light", "enabled", False)])
     with pytest.raises(ValueError, match='"prt" needs a light estimate'):
         relight(color, depth, K, (160, 130), cfg, bundle="builtin:vase")
