@@ -67,7 +67,7 @@ def test_demo_runs_the_default_session(tmp_path, capsys, gl):
     still = tmp_path / "new" / "demo_still.png"
     img = cv2.imread(str(still))
     assert img is not None and img.shape == (800, 1280, 3)
-    assert "shading: " in text and ("learned model" in text or "baseline" in text)
+    assert "shading: " in text and "radiance transfer" in text  # the default: PRT lit by the estimate
     for stage in ("stage:planes", "stage:plane_light", "stage:shading", "stage:render"):
         assert stage in text
     assert "failed frames 0" in text and "render: drawn=6" in text
