@@ -7,7 +7,6 @@ frames identically; :func:`chain_diagram` draws the chain with each stage's decl
 
 from __future__ import annotations
 
-import importlib.util
 from typing import Any, Callable
 
 from illuminet.runtime.config import Config, ConfigError
@@ -92,8 +91,6 @@ def build_sinks(
     if out.png_dir:
         sinks.append(PngSequenceSink(out.png_dir))
     if out.mjpeg:
-        if importlib.util.find_spec("illuminet.runtime.stream.mjpeg") is None:
-            raise ConfigError("[output] mjpeg = true, but this build has no MJPEG server (illuminet.runtime.stream.mjpeg)")
         from illuminet.runtime.stream.mjpeg import MjpegSink
 
         sinks.append(MjpegSink(out.listen, out.port, stats=stats))

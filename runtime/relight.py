@@ -2,9 +2,8 @@
 predicted radiance (what ``illuminet relight`` writes; the way to check results from outside).
 
 Pipeline: the project's plane detection, anchor and plane-light stages (``[planes]``, ``[anchor]``,
-``[plane_light]``) when present in this build, else :func:`fallback_plane_light` (a local plane fit
-around the anchor pixel and direct sampling of the grid; documented below), then the bundle's chain
-(:class:`~illuminet.runtime.stages.shading.ShadingStage`), then carrying proxy shading to the render mesh.
+``[plane_light]``), then the bundle's chain (:class:`~illuminet.runtime.stages.shading.ShadingStage`),
+then carrying proxy shading to the render mesh.
 
 Units: ``radiance`` is the linear RGB that a *white Lambertian* surface (albedo 1) would show in the
 input image's own linear units, i.e. ``radiance = E / pi * exposure_scale``; re-encoding with the
@@ -20,8 +19,8 @@ import numpy as np
 
 from illuminet.runtime.config import Config, apply_overrides
 from illuminet.runtime.frame import Exposure, Frame, Intrinsics
-from illuminet.runtime.physics import INV_PI, linearize
-from illuminet.runtime.scene import ANCHOR, PLANE_LIGHT, Anchor, PlaneLight
+from illuminet.runtime.physics import INV_PI
+from illuminet.runtime.scene import ANCHOR, PLANE_LIGHT
 from illuminet.runtime.stage import StageChain
 
 log = logging.getLogger(__name__)
@@ -44,7 +43,6 @@ class RelightResult:
     dominant_share: float
     method: str
     bundle: str
-    plane_source: str         # "stages" or "fallback"
     plane_observed: float     # fraction of the plane grid that was observed
 
     def save(self, path) -> None:
@@ -56,100 +54,8 @@ class RelightResult:
             oi=self.oi.astype(np.float32), T_cam_obj=self.T_cam_obj.astype(np.float64),
             exposure_scale=np.float64(self.exposure_scale), dominant_dir=self.dominant_dir.astype(np.float32),
             dominant_share=np.float64(self.dominant_share), method=np.str_(self.method),
-            bundle=np.str_(self.bundle), plane_source=np.str_(self.plane_source),
-            plane_observed=np.float64(self.plane_observed), format=np.int64(1),
+            bundle=np.str_(self.bundle), plane_observed=np.float64(self.plane_observed), format=np.int64(1),
         )
-
-
-def _stage_classes():
-    """The project's plane / anchor / plane-light stages, when this build has them."""
-    try:
-        from illuminet.runtime.stages.anchor import AnchorStage
-        from illuminet.runtime.stages.plane_light import PlaneLightStage
-        from illuminet.runtime.stages.planes import PlaneStage
-    except ImportError:  # a stripped-down build: use the local fallback
-        return None
-    return PlaneStage, AnchorStage, PlaneLightStage
-
-
-def fallback_plane_light(frame: Frame, pixel: tuple[float, float], grid: int, extent: float,
-                         albedo: float, response_lut=None) -> tuple[Anchor, PlaneLight]:
-    """Minimal anchor + plane light for builds without the planes stages (used by :func:`relight`).
-
-    Fits a plane (least squares with iterative inlier selection, threshold growing with z^2) to the
-    depth points within 0.4 m of the anchor pixel's 3D point, builds the object frame (origin at the
-    anchor on the plane, +Y the plane normal towards the camera, X along the image's x axis), and
-    samples the grid: each vertex projected into the image is observed when the depth there agrees
-    with the plane; irradiance = linear colour (3x3 mean) * pi / (albedo * exposure scale).
-    """
-    depth, K = frame.depth, frame.intrinsics
-    if depth is None:
-        raise ValueError("relight needs a depth image aligned to the colour image")
-    h, w = depth.shape
-    px, py = int(round(pixel[0])), int(round(pixel[1]))
-    if not (0 <= px < w and 0 <= py < h):
-        raise ValueError(f"anchor pixel ({pixel[0]}, {pixel[1]}) is outside the {w}x{h} image")
-    win = depth[max(py - 4, 0):py + 5, max(px - 4, 0):px + 5]
-    if not (win > 0).any():
-        raise ValueError(f"no valid depth near the anchor pixel ({px}, {py})")
-    z0 = float(np.median(win[win > 0]))
-    a = np.array([(px - K.cx) / K.fx * z0, (py - K.cy) / K.fy * z0, z0])
-    ys, xs = np.nonzero(depth > 0)
-    step = max(1, int(np.sqrt(len(xs) / 40000)))
-    ys, xs = ys[::step], xs[::step]
-    z = depth[ys, xs]
-    pts = np.stack([(xs - K.cx) / K.fx * z, (ys - K.cy) / K.fy * z, z], 1)
-    near = np.linalg.norm(pts - a, axis=1) < 0.4
-    p = pts[near]
-    if len(p) < 50:
-        raise ValueError(f"too few depth points around the anchor ({len(p)}) to fit a plane")
-    thr = 0.01 * max(z0, 0.3) ** 2 * 2
-    inl = np.ones(len(p), bool)
-    for _ in range(5):
-        c = p[inl].mean(0)
-        _, _, vt = np.linalg.svd(p[inl] - c, full_matrices=False)
-        n = vt[2]
-        d = np.abs((p - c) @ n)
-        new = d < max(thr, np.percentile(d, 60))
-        if new.sum() < 30:
-            break
-        inl = new
-    if n @ c > 0:  # normal towards the camera
-        n = -n
-    origin = a - ((a - c) @ n) * n
-    xa = np.array([1.0, 0, 0]) - n * n[0]
-    if np.linalg.norm(xa) < 1e-3:
-        xa = np.array([0, 0, 1.0]) - n * n[2]
-    xa /= np.linalg.norm(xa)
-    za = np.cross(xa, n)
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = xa, n, za, origin
-    anchor = Anchor(T_cam_obj=T, plane_id=0, synthetic=False)
-
-    g = np.linspace(-extent / 2, extent / 2, grid)
-    zz, xx = np.meshgrid(g, g, indexing="ij")
-    v_obj = np.stack([xx.ravel(), np.zeros(grid * grid), zz.ravel()], 1)
-    v_cam = v_obj @ T[:3, :3].T + T[:3, 3]
-    zc = v_cam[:, 2]
-    u = K.fx * v_cam[:, 0] / np.maximum(zc, 1e-6) + K.cx
-    vv = K.fy * v_cam[:, 1] / np.maximum(zc, 1e-6) + K.cy
-    ui, vi = np.rint(u).astype(int), np.rint(vv).astype(int)
-    inside = (zc > 0.05) & (ui >= 1) & (ui < w - 1) & (vi >= 1) & (vi < h - 1)
-    lin = linearize(frame.color, response_lut)
-    k = frame.exposure.scale or 1.0
-    irr = np.zeros((grid * grid, 3), np.float32)
-    mask = np.zeros(grid * grid, bool)
-    for i in np.nonzero(inside)[0]:
-        dz = depth[vi[i] - 1:vi[i] + 2, ui[i] - 1:ui[i] + 2]
-        ok = dz > 0
-        if not ok.any() or abs(float(np.median(dz[ok])) - zc[i]) > 0.03 + 0.02 * zc[i] ** 2:
-            continue  # off the plane, occluded, or a depth hole
-        irr[i] = lin[vi[i] - 1:vi[i] + 2, ui[i] - 1:ui[i] + 2].reshape(-1, 3).mean(0) * np.pi / (albedo * k)
-        mask[i] = True
-    pl = PlaneLight(vertices=v_obj.astype(np.float32), normals=np.tile([[0, 1, 0]], (grid * grid, 1)).astype(np.float32),
-                    irradiance=irr, mask=mask, confidence=mask.astype(np.float32), grid=grid, exposure_scale=k,
-                    plane_slices=(slice(0, grid * grid),), labels=("floor",))
-    return anchor, pl
 
 
 def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor_px: tuple[float, float],
@@ -167,6 +73,9 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
     bundle, precision : override ``[model] bundle`` / ``precision``
     exposure : Exposure metadata, when known (else the image's own linear units are used)
     """
+    from illuminet.runtime.stages.anchor import AnchorStage
+    from illuminet.runtime.stages.plane_light import PlaneLightStage
+    from illuminet.runtime.stages.planes import PlaneStage
     from illuminet.runtime.stages.shading import ShadingStage
 
     h, w = np.shape(depth)[:2]
@@ -194,28 +103,21 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
     b = shading_stage.bundle
     if b is None:
         raise RuntimeError("relight: no bundle could be loaded (see the error above)")
-    classes = _stage_classes()
-    if classes is not None:
-        f = frame
-        stages = [classes[0](cfg), classes[1](cfg), classes[2](cfg, response_lut=response_lut)]
+    stages = [PlaneStage(cfg), AnchorStage(cfg), PlaneLightStage(cfg, response_lut=response_lut)]
+    for st in stages:
+        st.open()
+    try:
+        f = StageChain(stages)(frame)
+    finally:
         for st in stages:
-            st.open()
-        try:
-            f = StageChain(stages)(f)
-        finally:
-            for st in stages:
-                st.close()
-        if ANCHOR.name not in f.results or PLANE_LIGHT.name not in f.results:
-            raise ValueError(f"no plane found under the anchor pixel ({anchor_px[0]}, {anchor_px[1]}): "
-                             "the depth there does not belong to a detected plane")
-        anchor, pl, source = f.results[ANCHOR.name], f.results[PLANE_LIGHT.name], "stages"
-        if anchor.synthetic or not np.any(pl.mask):
-            raise ValueError(f"no real plane observed under the anchor pixel ({anchor_px[0]}, {anchor_px[1]}); "
-                             "relight needs the plane under the object to be visible in the image")
-    else:
-        anchor, pl = fallback_plane_light(frame, anchor_px, cfg.plane_light.grid, cfg.plane_light.extent_m,
-                                          cfg.plane_light.assumed_albedo, response_lut)
-        source = "fallback"
+            st.close()
+    if ANCHOR.name not in f.results or PLANE_LIGHT.name not in f.results:
+        raise ValueError(f"no plane found under the anchor pixel ({anchor_px[0]}, {anchor_px[1]}): "
+                         "the depth there does not belong to a detected plane")
+    anchor, pl = f.results[ANCHOR.name], f.results[PLANE_LIGHT.name]
+    if anchor.synthetic or not np.any(pl.mask):
+        raise ValueError(f"no real plane observed under the anchor pixel ({anchor_px[0]}, {anchor_px[1]}); "
+                         "relight needs the plane under the object to be visible in the image")
     sh = shading_stage.predict(pl)
     shading_stage.close()
     R, t = anchor.R, anchor.t
@@ -227,7 +129,8 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
     return RelightResult(
         vertices=(b.vertices * scale) @ R.T + t, normals=b.normals @ R.T, faces=b.faces,
         radiance=irr * INV_PI * pl.exposure_scale, irradiance=irr, proxy_irradiance=sh.irradiance,
-        oi=np.einsum("vcx,yx->vcy", oi, R), T_cam_obj=np.asarray(anchor.T_cam_obj), exposure_scale=float(pl.exposure_scale),
+        oi=np.einsum("vcx,yx->vcy", oi, R), T_cam_obj=np.asarray(anchor.T_cam_obj),
+        exposure_scale=float(pl.exposure_scale),
         dominant_dir=(R @ dom).astype(np.float32), dominant_share=float(sh.dominant_share), method=sh.method,
-        bundle=str(b.path), plane_source=source, plane_observed=float(np.mean(pl.mask[first])),
+        bundle=str(b.path), plane_observed=float(np.mean(pl.mask[first])),
     )

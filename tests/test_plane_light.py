@@ -255,7 +255,6 @@ def test_done_when_on_the_synthetic_camera(url):
     on one plane, so the estimate is compared after dividing out the floor's mean albedo colour
     (``assumed_albedo`` = its mean). Wooden floors (planks +-25 %) stay near 11 %: docs/planes.md.
     """
-    pytest.importorskip("illuminet.hw.synthetic")
     from illuminet.hw import open_source
 
     src = open_source(url, defaults())

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from urllib.parse import parse_qs, urlsplit
+from urllib.parse import urlsplit
 
 import numpy as np
 
@@ -14,7 +14,8 @@ from illuminet.runtime.stages.odometry import invert
 from illuminet.runtime.scene import SYNTHETIC_GT
 from illuminet.runtime.stage import Source
 
-from illuminet.hw.synthetic.scene import SyntheticError, SyntheticScene, build_scene
+from illuminet.hw import parse_query, query_bool, query_choice, query_int, query_size
+from illuminet.hw.synthetic.scene import PATHS, SyntheticError, SyntheticScene, build_scene
 
 
 STEREO_BASELINE_M = 0.075
@@ -299,17 +300,12 @@ def _stereo_depth(z: np.ndarray, fx: float, rng: np.random.Generator, bank: np.n
     return out
 
 
-def _parse_size(s: str) -> tuple[int, int]:
-    try:
-        w, h = (int(x) for x in s.lower().split("x"))
-    except ValueError:
-        raise SyntheticError(f"synthetic size must be WIDTHxHEIGHT like 640x400, got {s!r}") from None
-    if not (32 <= w <= 4096 and 32 <= h <= 4096):
-        raise SyntheticError(f"synthetic size {s!r} out of range (32..4096 per side)")
-    return w, h
-
-
-_PARAMS = ("seed", "size", "width", "height", "frames", "path", "hdr", "table", "lights")
+#: the parameters of ``synthetic://SCENE?...`` and their parsers (sizes: 32..4096 per side)
+_PARAMS = {
+    "seed": query_int(0, 2**31 - 1), "size": query_size(32, 4096), "width": query_int(32, 4096),
+    "height": query_int(32, 4096), "frames": query_int(1, 10_000_000), "path": query_choice(*PATHS), "hdr": str,
+    "table": query_bool, "lights": query_int(1, 1024),
+}
 
 
 def open_url(url: str, config=None) -> SyntheticSource:
@@ -318,40 +314,14 @@ def open_url(url: str, config=None) -> SyntheticSource:
     if parts.scheme != "synthetic":
         raise SyntheticError(f"not a synthetic:// URL: {url!r}")
     kind = (parts.netloc or parts.path.strip("/")) or "indoor"
-    q = parse_qs(parts.query, keep_blank_values=True)
-    unknown = sorted(set(q) - set(_PARAMS))
-    if unknown:
-        raise SyntheticError(f"{url!r}: unknown parameter(s) {', '.join(unknown)}; known: {', '.join(_PARAMS)}")
-
-    def one(name, default):
-        return q[name][-1] if name in q else default
-
-    def integer(name, default, lo, hi):
-        v = one(name, None)
-        if v is None:
-            return default
-        try:
-            iv = int(v)
-        except ValueError:
-            raise SyntheticError(f"{url!r}: {name} must be an integer, got {v!r}") from None
-        if not lo <= iv <= hi:
-            raise SyntheticError(f"{url!r}: {name} must be in [{lo}, {hi}], got {iv}")
-        return iv
-
-    seed = integer("seed", 0, 0, 2**31 - 1)
-    frames = integer("frames", 60, 1, 10_000_000)
-    n_lights = integer("lights", 32, 1, 1024)
-    table = one("table", None)
-    if table is not None and table not in ("0", "1"):
-        raise SyntheticError(f"{url!r}: table must be 0 or 1, got {table!r}")
-    hdr = one("hdr", None)
+    q = parse_query(url, _PARAMS, error=SyntheticError)
+    hdr = q.get("hdr")
     if hdr is not None and kind != "outdoor":
         raise SyntheticError(f"{url!r}: hdr= applies to the outdoor scene only")
     if hdr is not None and not Path(hdr).is_file():
         raise SyntheticError(f"{url!r}: HDR map not found: {hdr}")
-    size = one("size", None)
-    if size is None and ("width" in q or "height" in q):  # width=640&height=400 spelling
-        size = f"{one('width', '640')}x{one('height', '400')}"
-    scene = build_scene(kind, seed, _parse_size(size or "640x400"), frames, one("path", "static"),
-                        hdr or None, None if table is None else table == "1", n_lights)
+    size = q.get("size") or (q.get("width", 640), q.get("height", 400))  # or the width=640&height=400 spelling
+    frames = q.get("frames", 60)
+    scene = build_scene(kind, q.get("seed", 0), size, frames, q.get("path", "static"), hdr or None, q.get("table"),
+                        q.get("lights", 32))
     return SyntheticSource(scene, frames, url)

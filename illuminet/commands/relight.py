@@ -102,7 +102,7 @@ def run(args: argparse.Namespace, cfg) -> int:
         print(f"illuminet relight: {e}", file=sys.stderr)
         return 2
     res.save(args.out)
-    print(f"wrote {args.out}: {len(res.vertices)} vertices, method {res.method}, plane from {res.plane_source} "
-          f"({res.plane_observed:.0%} of the grid observed), mean radiance "
+    print(f"wrote {args.out}: {len(res.vertices)} vertices, method {res.method}, "
+          f"{res.plane_observed:.0%} of the plane grid observed, mean radiance "
           f"{np.round(res.radiance.mean(0), 4).tolist()}")
     return 0

@@ -132,8 +132,8 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
     except (SourceError, SinkError, SessionError) as e:
         print(f"illuminet: {e}", file=sys.stderr)
         return 1
-    except ModuleNotFoundError as e:  # a source module that is not part of this build
-        print(f"illuminet: source {url!r} is not available in this build ({e})", file=sys.stderr)
+    except ModuleNotFoundError as e:  # e.g. oakd:// without the depthai package installed
+        print(f"illuminet: source {url!r} needs a Python package that is not installed ({e})", file=sys.stderr)
         return 1
     rc = 0
     try:
