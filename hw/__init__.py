@@ -11,7 +11,8 @@ from __future__ import annotations
 import importlib
 import math
 import re
-from typing import Any, Callable, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 from urllib.parse import parse_qsl, urlsplit
 
 from illuminet.runtime.config import Config, defaults

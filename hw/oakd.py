@@ -165,7 +165,8 @@ def parse_url(url: str) -> OakdOptions:
 # ---------------------------------------------------------------------------------------- calibration
 
 def load_calibration_file(path: str) -> dai.CalibrationHandler:
-    """A ``dai.CalibrationHandler`` from a DepthAI calibration JSON (as ``Device.readCalibration().eepromToJsonFile`` writes)."""
+    """A ``dai.CalibrationHandler`` from a DepthAI calibration JSON (as
+    ``Device.readCalibration().eepromToJsonFile`` writes)."""
     if not os.path.isfile(path):
         raise OakdError(f"DepthAI calibration file not found: {path}")
     try:

@@ -28,8 +28,8 @@ import numpy as np
 from illuminet.hw import SourceError, parse_query, query_bool, query_choice, query_int
 from illuminet.runtime.config import Config
 from illuminet.runtime.frame import Frame
-from illuminet.runtime.stream.session import CorruptFrame, SessionError, SessionReader
 from illuminet.runtime.stage import EndOfStream, Source
+from illuminet.runtime.stream.session import CorruptFrame, SessionError, SessionReader
 
 log = logging.getLogger(__name__)
 

@@ -33,8 +33,9 @@ import logging
 import os
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
 from urllib.parse import urlsplit
 
 import cv2
@@ -226,7 +227,8 @@ def split_sbs(image: np.ndarray, swap: bool = False) -> tuple[np.ndarray, np.nda
         When the image is not HxW(x3) or its width is odd (not a side-by-side pair).
     """
     if not isinstance(image, np.ndarray) or image.ndim not in (2, 3):
-        raise ValueError(f"side-by-side frame must be an HxW or HxWx3 array, got {getattr(image, 'shape', type(image))}")
+        got = getattr(image, "shape", type(image))
+        raise ValueError(f"side-by-side frame must be an HxW or HxWx3 array, got {got}")
     w = image.shape[1]
     if w % 2:
         raise ValueError(f"side-by-side frame width {w} is odd: not a left|right pair (is this a mono camera?)")

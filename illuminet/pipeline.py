@@ -7,11 +7,12 @@ frames identically; :func:`chain_diagram` draws the chain with each stage's decl
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from illuminet.runtime.config import Config, ConfigError
-from illuminet.runtime.stream.sinks import PngSequenceSink, SessionRecorderSink, VideoSink
 from illuminet.runtime.stage import Sink, Stage
+from illuminet.runtime.stream.sinks import PngSequenceSink, SessionRecorderSink, VideoSink
 
 
 def build_stages(cfg: Config, *, render: bool = True) -> list[Stage]:
@@ -26,13 +27,12 @@ def build_stages(cfg: Config, *, render: bool = True) -> list[Stage]:
         Include the :class:`~illuminet.runtime.render.stage.RenderStage` (False: lighting only, e.g.
         for evaluation or benchmarks of the lighting stages alone).
     """
-    from illuminet.runtime.stages.anchor import AnchorStage
+    from illuminet.hw.serial_imu import ImuStage
     from illuminet.runtime.physics import load_response_lut
+    from illuminet.runtime.stages.anchor import AnchorStage
     from illuminet.runtime.stages.plane_light import PlaneLightStage
     from illuminet.runtime.stages.planes import PlaneStage
     from illuminet.runtime.stages.shading import ShadingStage
-
-    from illuminet.hw.serial_imu import ImuStage
 
     lut = load_response_lut(cfg.source.response_curve) if cfg.source.response_curve else None
     stages: list[Stage] = []
@@ -81,7 +81,8 @@ def build_sinks(
     sinks: list[Sink] = []
     if out.record:
         if not 1 <= out.record_jpeg_quality <= 100:
-            raise ConfigError(f"[output] record_jpeg_quality: expected an int in 1..100, got {out.record_jpeg_quality!r}")
+            raise ConfigError(
+                f"[output] record_jpeg_quality: expected an int in 1..100, got {out.record_jpeg_quality!r}")
         sinks.append(SessionRecorderSink(
             out.record, source=source_url if source_url is not None else cfg.source.url,
             color=out.record_color, jpeg_quality=out.record_jpeg_quality, fsync=out.record_fsync,

@@ -7,8 +7,8 @@ import pytest
 
 from illuminet.hw import open_source
 from illuminet.hw.synthetic import SCENES, SyntheticError, SyntheticSource, open_url
-from illuminet.runtime.groundtruth import lighting as L
 from illuminet.runtime.assets.objects import load_object
+from illuminet.runtime.groundtruth import lighting as L
 from illuminet.runtime.physics import linearize
 
 

@@ -8,15 +8,13 @@ from urllib.parse import urlsplit
 
 import numpy as np
 
-from illuminet.runtime.groundtruth import lighting as L
-from illuminet.runtime.frame import Exposure, Frame
-from illuminet.runtime.stages.odometry import invert
-from illuminet.runtime.scene import SYNTHETIC_GT
-from illuminet.runtime.stage import Source
-
 from illuminet.hw import parse_query, query_bool, query_choice, query_int, query_size
 from illuminet.hw.synthetic.scene import PATHS, SyntheticError, SyntheticScene, build_scene
-
+from illuminet.runtime.frame import Exposure, Frame
+from illuminet.runtime.groundtruth import lighting as L
+from illuminet.runtime.scene import SYNTHETIC_GT
+from illuminet.runtime.stage import Source
+from illuminet.runtime.stages.odometry import invert
 
 STEREO_BASELINE_M = 0.075
 DISPARITY_NOISE_PX = 0.08
@@ -48,7 +46,8 @@ class _Renderer:
         intr = scene.intrinsics
         u, v = np.meshgrid(np.arange(intr.width, dtype=np.float32), np.arange(intr.height, dtype=np.float32))
         self.rays_cam = np.ascontiguousarray(
-            np.stack([((u - intr.cx) / intr.fx).ravel(), ((v - intr.cy) / intr.fy).ravel(), np.ones(u.size, np.float32)])
+            np.stack([((u - intr.cx) / intr.fx).ravel(), ((v - intr.cy) / intr.fy).ravel(),
+                      np.ones(u.size, np.float32)])
         )  # (3, N)
         self.planes = []
         for p in scene.planes:
@@ -234,7 +233,8 @@ class SyntheticSource(Source):
         k = np.float32(exp.scale)
         gain = np.float32(exp.iso / 100.0)
         x = rad * k
-        sigma = np.sqrt(np.maximum(x, 0) * (gain / FULL_WELL_E) + (READ_NOISE_E * gain / FULL_WELL_E) ** 2 + ADC_NOISE**2)
+        sigma = np.sqrt(np.maximum(x, 0) * (gain / FULL_WELL_E) + (READ_NOISE_E * gain / FULL_WELL_E) ** 2
+                        + ADC_NOISE**2)
         off = int(rng.integers(0, self._bank.size - x.size))
         x = x + sigma * self._bank[off : off + x.size].reshape(x.shape)
         q = np.clip(x * np.float32(_SRGB_LUT_SIZE - 1) + np.float32(0.5), 0, _SRGB_LUT_SIZE - 1).astype(np.int32)
@@ -277,7 +277,8 @@ def _stereo_depth(z: np.ndarray, fx: float, rng: np.random.Generator, bank: np.n
     with np.errstate(divide="ignore"):
         disp = np.where(valid, fb / np.maximum(z, 1e-6), 0).astype(np.float32)
     noise = bank[off : off + z.size].reshape(z.shape)
-    disp = np.round((disp + np.float32(DISPARITY_NOISE_PX) * noise) / np.float32(DISPARITY_STEP_PX)) * np.float32(DISPARITY_STEP_PX)
+    step = np.float32(DISPARITY_STEP_PX)
+    disp = np.round((disp + np.float32(DISPARITY_NOISE_PX) * noise) / step) * step
     # holes where depth jumps (occlusion / matching failure at edges), dilated a few pixels
     jump = np.zeros_like(valid)
     dz = np.abs(np.diff(z, axis=1)) > 0.04 * z[:, 1:]

@@ -14,8 +14,8 @@ import numpy as np
 
 from illuminet.runtime.config import apply_overrides
 from illuminet.runtime.scene import PlaneLight
-from illuminet.runtime.stream.timing import measure
 from illuminet.runtime.stages.shading import ShadingStage, preprocess_plane
+from illuminet.runtime.stream.timing import measure
 
 TARGET_MS = 2.0
 

@@ -48,7 +48,7 @@ def _ablation(ev, epochs: int) -> None:
     """Retrain the GAN stage twice (paper losses vs without shading + smoothness) on the bundle's data."""
     import numpy as np
 
-    from illuminet.models.train import Trainer, TrainConfig, predict_jax
+    from illuminet.models.train import TrainConfig, Trainer, predict_jax
 
     b = ev.bundle
     work = b.path / "work"

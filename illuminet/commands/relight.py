@@ -29,7 +29,8 @@ def register(sub) -> None:
     p.add_argument("--intrinsics", required=True, metavar="FX,FY,CX,CY|JSON", help="colour camera intrinsics")
     p.add_argument("--anchor", required=True, metavar="X,Y", help="pixel where the object stands")
     p.add_argument("--bundle", default=None, help="object bundle (default: [model] bundle)")
-    p.add_argument("--precision", choices=("int8", "fp32"), default=None, help="ONNX chain (default: [model] precision)")
+    p.add_argument("--precision", choices=("int8", "fp32"), default=None,
+                   help="ONNX chain (default: [model] precision)")
     p.add_argument("--exposure", metavar="US,ISO", default=None,
                    help="exposure time (microseconds) and ISO, when known (absolute units)")
     p.add_argument("--out", required=True, metavar="NPZ", help="output file")

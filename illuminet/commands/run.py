@@ -32,7 +32,8 @@ def _add_source_flags(p: argparse.ArgumentParser) -> None:
                    help="replay timing: follow recorded timestamps, or as fast as possible ([source] timing)")
     g.add_argument("--loop", action=argparse.BooleanOptionalAction, default=None,
                    help="replay: start again at the end ([source] loop)")
-    g.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames, 0 = no limit ([source] max_frames)")
+    g.add_argument("--max-frames", type=int, metavar="N",
+                   help="stop after N frames, 0 = no limit ([source] max_frames)")
 
 
 def _add_output_flags(p: argparse.ArgumentParser, *, record: bool = True) -> None:
