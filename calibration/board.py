@@ -109,7 +109,7 @@ class BoardSpec:
         """The OpenCV ``aruco.Dictionary`` named by :attr:`dictionary`."""
         return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
 
-    def cv_board(self) -> "cv2.aruco.CharucoBoard":
+    def cv_board(self) -> cv2.aruco.CharucoBoard:
         """The OpenCV board; lengths in metres so that poses and stereo translations come out in metres."""
         b = cv2.aruco.CharucoBoard(
             (self.squares_x, self.squares_y), self.square_m, self.marker_mm / 1000.0, self.cv_dictionary()
@@ -129,10 +129,10 @@ class BoardSpec:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "BoardSpec":
+    def from_dict(cls, d: dict) -> BoardSpec:
         """Board from a dict written by :meth:`to_dict` (unknown keys ignored, checks applied)."""
-        return cls(**{k: d[k] for k in ("squares_x", "squares_y", "square_mm", "marker_mm", "dictionary", "legacy", "aspect")
-                      if k in d})
+        keys = ("squares_x", "squares_y", "square_mm", "marker_mm", "dictionary", "legacy", "aspect")
+        return cls(**{k: d[k] for k in keys if k in d})
 
     def describe(self) -> str:
         """One line for messages: squares, sizes, dictionary, layout."""

@@ -41,9 +41,10 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -100,7 +101,7 @@ class CameraCalib:
             width=int(self.width), height=int(self.height), dist=dist,
         )
 
-    def scaled_to(self, width: int, height: int) -> "CameraCalib":
+    def scaled_to(self, width: int, height: int) -> CameraCalib:
         """This camera at another resolution of the same aspect ratio (see module docstring)."""
         sx, sy = width / self.width, height / self.height
         K = self.K.copy()
@@ -259,7 +260,7 @@ class Calibration:
             f"{cam.width}x{cam.height}, but images are {int(width)}x{int(height)} ({hint})"
         )
 
-    def scaled_to(self, width: int, height: int) -> "Calibration":
+    def scaled_to(self, width: int, height: int) -> Calibration:
         """This calibration for images of ``width`` x ``height``.
 
         Every camera of the colour camera's size is rescaled (the stereo pair shares one sensor
@@ -397,7 +398,8 @@ def calibration_from_dict(d: Mapping[str, Any], where: str = "<calibration>", pa
         right = _get(where, s, "right", "stereo.", (str,))
         R = _matrix(where, "stereo.R", _get(where, s, "R", "stereo.", (list,)), (3, 3))
         if abs(np.linalg.det(R) - 1.0) > 1e-3 or np.abs(R @ R.T - np.eye(3)).max() > 1e-3:
-            raise CalibrationError(f"{where}: stereo.R: expected a rotation matrix (orthonormal, det +1), got {R.tolist()}")
+            raise CalibrationError(
+                f"{where}: stereo.R: expected a rotation matrix (orthonormal, det +1), got {R.tolist()}")
         T = _matrix(where, "stereo.T", _get(where, s, "T", "stereo.", (list,)), (3,))
         if np.linalg.norm(T) <= 0:
             raise CalibrationError(f"{where}: stereo.T: expected a non-zero translation in metres, got {T.tolist()}")
@@ -409,7 +411,8 @@ def calibration_from_dict(d: Mapping[str, Any], where: str = "<calibration>", pa
         if s.get("rectification"):
             shapes = {"R1": (3, 3), "R2": (3, 3), "P1": (3, 4), "P2": (3, 4), "Q": (4, 4)}
             r = s["rectification"]
-            rect = {k: _matrix(where, f"stereo.rectification.{k}", _get(where, r, k, "stereo.rectification.", (list,)), sh)
+            rect = {k: _matrix(where, f"stereo.rectification.{k}",
+                               _get(where, r, k, "stereo.rectification.", (list,)), sh)
                     for k, sh in shapes.items()}
         rms = s.get("rms_px")
         stereo = StereoCalib(left=left, right=right, R=R, T=T, rms_px=None if rms is None else float(rms),

@@ -16,9 +16,9 @@ so "far from every kept view" means "a new pose".
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -159,7 +159,7 @@ def _split(color_rgb: np.ndarray, split: str) -> list[np.ndarray]:
 
 def capture_views(source: Source, out_dir: str | Path, spec: BoardSpec, *, views: int = 25,
                   target_coverage: float = 0.8, max_frames: int = 3000, split: str = "none",
-                  min_novelty: float = 0.08, on_frame: Callable[[int, Verdict, "ViewSelector"], None] | None = None
+                  min_novelty: float = 0.08, on_frame: Callable[[int, Verdict, ViewSelector], None] | None = None
                   ) -> CaptureResult:
     """Read frames from an opened ``source`` and save diverse board views into ``out_dir``.
 

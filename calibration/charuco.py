@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import logging
 from collections import Counter
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Sequence
 
 import cv2
 import numpy as np
@@ -124,7 +124,7 @@ class BoardDetector:
         # keep a duplicate only when one candidate clearly fits the board (lens distortion makes a
         # global homography approximate, hence the generous limit relative to the marker size)
         keep = list(uniq)
-        for i, (err, k) in best.items():
+        for err, k in best.values():
             side = float(np.linalg.norm(np.diff(np.asarray(corners[k]).reshape(4, 2), axis=0), axis=1).mean())
             if err < max(5.0, 0.75 * side):
                 keep.append(k)

@@ -16,16 +16,15 @@ no depth is invented between a foreground and a background.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-from pathlib import Path
-from typing import Sequence
-
 from illuminet.calibration.board import BoardSpec
-from illuminet.calibration.calibfile import CalibrationError, Calibration, CameraCalib, StereoCalib
+from illuminet.calibration.calibfile import Calibration, CalibrationError, CameraCalib, StereoCalib
 from illuminet.calibration.charuco import Detection
 from illuminet.runtime.frame import Intrinsics
 

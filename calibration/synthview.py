@@ -136,7 +136,7 @@ def random_texture(h: int, w: int, seed: int = 0, color: bool = True) -> np.ndar
     return out if color else out[..., 0]
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, -1.0, 0.0])) -> tuple[np.ndarray, np.ndarray]:
+def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, -1.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
     """World-to-camera (R, t) of an OpenCV camera at ``eye`` looking at ``target`` (y down)."""
     eye = np.asarray(eye, float)
     z = np.asarray(target, float) - eye
@@ -154,7 +154,7 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0,
 class StereoScene:
     """A synthetic stereo pair with known geometry (see :func:`stereo_scene`)."""
 
-    calibration: "Calibration"
+    calibration: Calibration
     left: np.ndarray  # raw BGR
     right: np.ndarray
     planes: list[TexturedPlane]
@@ -219,7 +219,7 @@ def depth_error(depth: np.ndarray, truth: np.ndarray) -> dict[str, float]:
     }
 
 
-def board_plane(spec: "BoardSpec", dpi: float = 200.0, margin_mm: float = 15.0) -> TexturedPlane:
+def board_plane(spec: BoardSpec, dpi: float = 200.0, margin_mm: float = 15.0) -> TexturedPlane:
     """The printed board as a textured plane whose board coordinates equal world coordinates
     (origin at the board's top-left corner, x right, y down, z = 0), like ``spec.corner_points()``."""
     from illuminet.calibration.board import board_image
@@ -231,7 +231,7 @@ def board_plane(spec: "BoardSpec", dpi: float = 200.0, margin_mm: float = 15.0) 
     return TexturedPlane(np.array([-m * px, -m * px, 0.0]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), tex, px)
 
 
-def board_poses(spec: "BoardSpec", n: int, seed: int = 0, distance: tuple[float, float] = (0.35, 0.6),
+def board_poses(spec: BoardSpec, n: int, seed: int = 0, distance: tuple[float, float] = (0.35, 0.6),
                 tilt: float = 0.6, shift: tuple[float, float] = (0.12, 0.08)) -> list[tuple[np.ndarray, np.ndarray]]:
     """``n`` random board poses as camera (R, t) with ``X_cam = R X_board + t``: the board centre at
     ``distance`` metres ahead, shifted sideways, tilted up to ``tilt`` radians about x and y."""

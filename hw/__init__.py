@@ -9,7 +9,11 @@ unopened :class:`~illuminet.runtime.stage.Source`. hw/ is the only place that im
 from __future__ import annotations
 
 import importlib
-from urllib.parse import urlsplit
+import math
+import re
+from collections.abc import Callable, Mapping
+from typing import Any
+from urllib.parse import parse_qsl, urlsplit
 
 from illuminet.runtime.config import Config, defaults
 from illuminet.runtime.stage import Source
@@ -23,19 +27,111 @@ SCHEMES: dict[str, str] = {
 }
 
 
+# ------------------------------------------------------------------------------- URL queries
+# Every source parses its ``?key=value&...`` with :func:`parse_query` and the value parsers below,
+# so keys, spellings and error messages are the same for all of them.
+
 #: spellings accepted for boolean URL query values (``?loop=1``, ``?reconnect=false``)
 URL_TRUE = ("1", "true", "yes", "on")
 URL_FALSE = ("0", "false", "no", "off")
 
 
-def url_bool(url: str, key: str, value: str) -> bool:
-    """A boolean URL query value; anything else is refused naming the URL, key and value."""
-    t = value.lower()
+def parse_query(url: str, parsers: Mapping[str, Callable[[str], Any]],
+                error: Callable[[str], Exception] = ValueError) -> dict[str, Any]:
+    """The query of a source URL as ``{key: parsed value}``, for the keys present.
+
+    Parameters
+    ----------
+    url : str
+        The whole URL (named in every message).
+    parsers : mapping
+        Every key the source knows -> a function parsing its value, raising ``ValueError("expected
+        ...")`` for a bad one (:func:`query_bool`, :func:`query_int`, :func:`query_float`,
+        :func:`query_size`, :func:`query_choice`, ``str``).
+    error : exception class
+        What to raise (the source's own error type).
+
+    Raises
+    ------
+    error
+        ``URL: unknown parameter 'KEY'; known: ...`` or ``URL: KEY='VALUE': expected ...``.
+    """
+    out: dict[str, Any] = {}
+    for key, value in parse_qsl(urlsplit(url).query, keep_blank_values=True):
+        parse = parsers.get(key)
+        if parse is None:
+            raise error(f"{url}: unknown parameter {key!r}; known: {', '.join(parsers)}")
+        try:
+            out[key] = parse(value)  # a repeated key: the last one wins
+        except ValueError as e:
+            raise error(f"{url}: {key}={value!r}: {e}") from None
+    return out
+
+
+def query_bool(value: str) -> bool:
+    """``1/true/yes/on`` or ``0/false/no/off`` (any case)."""
+    t = value.strip().lower()
     if t in URL_TRUE:
         return True
     if t in URL_FALSE:
         return False
-    raise ValueError(f"{url}: {key}={value!r}: expected 0/1 (or true/false)")
+    raise ValueError("expected 0/1 (or true/false, yes/no, on/off)")
+
+
+def _range_text(lo, hi) -> str:
+    if lo is not None and hi is not None:
+        return f" in {lo}..{hi}"
+    if lo is not None:
+        return f" >= {lo}"
+    return f" <= {hi}" if hi is not None else ""
+
+
+def query_int(lo: int | None = None, hi: int | None = None) -> Callable[[str], int]:
+    """A parser of integers in ``[lo, hi]`` (either bound optional)."""
+    def parse(value: str) -> int:
+        try:
+            v = int(value)
+        except ValueError:
+            raise ValueError(f"expected an integer{_range_text(lo, hi)}") from None
+        if (lo is not None and v < lo) or (hi is not None and v > hi):
+            raise ValueError(f"expected an integer{_range_text(lo, hi)}")
+        return v
+    return parse
+
+
+def query_float(value: str) -> float:
+    """A finite number."""
+    try:
+        v = float(value)
+    except ValueError:
+        raise ValueError("expected a number") from None
+    if not math.isfinite(v):
+        raise ValueError("expected a finite number")
+    return v
+
+
+def query_size(lo: int = 1, hi: int | None = None, even: bool = False) -> Callable[[str], tuple[int, int]]:
+    """A parser of ``WIDTHxHEIGHT`` with each side in ``[lo, hi]`` (and even, when asked)."""
+    def parse(value: str) -> tuple[int, int]:
+        m = re.fullmatch(r"\s*(\d+)\s*x\s*(\d+)\s*", value.lower())
+        if not m:
+            raise ValueError("expected WIDTHxHEIGHT, e.g. 640x400")
+        w, h = int(m.group(1)), int(m.group(2))
+        if w < lo or h < lo or (hi is not None and (w > hi or h > hi)) or (even and (w % 2 or h % 2)):
+            raise ValueError("expected WIDTHxHEIGHT with " + ("even " if even else "")
+                             + f"sides{_range_text(lo, hi)}")
+        return w, h
+    return parse
+
+
+def query_choice(*choices: str, lower: bool = False) -> Callable[[str], str]:
+    """A parser accepting one of ``choices`` (case-insensitive with ``lower=True``, returned lower-case)."""
+    def parse(value: str) -> str:
+        v = value.lower() if lower else value
+        if v not in choices:
+            raise ValueError(f"expected one of {', '.join(choices)}")
+        return v
+    return parse
 
 
 class SourceError(RuntimeError):

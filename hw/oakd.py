@@ -36,7 +36,7 @@ import threading
 import time
 from dataclasses import dataclass
 from typing import Any
-from urllib.parse import parse_qsl, urlsplit
+from urllib.parse import urlsplit
 
 os.environ["DEPTHAI_TELEMETRY"] = "0"  # before importing depthai: the runtime never phones home
 
@@ -44,7 +44,14 @@ import cv2  # noqa: E402
 import depthai as dai  # noqa: E402
 import numpy as np  # noqa: E402
 
-from illuminet.hw import url_bool  # noqa: E402
+from illuminet.hw import (  # noqa: E402
+    parse_query,
+    query_bool,
+    query_choice,
+    query_float,
+    query_int,
+    query_size,
+)
 from illuminet.hw.serial_imu import ImuMatcher  # noqa: E402
 from illuminet.runtime.config import Config  # noqa: E402
 from illuminet.runtime.frame import Exposure, Frame, ImuSample, Intrinsics, depth_from_mm  # noqa: E402
@@ -128,46 +135,20 @@ class OakdOptions:
         return datetime.timedelta(milliseconds=ms)
 
 
-def _size(url: str, key: str, v: str) -> tuple[int, int]:
-    try:
-        w, h = (int(x) for x in v.lower().split("x"))
-    except ValueError:
-        raise ValueError(f"{url}: {key}={v!r}: expected WIDTHxHEIGHT, e.g. 640x400") from None
-    if w <= 0 or h <= 0 or w % 2 or h % 2:
-        raise ValueError(f"{url}: {key}={v!r}: width and height must be positive and even")
-    return w, h
-
-
 def parse_url(url: str) -> OakdOptions:
     """``oakd://[DEVICE]?key=value&...`` -> :class:`OakdOptions`; unknown keys and bad values are refused."""
     parts = urlsplit(url)
     if parts.scheme != "oakd":
         raise ValueError(f"{url!r} is not an oakd:// URL")
-    device = (parts.netloc + parts.path).strip("/")
-    kw: dict[str, Any] = {"device": device}
-    fields = OakdOptions.__dataclass_fields__
-    for key, v in parse_qsl(parts.query, keep_blank_values=True):
-        name = {"mono": "mono_size"}.get(key, key)
-        if name not in fields or name == "device":
-            known = sorted(k for k in fields if k not in ("device", "mono_size")) + ["mono"]
-            raise ValueError(f"{url}: unknown parameter {key!r}; known: {', '.join(known)}")
-        try:
-            if name in ("size", "mono_size"):
-                kw[name] = _size(url, key, v)
-            elif name in ("imu", "lr_check", "subpixel", "extended", "undistort", "reconnect"):
-                kw[name] = url_bool(url, key, v)
-            elif name in ("fps", "sync_ms", "timeout_s"):
-                kw[name] = float(v)
-            elif name == "preset":
-                if v.lower() not in _PRESETS:
-                    raise ValueError(f"{url}: preset={v!r}: expected one of {', '.join(sorted(_PRESETS))}")
-                kw[name] = v.lower()
-            else:
-                kw[name] = int(v)
-        except ValueError as e:
-            if str(e).startswith(url):
-                raise
-            raise ValueError(f"{url}: {key}={v!r}: expected a number") from None
+    size = query_size(even=True)
+    parsers = {
+        "fps": query_float, "size": size, "mono": size, "queue": query_int(), "imu": query_bool,
+        "imu_rate": query_int(), "preset": query_choice(*sorted(_PRESETS), lower=True), "lr_check": query_bool,
+        "subpixel": query_bool, "extended": query_bool, "undistort": query_bool, "exposure_us": query_int(),
+        "iso": query_int(), "sync_ms": query_float, "timeout_s": query_float, "reconnect": query_bool,
+    }
+    kw: dict[str, Any] = {"mono_size" if k == "mono" else k: v for k, v in parse_query(url, parsers).items()}
+    kw["device"] = (parts.netloc + parts.path).strip("/")
     o = OakdOptions(**kw)
     if not 1 <= o.queue <= 4:
         raise ValueError(f"{url}: queue={o.queue}: expected 1..4 (frames kept; the newest wins)")
@@ -184,7 +165,8 @@ def parse_url(url: str) -> OakdOptions:
 # ---------------------------------------------------------------------------------------- calibration
 
 def load_calibration_file(path: str) -> dai.CalibrationHandler:
-    """A ``dai.CalibrationHandler`` from a DepthAI calibration JSON (as ``Device.readCalibration().eepromToJsonFile`` writes)."""
+    """A ``dai.CalibrationHandler`` from a DepthAI calibration JSON (as
+    ``Device.readCalibration().eepromToJsonFile`` writes)."""
     if not os.path.isfile(path):
         raise OakdError(f"DepthAI calibration file not found: {path}")
     try:

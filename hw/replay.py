@@ -21,20 +21,19 @@ import threading
 import time
 from concurrent.futures import CancelledError, ThreadPoolExecutor
 from pathlib import Path
-from urllib.parse import parse_qsl, unquote, urlsplit
+from urllib.parse import unquote, urlsplit
 
 import numpy as np
 
-from illuminet.hw import URL_FALSE, URL_TRUE, SourceError
+from illuminet.hw import SourceError, parse_query, query_bool, query_choice, query_int
 from illuminet.runtime.config import Config
 from illuminet.runtime.frame import Frame
-from illuminet.runtime.stream.session import CorruptFrame, SessionError, SessionReader
 from illuminet.runtime.stage import EndOfStream, Source
+from illuminet.runtime.stream.session import CorruptFrame, SessionError, SessionReader
 
 log = logging.getLogger(__name__)
 
 TIMINGS = ("recorded", "asap")
-_TRUE, _FALSE = URL_TRUE, URL_FALSE
 
 
 class ReplaySource(Source):
@@ -180,15 +179,6 @@ class ReplaySource(Source):
                 "session_problems": len(self.session.problems) if self.session is not None else 0}
 
 
-def _parse_bool(key: str, value: str, url: str) -> bool:
-    v = value.strip().lower()
-    if v in _TRUE:
-        return True
-    if v in _FALSE:
-        return False
-    raise SourceError(f"{url}: query {key}={value!r}: expected one of {', '.join(_TRUE + _FALSE)}")
-
-
 def open_url(url: str, config: Config) -> ReplaySource:
     """``replay://PATH[?timing=recorded|asap][&loop=1][&max_frames=N]`` -> unopened :class:`ReplaySource`."""
     parts = urlsplit(url)
@@ -196,21 +186,7 @@ def open_url(url: str, config: Config) -> ReplaySource:
     if not path:
         raise SourceError(f"{url}: no session path; expected replay://PATH (relative) or replay:///ABS/PATH")
     src = config.source
-    timing, loop, max_frames = src.timing, src.loop, src.max_frames
-    for key, value in parse_qsl(parts.query, keep_blank_values=True):
-        if key == "timing":
-            if value not in TIMINGS:
-                raise SourceError(f"{url}: query timing={value!r}: expected one of {', '.join(TIMINGS)}")
-            timing = value
-        elif key == "loop":
-            loop = _parse_bool(key, value, url)
-        elif key == "max_frames":
-            try:
-                max_frames = int(value)
-                if max_frames < 0:
-                    raise ValueError
-            except ValueError:
-                raise SourceError(f"{url}: query max_frames={value!r}: expected an int >= 0") from None
-        else:
-            raise SourceError(f"{url}: unknown query key {key!r}; expected timing, loop, max_frames")
+    q = parse_query(url, {"timing": query_choice(*TIMINGS), "loop": query_bool, "max_frames": query_int(lo=0)},
+                    error=SourceError)
+    timing, loop, max_frames = q.get("timing", src.timing), q.get("loop", src.loop), q.get("max_frames", src.max_frames)
     return ReplaySource(path, timing=timing, loop=loop, max_frames=max_frames, strict=config.logging.strict)

@@ -41,8 +41,9 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any, Iterable, Sequence
+from typing import Any
 
 import numpy as np
 import serial
@@ -454,7 +455,7 @@ class SerialImu:
                  out_of_order=self.matcher.out_of_order, read_errors=self.read_errors)
         return d
 
-    def __enter__(self) -> "SerialImu":
+    def __enter__(self) -> SerialImu:
         self.open()
         return self
 
@@ -512,7 +513,7 @@ class ImuStage(Stage):
         self.reader = reader
 
     @classmethod
-    def from_config(cls, cfg: Config) -> "ImuStage | None":
+    def from_config(cls, cfg: Config) -> ImuStage | None:
         """The stage for ``[imu] url``, or ``None`` when no serial IMU is configured."""
         sec = cfg.imu
         if not sec.url:

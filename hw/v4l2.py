@@ -31,17 +31,17 @@ from __future__ import annotations
 import glob
 import logging
 import os
-import re
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable, Protocol
-from urllib.parse import parse_qsl, urlsplit
+from typing import Any, Protocol
+from urllib.parse import urlsplit
 
 import cv2
 import numpy as np
 
-from illuminet.hw import url_bool
+from illuminet.hw import parse_query, query_bool, query_choice, query_float, query_int, query_size
 from illuminet.runtime.config import Config
 from illuminet.runtime.frame import Exposure, Frame
 from illuminet.runtime.stage import EndOfStream, Source
@@ -107,6 +107,12 @@ class V4l2Options:
     reconnect: bool | None = None
 
 
+def _fourcc(value: str) -> str:
+    if len(value) != 4:
+        raise ValueError("expected four characters, e.g. MJPG or YUYV")
+    return value.upper()
+
+
 def parse_url(url: str) -> V4l2Options:
     """``v4l2://DEVICE?...`` -> :class:`V4l2Options`; unknown keys and bad values are refused by name."""
     parts = urlsplit(url)
@@ -115,39 +121,12 @@ def parse_url(url: str) -> V4l2Options:
     device = parts.netloc + parts.path
     if not device:
         raise ValueError(f"{url}: no device; expected e.g. v4l2:///dev/video0?stereo=sbs")
-    kw: dict[str, Any] = {"device": device}
-    fields = V4l2Options.__dataclass_fields__
-    for key, v in parse_qsl(parts.query, keep_blank_values=True):
-        if key not in fields or key == "device":
-            raise ValueError(f"{url}: unknown parameter {key!r}; known: "
-                             + ", ".join(k for k in fields if k != "device"))
-        if key == "size":
-            m = re.fullmatch(r"(\d+)x(\d+)", v.lower())
-            if not m or int(m.group(1)) <= 0 or int(m.group(2)) <= 0:
-                raise ValueError(f"{url}: size={v!r}: expected WIDTHxHEIGHT, e.g. 2560x720")
-            kw["size"] = (int(m.group(1)), int(m.group(2)))
-        elif key in ("swap", "reconnect"):
-            kw[key] = url_bool(url, key, v)
-        elif key in ("fps", "scale"):
-            try:
-                kw[key] = float(v)
-            except ValueError:
-                raise ValueError(f"{url}: {key}={v!r}: expected a number") from None
-        elif key == "exposure_us":
-            try:
-                kw[key] = int(v)
-            except ValueError:
-                raise ValueError(f"{url}: exposure_us={v!r}: expected an integer") from None
-        elif key == "stereo":
-            if v not in ("sbs", "pair"):
-                raise ValueError(f"{url}: stereo={v!r}: expected 'sbs' (side by side) or 'pair' (with right=)")
-            kw[key] = v
-        elif key == "fourcc":
-            if len(v) != 4:
-                raise ValueError(f"{url}: fourcc={v!r}: expected four characters, e.g. MJPG or YUYV")
-            kw[key] = v.upper()
-        else:
-            kw[key] = v
+    kw: dict[str, Any] = parse_query(url, {
+        "stereo": query_choice("sbs", "pair"), "right": str, "size": query_size(), "fps": query_float,
+        "fourcc": _fourcc, "swap": query_bool, "calib": str, "exposure_us": query_int(), "scale": query_float,
+        "reconnect": query_bool,
+    })
+    kw["device"] = device
     if kw.get("right") and kw.get("stereo", "pair") != "pair":
         raise ValueError(f"{url}: right= names a second camera, which contradicts stereo={kw['stereo']}")
     if kw.get("right"):
@@ -248,7 +227,8 @@ def split_sbs(image: np.ndarray, swap: bool = False) -> tuple[np.ndarray, np.nda
         When the image is not HxW(x3) or its width is odd (not a side-by-side pair).
     """
     if not isinstance(image, np.ndarray) or image.ndim not in (2, 3):
-        raise ValueError(f"side-by-side frame must be an HxW or HxWx3 array, got {getattr(image, 'shape', type(image))}")
+        got = getattr(image, "shape", type(image))
+        raise ValueError(f"side-by-side frame must be an HxW or HxWx3 array, got {got}")
     w = image.shape[1]
     if w % 2:
         raise ValueError(f"side-by-side frame width {w} is odd: not a left|right pair (is this a mono camera?)")
@@ -308,12 +288,10 @@ class StereoGrabber:
 # ---------------------------------------------------------------------------------------- the source
 
 def _host_stereo(calib_path: str, size: tuple[int, int], scale: float):
-    """HostStereo for ``size`` (per-eye width, height) from a calibration file (imported lazily)."""
-    try:
-        from illuminet.calibration.calibfile import load_calibration
-        from illuminet.calibration.stereo import HostStereo
-    except ImportError as e:  # pragma: no cover - the calibration package ships with illuminet
-        raise V4l2Error(f"host stereo depth is unavailable in this build: {e}") from e
+    """HostStereo for ``size`` (per-eye width, height) from a calibration file (imported when needed)."""
+    from illuminet.calibration.calibfile import load_calibration
+    from illuminet.calibration.stereo import HostStereo
+
     return HostStereo(load_calibration(calib_path), image_size=size, scale=scale)
 
 

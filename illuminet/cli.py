@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import importlib.util
 import logging
 import os
 import sys
@@ -22,15 +21,15 @@ os.environ.setdefault("DEPTHAI_TELEMETRY", "0")
 
 #: command modules of this package, in the order --help lists them
 COMMAND_MODULES: list[str] = [
-    "run",        # run, replay, record                      (runtime foundation)
-    "demo",       # the main job on the built-in default      (rendering)
+    "run",        # run, replay, record
+    "demo",       # the pipeline on the built-in default session, to a video
     "bench",      # benchmarks
-    "doctor",     # what hardware/drivers are found           (runtime foundation)
+    "doctor",     # what hardware/drivers are found
     "calibrate",  # calibrate board|capture|intrinsics|stereo|photometric
-    "train",      # train an object bundle                    (learned transfer)
-    "bundle",     # a bundle of any mesh with PRT, no training (physical transfer)
-    "eval",       # evaluation report                         (learned transfer)
-    "relight",    # one RGB-D image -> placed object + radiance (learned transfer)
+    "train",      # train an object bundle (the learned transfer)
+    "bundle",     # a bundle of any mesh with PRT, no training
+    "eval",       # evaluation report
+    "relight",    # one RGB-D image -> placed object + radiance
     "config",     # print the effective configuration
 ]
 
@@ -55,9 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in COMMAND_MODULES:
-        # a command whose module is not in this build (e.g. stripped down for a board) is not listed
-        if importlib.util.find_spec(f"illuminet.commands.{name}") is not None:
-            importlib.import_module(f"illuminet.commands.{name}").register(sub)
+        importlib.import_module(f"illuminet.commands.{name}").register(sub)
     return parser
 
 

@@ -7,12 +7,12 @@ frames identically; :func:`chain_diagram` draws the chain with each stage's decl
 
 from __future__ import annotations
 
-import importlib.util
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from illuminet.runtime.config import Config, ConfigError
-from illuminet.runtime.stream.sinks import PngSequenceSink, SessionRecorderSink, VideoSink
 from illuminet.runtime.stage import Sink, Stage
+from illuminet.runtime.stream.sinks import PngSequenceSink, SessionRecorderSink, VideoSink
 
 
 def build_stages(cfg: Config, *, render: bool = True) -> list[Stage]:
@@ -27,13 +27,12 @@ def build_stages(cfg: Config, *, render: bool = True) -> list[Stage]:
         Include the :class:`~illuminet.runtime.render.stage.RenderStage` (False: lighting only, e.g.
         for evaluation or benchmarks of the lighting stages alone).
     """
-    from illuminet.runtime.stages.anchor import AnchorStage
+    from illuminet.hw.serial_imu import ImuStage
     from illuminet.runtime.physics import load_response_lut
+    from illuminet.runtime.stages.anchor import AnchorStage
     from illuminet.runtime.stages.plane_light import PlaneLightStage
     from illuminet.runtime.stages.planes import PlaneStage
     from illuminet.runtime.stages.shading import ShadingStage
-
-    from illuminet.hw.serial_imu import ImuStage
 
     lut = load_response_lut(cfg.source.response_curve) if cfg.source.response_curve else None
     stages: list[Stage] = []
@@ -86,7 +85,8 @@ def build_sinks(
     sinks: list[Sink] = []
     if out.record:
         if not 1 <= out.record_jpeg_quality <= 100:
-            raise ConfigError(f"[output] record_jpeg_quality: expected an int in 1..100, got {out.record_jpeg_quality!r}")
+            raise ConfigError(
+                f"[output] record_jpeg_quality: expected an int in 1..100, got {out.record_jpeg_quality!r}")
         sinks.append(SessionRecorderSink(
             out.record, source=source_url if source_url is not None else cfg.source.url,
             color=out.record_color, jpeg_quality=out.record_jpeg_quality, fsync=out.record_fsync,
@@ -96,8 +96,6 @@ def build_sinks(
     if out.png_dir:
         sinks.append(PngSequenceSink(out.png_dir))
     if out.mjpeg:
-        if importlib.util.find_spec("illuminet.runtime.stream.mjpeg") is None:
-            raise ConfigError("[output] mjpeg = true, but this build has no MJPEG server (illuminet.runtime.stream.mjpeg)")
         from illuminet.runtime.stream.mjpeg import MjpegSink
 
         sinks.append(MjpegSink(out.listen, out.port, stats=stats))

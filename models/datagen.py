@@ -34,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from illuminet.runtime.groundtruth.lighting import fibonacci_sphere, load_hdr, median_cut
 from illuminet.runtime.assets.objects import load_object
+from illuminet.runtime.groundtruth.lighting import fibonacci_sphere, load_hdr, median_cut
 from illuminet.runtime.stages.shading import preprocess_plane
 
 log = logging.getLogger(__name__)
@@ -256,14 +256,16 @@ def sample_lights(kind: str, rng: np.random.Generator, n: int = N_LIGHTS, hdr_li
         az = rng.uniform(0, 2 * np.pi)
         sun = np.array([np.cos(el) * np.cos(az), np.sin(el), np.cos(el) * np.sin(az)])
         pos[0] = _distant(sun)
-        rgb[0] = _rand_color(rng, rng.uniform(0.1, 0.6)) * (rng.uniform(0.2, 1.0) if overcast else rng.uniform(3.0, 8.0))
+        rgb[0] = (_rand_color(rng, rng.uniform(0.1, 0.6))
+                  * (rng.uniform(0.2, 1.0) if overcast else rng.uniform(3.0, 8.0)))
         sky = fibonacci_directions(2 * (n - 1))
         sky = sky[sky[:, 1] > 0][: n - 1]
         pos[1:] = _distant(sky)
         sky_i = (rng.uniform(0.6, 1.2) if overcast else rng.uniform(0.15, 0.5)) / (n - 1)
         # brighter sky towards the sun and the horizon
         shape = 1.0 + 0.8 * np.clip(sky @ sun, 0, None) ** 2 + 0.3 * (1 - sky[:, 1])
-        rgb[1:] = _rand_color(rng, rng.uniform(-0.9, -0.2) if not overcast else 0.0)[None] * (sky_i * shape)[:, None] * 6
+        rgb[1:] = (_rand_color(rng, rng.uniform(-0.9, -0.2) if not overcast else 0.0)[None]
+                   * (sky_i * shape)[:, None] * 6)
         # ground bounce: a dim light from low directions (the plane stops anything below y = 0)
         rgb[1:] *= rng.uniform(0.8, 1.2, (n - 1, 1))
         rgb *= DISTANT_R ** 2 / 6

@@ -27,12 +27,14 @@ from pathlib import Path
 
 import numpy as np
 
+from illuminet.models import datagen
 from illuminet.runtime.assets.bundle import Bundle, TransferChain, load_bundle
 from illuminet.runtime.scene import ANCHOR, PLANE_LIGHT
+from illuminet.runtime.sh import SH_A_HAT as _A_HAT
+from illuminet.runtime.sh import sh9, sh_eval
+from illuminet.runtime.sh import sh_fit as sh_fit_rgbd
 from illuminet.runtime.stage import StageChain
 from illuminet.runtime.stages.shading import LUMA, dominant_light_from_oi, preprocess_plane
-
-from illuminet.models import datagen
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +48,6 @@ SEED_BASE = 1_000_003  # test seeds never collide with training seeds (seed*1000
 
 # --------------------------------------------------------------------------- spherical harmonics
 # the SH basis and the RGB-D fit live in the runtime (the stage's `sh` mode uses them too)
-from illuminet.runtime.sh import SH_A_HAT as _A_HAT, sh9, sh_eval, sh_fit as sh_fit_rgbd  # noqa: E402
 
 #: regularisation strengths tried on validation cases for the SH baseline (the best one is used)
 SH_LAMBDAS = (0.0, 1e-3, 1e-2, 0.1, 1.0, 10.0)
@@ -212,14 +213,15 @@ class Evaluator:
 
     def flicker(self, suite: str, n: int, frames: int, smoothing: float, seed: int) -> dict:
         """Mean frame-to-frame change of the intensities on static scenes (fresh plane noise per frame)."""
-        rng = np.random.default_rng(SEED_BASE + 999 + 10 * seed + (self.suites().index(suite) if suite in self.suites() else 9))
+        suite_no = self.suites().index(suite) if suite in self.suites() else 9
+        rng = np.random.default_rng(SEED_BASE + 999 + 10 * seed + suite_no)
         out: dict[str, list] = {}
         for _ in range(n):
             pos, rgb, e_plane, _, _ = self._case(suite, rng)
             k = 0.18 / max(float((0.5 * e_plane @ LUMA).mean() / np.pi), 1e-12)
             prev: dict = {}
             ema = None
-            for t in range(frames):
+            for _frame in range(frames):
                 # the same lighting, a new measurement: noise, texture and masks change per frame only
                 # through sensor noise: a static camera sees the same plane texture and holes
                 frng = np.random.default_rng(int(rng.integers(1 << 31)))
@@ -249,7 +251,8 @@ def markdown(report: dict) -> str:
     lines = [f"# Evaluation: bundle `{report['bundle']}`", "",
              f"{report['n_cases']} test cases per suite, every render vertex ({report['render_vertices']}) front "
              f"and back; {report['exposure']}. Test seeds differ from training seeds"
-             + (f"; real HDR suite uses held-out maps: {', '.join(report['hdr_test_maps'])}" if report['hdr_test_maps'] else "")
+             + (f"; real HDR suite uses held-out maps: {', '.join(report['hdr_test_maps'])}"
+                if report['hdr_test_maps'] else "")
              + f". SH baseline regulariser chosen on separate validation cases: lambda = {report.get('sh_lambda')}"
              + ".", "", "## Relighting error (the paper's table)", "",
              "| Method | " + " | ".join(f"{s} MAE | {s} RMSE" for s in suites) + " |",

@@ -149,9 +149,9 @@ def write_bundle(out: str | Path, result: dict, trainer, command: str = "", extr
     import onnxruntime as ort
 
     from illuminet import __version__
+    from illuminet.models.train import predict_jax
     from illuminet.runtime.assets.bundle import BUNDLE_FORMAT, FILES
     from illuminet.runtime.stages.shading import POOL
-    from illuminet.models.train import predict_jax
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -174,7 +174,8 @@ def write_bundle(out: str | Path, result: dict, trainer, command: str = "", extr
     # check the exported chain against JAX on validation inputs
     xv = trainer.data["val"]["plane"][:16]
     _, sh_jax = predict_jax(result, trainer.a_plane, trainer.a_obj, trainer.normals, xv)
-    sess = {k: ort.InferenceSession(str(p), providers=["CPUExecutionProvider"]) for k, p in (("fp32", fp32), ("int8", int8))}
+    sess = {k: ort.InferenceSession(str(p), providers=["CPUExecutionProvider"])
+            for k, p in (("fp32", fp32), ("int8", int8))}
     diffs = {}
     for k, s in sess.items():
         pred = np.stack([s.run(["shading"], {"plane": x[None]})[0][0] for x in xv])
@@ -213,7 +214,7 @@ def finalize_bundle(out: Path, meta: dict) -> Path:
 
     out = Path(out)
     meta["files"] = {}
-    for key, name in FILES.items():
+    for name in FILES.values():
         p = out / name
         if p.is_file():  # the ONNX pair and prt.npz are optional (load_bundle says which a bundle needs)
             meta["files"][name] = {"sha256": sha256(p), "bytes": p.stat().st_size}

@@ -17,10 +17,9 @@ multiplies element-wise, which removes all neighbour mixing; that defect is fixe
 
 from __future__ import annotations
 
-import numpy as np
-
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 LATENT = 256
 LEAK = 0.2

@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import copy
 import sys
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -63,18 +64,21 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "response_curve": _f(str, "", "camera response curve from `illuminet calibrate photometric` ('' = sRGB)"),
     },
     "planes": {
-        "method": _f(str, "region", "plane segmentation (docs/planes.md compares them)", choices=("ransac", "region", "opencv")),
+        "method": _f(str, "region", "plane segmentation (docs/planes.md compares them)",
+                     choices=("ransac", "region", "opencv")),
         "redetect_every": _f(int, 30, "full re-detection every N frames (tracking in between)"),
         "max_planes": _f(int, 4, "most planes kept per frame"),
         "min_area_m2": _f(float, 0.02, "smallest plane kept, square metres"),
-        "inlier_threshold_m": _f(float, 0.03, "distance of an inlier at 1 m; grows with z^2 like stereo noise (0.045 for integer-disparity depth)"),
+        "inlier_threshold_m": _f(float, 0.03, "distance of an inlier at 1 m; grows with z^2 like stereo noise "
+                                              "(0.045 for integer-disparity depth)"),
         "smoothing": _f(float, 0.8, "temporal smoothing of plane parameters, 0 = none, <1"),
     },
     "anchor": {
         "mode": _f(str, "auto", "where the object stands", choices=("auto", "pixel", "point")),
         "pixel": _f(list, [320, 300], "mode=pixel: colour-image pixel (x, y)", length=2),
         "point": _f(list, [0.0, 0.3, 1.5], "mode=point: 3D point in camera coordinates, metres", length=3),
-        "lock": _f(str, "world", "world: placed once, then held in the room by camera odometry; camera: follows the camera",
+        "lock": _f(str, "world",
+                   "world: placed once, then held in the room by camera odometry; camera: follows the camera",
                    choices=("world", "camera")),
     },
     "plane_light": {
@@ -82,7 +86,8 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "extent_m": _f(float, 1.0, "side of the square plane patch around the anchor, metres"),
         "fusion": _f(float, 0.9, "temporal fusion weight of the previous estimate, 0 = none"),
         "assumed_albedo": _f(float, 0.5, "mean albedo assumed for the plane (radiance -> irradiance)"),
-        "smoothing_cells": _f(float, 1.5, "masked Gaussian over the grid against coarse albedo texture, sigma in cells (0 = off)"),
+        "smoothing_cells": _f(float, 1.5,
+                              "masked Gaussian over the grid against coarse albedo texture, sigma in cells (0 = off)"),
         "extra_planes": _f(int, 0, "also measure up to N more planes (walls first) as further PlaneLight slices"),
     },
     "light": {
@@ -128,19 +133,22 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "listen": _f(str, "127.0.0.1", "MJPEG bind address; 0.0.0.0 serves the local network"),
         "port": _f(int, 8080, "MJPEG port"),
         "fps": _f(float, 30.0, "frame rate written into video files"),
-        "record_color": _f(str, "raw", "colour encoding of recorded sessions: raw bytes (lossless, least CPU), PNG (lossless, ~40 % smaller), JPEG (lossy)",
+        "record_color": _f(str, "raw", "colour encoding of recorded sessions: raw bytes (lossless, least CPU), "
+                                       "PNG (lossless, ~40 % smaller), JPEG (lossy)",
                            choices=("raw", "png", "jpeg")),
         "record_jpeg_quality": _f(int, 95, "JPEG quality 1..100 when record_color = 'jpeg'"),
         "record_fsync": _f(bool, True, "fsync every recorded frame (survives power loss; kill -9 is safe either way)"),
     },
     "imu": {
-        "url": _f(str, "", "serial IMU: serial://PORT?baud=N, or any serial.serial_for_url URL (/dev/ttyUSB0, loop://); '' = none"),
+        "url": _f(str, "", "serial IMU: serial://PORT?baud=N, or any serial.serial_for_url URL "
+                           "(/dev/ttyUSB0, loop://); '' = none"),
         "baudrate": _f(int, 115200, "serial baud rate"),
         "max_skew_ms": _f(float, 20.0, "largest IMU-to-frame timestamp gap accepted"),
         "rotation": _f(list, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
                        "IMU axes -> camera axes (x right, y down, z forward): 3x3 rotation, row-major", length=9),
         "gravity_tau_s": _f(float, 0.3, "time constant of the accelerometer low-pass that gives gravity, seconds"),
-        "clock": _f(str, "device", "IMU timestamps: sender's own clock (offset estimated) or this host's monotonic clock",
+        "clock": _f(str, "device",
+                    "IMU timestamps: sender's own clock (offset estimated) or this host's monotonic clock",
                     choices=("device", "host")),
     },
     "logging": {

@@ -17,9 +17,10 @@ Conventions (see :mod:`illuminet.runtime.physics` for the lighting ones):
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -51,7 +52,7 @@ class Intrinsics:
         """3x3 camera matrix."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
-    def scaled(self, width: int, height: int) -> "Intrinsics":
+    def scaled(self, width: int, height: int) -> Intrinsics:
         """Intrinsics for the same camera resized to ``width`` x ``height``."""
         sx, sy = width / self.width, height / self.height
         return Intrinsics(
@@ -68,7 +69,7 @@ class Intrinsics:
         return dataclasses.asdict(self) | {"dist": list(self.dist)}
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "Intrinsics":
+    def from_dict(cls, d: Mapping[str, Any]) -> Intrinsics:
         return cls(
             fx=float(d["fx"]), fy=float(d["fy"]), cx=float(d["cx"]), cy=float(d["cy"]),
             width=int(d["width"]), height=int(d["height"]),
@@ -116,7 +117,7 @@ class Exposure:
         return d
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any] | None) -> "Exposure":
+    def from_dict(cls, d: Mapping[str, Any] | None) -> Exposure:
         if not d:
             return cls()
         wb = d.get("wb_gains")
@@ -202,7 +203,7 @@ class Frame:
         """(width, height) of the colour image."""
         return self.color.shape[1], self.color.shape[0]
 
-    def with_result(self, key: Any, value: Any) -> "Frame":
+    def with_result(self, key: Any, value: Any) -> Frame:
         """A new frame sharing all arrays with this one, with ``results[str(key)] = value`` added.
 
         ``key`` is a :class:`~illuminet.runtime.scene.ResultKey` (or its name)."""
@@ -211,7 +212,7 @@ class Frame:
         res[name] = value
         return dataclasses.replace(self, results=MappingProxyType(res))
 
-    def replace(self, **changes: Any) -> "Frame":
+    def replace(self, **changes: Any) -> Frame:
         """A new frame with some fields replaced (e.g. a source correcting depth units)."""
         return dataclasses.replace(self, **changes)
 

@@ -2,9 +2,7 @@
 predicted radiance (what ``illuminet relight`` writes; the way to check results from outside).
 
 Pipeline: the project's plane detection, anchor and plane-light stages (``[planes]``, ``[anchor]``,
-``[plane_light]``; :func:`lighting_stages`) when present in this build, else
-:func:`fallback_plane_light` (a local plane fit around the anchor pixel and direct sampling of the
-grid; documented below), then the shading
+``[plane_light]``, ``[light]``; :func:`lighting_stages`), then the shading
 (:class:`~illuminet.runtime.stages.shading.ShadingStage`: the bundle's PRT from the frame's light
 estimate when the chain produced one, else its learned chain), then carrying proxy shading to the
 render mesh. When the frame has a light estimate (``results["light"]``), the npz also carries it
@@ -24,8 +22,8 @@ import numpy as np
 
 from illuminet.runtime.config import Config, apply_overrides
 from illuminet.runtime.frame import Exposure, Frame, Intrinsics
-from illuminet.runtime.physics import INV_PI, linearize
-from illuminet.runtime.scene import ANCHOR, LIGHT, PLANE_LIGHT, Anchor, LightEstimate, PlaneLight
+from illuminet.runtime.physics import INV_PI
+from illuminet.runtime.scene import ANCHOR, LIGHT, PLANE_LIGHT, LightEstimate
 from illuminet.runtime.stage import StageChain
 
 log = logging.getLogger(__name__)
@@ -48,7 +46,7 @@ class RelightResult:
     dominant_share: float
     method: str
     bundle: str
-    plane_source: str         # "stages" or "fallback"
+    plane_source: str         # "stages" (kept in the npz: format 1 never drops a field)
     plane_observed: float     # fraction of the plane grid that was observed
     light: LightEstimate | None = None  # the frame's light estimate, when the chain made one
 
@@ -93,105 +91,23 @@ def light_fields(estimate: LightEstimate) -> dict[str, np.ndarray]:
     }
 
 
-def lighting_stages(cfg: Config, response_lut=None) -> list | None:
-    """The stages that measure the light for relight (unopened): the project's plane / anchor /
-    plane-light stages, when this build has them (``None``: use :func:`fallback_plane_light`).
+def lighting_stages(cfg: Config, response_lut=None) -> list:
+    """The stages that measure the light for relight (unopened): planes, anchor, plane light and,
+    with ``[light] enabled``, the light estimate.
 
     A stage added here that provides ``results["light"]`` (the light estimate) makes relight shade
     with the bundle's PRT and write the light into the npz.
     """
-    try:
-        from illuminet.runtime.stages.anchor import AnchorStage
-        from illuminet.runtime.stages.plane_light import PlaneLightStage
-        from illuminet.runtime.stages.planes import PlaneStage
-    except ImportError:  # a stripped-down build: use the local fallback
-        return None
+    from illuminet.runtime.stages.anchor import AnchorStage
+    from illuminet.runtime.stages.plane_light import PlaneLightStage
+    from illuminet.runtime.stages.planes import PlaneStage
+
     stages = [PlaneStage(cfg), AnchorStage(cfg), PlaneLightStage(cfg, response_lut=response_lut)]
     if cfg.light.enabled:
         from illuminet.runtime.stages.light_estimate import LightEstimateStage
 
         stages.append(LightEstimateStage(cfg, response_lut=response_lut))
     return stages
-
-
-def fallback_plane_light(frame: Frame, pixel: tuple[float, float], grid: int, extent: float,
-                         albedo: float, response_lut=None) -> tuple[Anchor, PlaneLight]:
-    """Minimal anchor + plane light for builds without the planes stages (used by :func:`relight`).
-
-    Fits a plane (least squares with iterative inlier selection, threshold growing with z^2) to the
-    depth points within 0.4 m of the anchor pixel's 3D point, builds the object frame (origin at the
-    anchor on the plane, +Y the plane normal towards the camera, X along the image's x axis), and
-    samples the grid: each vertex projected into the image is observed when the depth there agrees
-    with the plane; irradiance = linear colour (3x3 mean) * pi / (albedo * exposure scale).
-    """
-    depth, K = frame.depth, frame.intrinsics
-    if depth is None:
-        raise ValueError("relight needs a depth image aligned to the colour image")
-    h, w = depth.shape
-    px, py = int(round(pixel[0])), int(round(pixel[1]))
-    if not (0 <= px < w and 0 <= py < h):
-        raise ValueError(f"anchor pixel ({pixel[0]}, {pixel[1]}) is outside the {w}x{h} image")
-    win = depth[max(py - 4, 0):py + 5, max(px - 4, 0):px + 5]
-    if not (win > 0).any():
-        raise ValueError(f"no valid depth near the anchor pixel ({px}, {py})")
-    z0 = float(np.median(win[win > 0]))
-    a = np.array([(px - K.cx) / K.fx * z0, (py - K.cy) / K.fy * z0, z0])
-    ys, xs = np.nonzero(depth > 0)
-    step = max(1, int(np.sqrt(len(xs) / 40000)))
-    ys, xs = ys[::step], xs[::step]
-    z = depth[ys, xs]
-    pts = np.stack([(xs - K.cx) / K.fx * z, (ys - K.cy) / K.fy * z, z], 1)
-    near = np.linalg.norm(pts - a, axis=1) < 0.4
-    p = pts[near]
-    if len(p) < 50:
-        raise ValueError(f"too few depth points around the anchor ({len(p)}) to fit a plane")
-    thr = 0.01 * max(z0, 0.3) ** 2 * 2
-    inl = np.ones(len(p), bool)
-    for _ in range(5):
-        c = p[inl].mean(0)
-        _, _, vt = np.linalg.svd(p[inl] - c, full_matrices=False)
-        n = vt[2]
-        d = np.abs((p - c) @ n)
-        new = d < max(thr, np.percentile(d, 60))
-        if new.sum() < 30:
-            break
-        inl = new
-    if n @ c > 0:  # normal towards the camera
-        n = -n
-    origin = a - ((a - c) @ n) * n
-    xa = np.array([1.0, 0, 0]) - n * n[0]
-    if np.linalg.norm(xa) < 1e-3:
-        xa = np.array([0, 0, 1.0]) - n * n[2]
-    xa /= np.linalg.norm(xa)
-    za = np.cross(xa, n)
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = xa, n, za, origin
-    anchor = Anchor(T_cam_obj=T, plane_id=0, synthetic=False)
-
-    g = np.linspace(-extent / 2, extent / 2, grid)
-    zz, xx = np.meshgrid(g, g, indexing="ij")
-    v_obj = np.stack([xx.ravel(), np.zeros(grid * grid), zz.ravel()], 1)
-    v_cam = v_obj @ T[:3, :3].T + T[:3, 3]
-    zc = v_cam[:, 2]
-    u = K.fx * v_cam[:, 0] / np.maximum(zc, 1e-6) + K.cx
-    vv = K.fy * v_cam[:, 1] / np.maximum(zc, 1e-6) + K.cy
-    ui, vi = np.rint(u).astype(int), np.rint(vv).astype(int)
-    inside = (zc > 0.05) & (ui >= 1) & (ui < w - 1) & (vi >= 1) & (vi < h - 1)
-    lin = linearize(frame.color, response_lut)
-    k = frame.exposure.scale or 1.0
-    irr = np.zeros((grid * grid, 3), np.float32)
-    mask = np.zeros(grid * grid, bool)
-    for i in np.nonzero(inside)[0]:
-        dz = depth[vi[i] - 1:vi[i] + 2, ui[i] - 1:ui[i] + 2]
-        ok = dz > 0
-        if not ok.any() or abs(float(np.median(dz[ok])) - zc[i]) > 0.03 + 0.02 * zc[i] ** 2:
-            continue  # off the plane, occluded, or a depth hole
-        irr[i] = lin[vi[i] - 1:vi[i] + 2, ui[i] - 1:ui[i] + 2].reshape(-1, 3).mean(0) * np.pi / (albedo * k)
-        mask[i] = True
-    pl = PlaneLight(vertices=v_obj.astype(np.float32), normals=np.tile([[0, 1, 0]], (grid * grid, 1)).astype(np.float32),
-                    irradiance=irr, mask=mask, confidence=mask.astype(np.float32), grid=grid, exposure_scale=k,
-                    plane_slices=(slice(0, grid * grid),), labels=("floor",))
-    return anchor, pl
 
 
 def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor_px: tuple[float, float],
@@ -235,28 +151,21 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
     shading_stage.open()
     b = shading_stage.bundle
     stages = lighting_stages(cfg, response_lut)
-    light = None
-    if stages is not None:
-        f = frame
+    for st in stages:
+        st.open()
+    try:
+        f = StageChain(stages)(frame)
+    finally:
         for st in stages:
-            st.open()
-        try:
-            f = StageChain(stages)(f)
-        finally:
-            for st in stages:
-                st.close()
-        if ANCHOR.name not in f.results or PLANE_LIGHT.name not in f.results:
-            raise ValueError(f"no plane found under the anchor pixel ({anchor_px[0]}, {anchor_px[1]}): "
-                             "the depth there does not belong to a detected plane")
-        anchor, pl, source = f.results[ANCHOR.name], f.results[PLANE_LIGHT.name], "stages"
-        light = f.results.get(LIGHT.name)
-        if anchor.synthetic or not np.any(pl.mask):
-            raise ValueError(f"no real plane observed under the anchor pixel ({anchor_px[0]}, {anchor_px[1]}); "
-                             "relight needs the plane under the object to be visible in the image")
-    else:
-        anchor, pl = fallback_plane_light(frame, anchor_px, cfg.plane_light.grid, cfg.plane_light.extent_m,
-                                          cfg.plane_light.assumed_albedo, response_lut)
-        source = "fallback"
+            st.close()
+    if ANCHOR.name not in f.results or PLANE_LIGHT.name not in f.results:
+        raise ValueError(f"no plane found under the anchor pixel ({anchor_px[0]}, {anchor_px[1]}): "
+                         "the depth there does not belong to a detected plane")
+    anchor, pl, source = f.results[ANCHOR.name], f.results[PLANE_LIGHT.name], "stages"
+    light = f.results.get(LIGHT.name)
+    if anchor.synthetic or not np.any(pl.mask):
+        raise ValueError(f"no real plane observed under the anchor pixel ({anchor_px[0]}, {anchor_px[1]}); "
+                         "relight needs the plane under the object to be visible in the image")
     if shading_stage.mode == "prt" and light is None:
         raise ValueError('[model] shading = "prt" needs a light estimate, and relight\'s chain made none on this '
                          'image: use shading "auto" or "model"')
@@ -271,7 +180,8 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
     return RelightResult(
         vertices=(b.vertices * scale) @ R.T + t, normals=b.normals @ R.T, faces=b.faces,
         radiance=irr * INV_PI * pl.exposure_scale, irradiance=irr, proxy_irradiance=sh.irradiance,
-        oi=np.einsum("vcx,yx->vcy", oi, R), T_cam_obj=np.asarray(anchor.T_cam_obj), exposure_scale=float(pl.exposure_scale),
+        oi=np.einsum("vcx,yx->vcy", oi, R), T_cam_obj=np.asarray(anchor.T_cam_obj),
+        exposure_scale=float(pl.exposure_scale),
         dominant_dir=(R @ dom).astype(np.float32), dominant_share=float(sh.dominant_share), method=sh.method,
         bundle=str(b.path), plane_source=source, plane_observed=float(np.mean(pl.mask[first])), light=light,
     )

@@ -241,5 +241,6 @@ COMPOSITE = ResultKey("composite", "ndarray HxWx3 uint8", "the output picture (s
 SYNTHETIC_GT = ResultKey("synthetic_gt", "dict", "the synthetic camera's ground truth: frame index, T_cam_world")
 
 #: every declared key, by name
-RESULT_KEYS: dict[str, ResultKey] = {k.name: k for k in (PLANES, ANCHOR, ODOMETRY, PLANE_LIGHT, LIGHT, SHADING, COMPOSITE,
-                                                         SYNTHETIC_GT)}
+RESULT_KEYS: dict[str, ResultKey] = {
+    k.name: k for k in (PLANES, ANCHOR, ODOMETRY, PLANE_LIGHT, LIGHT, SHADING, COMPOSITE, SYNTHETIC_GT)
+}

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+
 def sh9(n: np.ndarray) -> np.ndarray:
     """Real SH basis up to order 2 at unit directions n (N, 3) -> (N, 9)."""
     x, y, z = n[:, 0], n[:, 1], n[:, 2]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from illuminet.runtime.frame import Intrinsics
 from illuminet.runtime.groundtruth import lighting as L
 from illuminet.runtime.groundtruth.baselines import (
     ambient_from_image,
@@ -17,9 +18,8 @@ from illuminet.runtime.groundtruth.baselines import (
     sh_irradiance,
     sh_samples_from_rgbd,
 )
-from illuminet.runtime.sh import sh_fit
-from illuminet.runtime.frame import Intrinsics
 from illuminet.runtime.physics import linear_to_srgb8, linearize
+from illuminet.runtime.sh import sh_fit
 
 K = Intrinsics(fx=400.0, fy=400.0, cx=319.5, cy=199.5, width=640, height=400)
 

@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from illuminet.calibration.calibfile import (
-    FORMAT_NAME, FORMAT_VERSION, Calibration, CalibrationError, CameraCalib, StereoCalib, load_calibration,
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    Calibration,
+    CalibrationError,
+    CameraCalib,
+    StereoCalib,
+    load_calibration,
     save_calibration,
 )
 from illuminet.runtime.physics import linearize, load_response_lut

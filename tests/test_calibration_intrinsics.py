@@ -57,7 +57,8 @@ def test_fisheye_synthetic_meets_targets():
 
 def test_fisheye_fixed_distortion_recovers_focal():
     dets = _views(FISHEYE, 3, seed=2, distance=(0.19, 0.3))
-    guess = CameraCalib(640, 400, FISHEYE.K * np.array([[1.03, 1, 1], [1, 1.03, 1], [1, 1, 1]]), FISHEYE.dist, "fisheye")
+    guess = CameraCalib(640, 400, FISHEYE.K * np.array([[1.03, 1, 1], [1, 1.03, 1], [1, 1, 1]]), FISHEYE.dist,
+                        "fisheye")
     r = calibrate_intrinsics(dets, SPEC, "fisheye", guess=guess, fix=("principal_point", "distortion"))
     assert np.allclose(r.camera.dist, FISHEYE.dist)
     assert abs(r.camera.K[0, 0] / FISHEYE.K[0, 0] - 1) < 0.005

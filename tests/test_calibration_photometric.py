@@ -10,8 +10,14 @@ import pytest
 
 from illuminet.calibration.calibfile import CalibrationError
 from illuminet.calibration.photometric import (
-    REFERENCE, calibrate_response, exposure_factor, exposure_time_from_name, exposure_times_from_names,
-    normalize_exposure, save_response_lut, undo_white_balance,
+    REFERENCE,
+    calibrate_response,
+    exposure_factor,
+    exposure_time_from_name,
+    exposure_times_from_names,
+    normalize_exposure,
+    save_response_lut,
+    undo_white_balance,
 )
 from illuminet.runtime.frame import Exposure
 from illuminet.runtime.physics import linearize, load_response_lut

@@ -10,7 +10,6 @@ distortion (and principal point) and estimates the focal length, and compares th
 
 from __future__ import annotations
 
-
 import cv2
 import numpy as np
 import pytest
@@ -85,7 +84,8 @@ def test_factory_intrinsics_fit_and_identify_cameras(rig):
     calib, dets = rig
     for folder, sock in CAMS.items():
         own = evaluate_intrinsics(dets[folder], RIG_BOARD, calib.camera(sock)).rms_px
-        others = [evaluate_intrinsics(dets[folder], RIG_BOARD, calib.camera(s)).rms_px for s in CAMS.values() if s != sock]
+        others = [evaluate_intrinsics(dets[folder], RIG_BOARD, calib.camera(s)).rms_px
+                  for s in CAMS.values() if s != sock]
         print(f"{folder}: factory {sock} RMS {own:.3f} px; other cameras' intrinsics {[round(o, 3) for o in others]}")
         assert own < 0.35
         assert own < min(others)  # the folder names match the sockets
@@ -97,7 +97,8 @@ def test_focal_length_vs_factory(rig):
         ref = calib.camera(sock)
         r = calibrate_intrinsics(dets[folder], RIG_BOARD, "fisheye", guess=ref, fix=("principal_point", "distortion"))
         rel = r.camera.K[0, 0] / ref.K[0, 0] - 1
-        print(f"{folder}: fx {r.camera.K[0, 0]:.2f} vs factory {ref.K[0, 0]:.2f} ({100 * rel:+.2f} %), rms {r.rms_px:.3f} px")
+        print(f"{folder}: fx {r.camera.K[0, 0]:.2f} vs factory {ref.K[0, 0]:.2f} ({100 * rel:+.2f} %), "
+              f"rms {r.rms_px:.3f} px")
         assert abs(rel) < 0.01
         assert r.rms_px < 0.35
 
@@ -148,7 +149,8 @@ def test_host_stereo_on_real_fisheye_pair(shared_data, rig):
     cv2.fillConvexPoly(mask, hull, 1)
     ok = (mask > 0) & (depth > 0)
     rel = np.abs(depth[ok] - z_true[ok]) / z_true[ok]
-    print(f"real fisheye pair: board at {np.median(z_true[mask > 0]):.3f} m, {100 * ok.sum() / mask.sum():.1f} % valid, "
+    print(f"real fisheye pair: board at {np.median(z_true[mask > 0]):.3f} m, "
+          f"{100 * ok.sum() / mask.sum():.1f} % valid, "
           f"depth error median {100 * np.median(rel):.2f} %, p90 {100 * np.percentile(rel, 90):.2f} %")
     assert ok.sum() / mask.sum() > 0.8
     assert np.median(rel) < 0.03

@@ -12,7 +12,13 @@ from illuminet.calibration.charuco import BoardDetector
 from illuminet.calibration.intrinsics import calibrate_intrinsics
 from illuminet.calibration.stereo import HostStereo, calibrate_stereo
 from illuminet.calibration.synthview import (
-    board_plane, board_poses, degrade, depth_error, pixel_rays, render, stereo_scene,
+    board_plane,
+    board_poses,
+    degrade,
+    depth_error,
+    pixel_rays,
+    render,
+    stereo_scene,
 )
 
 SPEC = BoardSpec(9, 6, 30.0, 22.0, "DICT_4X4_50")
@@ -46,7 +52,8 @@ def test_stereo_calibration_synthetic_baseline_within_1_percent():
     res = calibrate_stereo(dl, dr, SPEC, cl, cr)
     err = abs(res.stereo.baseline_m / 0.075 - 1)
     ang = np.degrees(np.linalg.norm(cv2.Rodrigues(res.stereo.R.T @ R)[0]))
-    print(f"stereo: baseline {1000 * res.stereo.baseline_m:.2f} mm (error {100 * err:.3f} %), rotation error {ang:.3f} deg, "
+    print(f"stereo: baseline {1000 * res.stereo.baseline_m:.2f} mm (error {100 * err:.3f} %), "
+          f"rotation error {ang:.3f} deg, "
           f"rms {res.rms_px:.3f} px")
     assert err < 0.01
     assert ang < 0.2

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import signal
@@ -98,8 +97,6 @@ def test_run_with_loop_and_max_frames(tmp_path, capsys):
     assert st["frames"] == 10
 
 
-@pytest.mark.skipif(importlib.util.find_spec("illuminet.hw.synthetic") is None,
-                    reason="synthetic:// source not in this build yet")
 def test_record_from_synthetic(tmp_path):
     rc = main(["record", "synthetic://indoor?seed=0", str(tmp_path / "rec"), "--max-frames", "3", "--timing", "asap",
                "--no-fsync"])

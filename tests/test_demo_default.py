@@ -10,7 +10,11 @@ import pytest
 
 from illuminet.cli import main
 from illuminet.commands.demo import (
-    DEFAULT_SESSION, DEFAULT_SESSION_FRAMES, DEFAULT_SESSION_SEED, default_session_source_url, make_default_session,
+    DEFAULT_SESSION,
+    DEFAULT_SESSION_FRAMES,
+    DEFAULT_SESSION_SEED,
+    default_session_source_url,
+    make_default_session,
 )
 from illuminet.runtime.stream.session import SessionReader
 

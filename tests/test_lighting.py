@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from illuminet.runtime.groundtruth import lighting as L
 from illuminet.runtime.assets.objects import BUILTIN_OBJECTS, ObjectLoadError, load_object, proxy_mesh
+from illuminet.runtime.groundtruth import lighting as L
 from illuminet.runtime.physics import irradiance_from_oi, lambert_radiance
 
 UP = np.array([[0.0, 1.0, 0.0]])

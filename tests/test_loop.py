@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from illuminet.hw.replay import ReplaySource
+from illuminet.runtime.stage import Sink, Stage
 from illuminet.runtime.stream.loop import LoopStats, run_loop
 from illuminet.runtime.stream.session import SessionReader
 from illuminet.runtime.stream.sinks import NullSink
-from illuminet.runtime.stage import Sink, Stage
 
 from ._sessions import make_session, spawn, wait_for_lines
 

@@ -12,12 +12,12 @@ import logging
 import numpy as np
 import pytest
 
-from illuminet.runtime.stages.anchor import AnchorStage, plane_to_world, snap_to_plane
 from illuminet.runtime.config import apply_overrides, defaults
+from illuminet.runtime.scene import Plane
+from illuminet.runtime.stages.anchor import AnchorStage, plane_to_world, snap_to_plane
 from illuminet.runtime.stages.odometry import Odometry, invert, kabsch, rotation_between
 from illuminet.runtime.stages.plane_light import PlaneLightStage
 from illuminet.runtime.stages.planes import PlaneStage
-from illuminet.runtime.scene import Plane
 
 ORBIT = "synthetic://indoor?seed=0&frames=40&path=orbit"
 STATIC = "synthetic://indoor?seed=0&frames=10&path=static"
@@ -291,7 +291,8 @@ def test_odometry_reports_unusable_frames_once_and_holds_the_pose(static, caplog
     f = static[0]
     assert od.update(f).state == "ok"
     with caplog.at_level(logging.WARNING):
-        bad = [f.replace(depth=None), f.replace(depth=None), f.replace(color=f.color[:20, :20], depth=f.depth[:20, :20])]
+        bad = [f.replace(depth=None), f.replace(depth=None),
+               f.replace(color=f.color[:20, :20], depth=f.depth[:20, :20])]
         res = [od.update(b) for b in bad]
     assert all(r.state == "lost" and r.reason for r in res)
     assert all(np.array_equal(r.T_cam_world, np.eye(4)) for r in res)

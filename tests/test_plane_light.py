@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 
 from illuminet.bench.planes import AnalyticScene
-from illuminet.runtime.stages.anchor import AnchorStage
-from illuminet.runtime.stage import MissingInput
 from illuminet.runtime.config import apply_overrides, defaults
 from illuminet.runtime.physics import INV_PI
+from illuminet.runtime.scene import Anchor
+from illuminet.runtime.stage import MissingInput
+from illuminet.runtime.stages.anchor import AnchorStage
 from illuminet.runtime.stages.plane_light import PlaneLightStage, grid_vertices, measure_cells
 from illuminet.runtime.stages.planes import PlaneStage
-from illuminet.runtime.scene import Anchor
 
 
 @pytest.fixture(scope="module")
@@ -255,7 +255,6 @@ def test_done_when_on_the_synthetic_camera(url):
     on one plane, so the estimate is compared after dividing out the floor's mean albedo colour
     (``assumed_albedo`` = its mean). Wooden floors (planks +-25 %) stay near 11 %: docs/planes.md.
     """
-    pytest.importorskip("illuminet.hw.synthetic")
     from illuminet.hw import open_source
 
     src = open_source(url, defaults())

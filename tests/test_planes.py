@@ -12,11 +12,18 @@ import numpy as np
 import pytest
 
 from illuminet.bench.planes import AnalyticScene, plane_errors
-from illuminet.runtime.stages.anchor import SYNTHETIC_HEIGHT_M, AnchorStage, object_frame, synthetic_plane
 from illuminet.runtime.config import apply_overrides, defaults
 from illuminet.runtime.frame import Frame, Intrinsics
+from illuminet.runtime.stages.anchor import SYNTHETIC_HEIGHT_M, AnchorStage, object_frame, synthetic_plane
 from illuminet.runtime.stages.plane_fit import (
-    METHODS, DetectParams, check_depth, detect_planes, estimate_up, fit_plane_disparity, label_planes, make_cloud,
+    METHODS,
+    DetectParams,
+    check_depth,
+    detect_planes,
+    estimate_up,
+    fit_plane_disparity,
+    label_planes,
+    make_cloud,
 )
 from illuminet.runtime.stages.planes import PlaneStage
 

@@ -15,9 +15,9 @@ import cv2
 import numpy as np
 import pytest
 
-from illuminet.runtime.stages.anchor import AnchorStage
 from illuminet.runtime.config import apply_overrides, defaults
 from illuminet.runtime.frame import Frame, Intrinsics, depth_from_mm
+from illuminet.runtime.stages.anchor import AnchorStage
 from illuminet.runtime.stages.plane_light import PlaneLightStage
 from illuminet.runtime.stages.planes import PlaneStage
 

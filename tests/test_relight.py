@@ -15,8 +15,8 @@ from illuminet.runtime.relight import relight
 from ._learn_helpers import floor_rgbd
 
 NPZ_KEYS = {"vertices", "normals", "faces", "radiance", "irradiance", "proxy_irradiance", "oi", "T_cam_obj",
-            "exposure_scale", "dominant_dir", "dominant_share", "method", "bundle", "plane_source",
-            "plane_observed", "format"}
+            "exposure_scale", "dominant_dir", "dominant_share", "method", "bundle", "plane_observed",
+            "format"}
 
 
 def test_relight_places_object_on_the_floor():

@@ -11,16 +11,16 @@ import pytest
 import trimesh
 
 from illuminet.runtime import config as C
-from illuminet.runtime.stage import MissingInput, StageChain
 from illuminet.runtime.frame import Frame, Intrinsics
-from illuminet.runtime.render.gl import GLError, create_context, get_context
 from illuminet.runtime.physics import srgb_to_linear
 from illuminet.runtime.render.compositor import Compositor, crop_projection
+from illuminet.runtime.render.gl import GLError, create_context, get_context
 from illuminet.runtime.render.mesh import DEFAULT_ALBEDO, RenderMesh, load_render_mesh, mesh_from_bundle
 from illuminet.runtime.render.shaders import decode_lut, encode_lut
+from illuminet.runtime.render.shadow import dominant_light, shadow_patch
 from illuminet.runtime.render.stage import RenderStage
 from illuminet.runtime.scene import Anchor, ObjectShading, PlaneLight
-from illuminet.runtime.render.shadow import dominant_light, shadow_patch
+from illuminet.runtime.stage import MissingInput, StageChain
 
 pytestmark = pytest.mark.gl
 

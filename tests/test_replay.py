@@ -100,9 +100,9 @@ def test_url_query_overrides_config(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("query, expect", [
     ("timing=fast", r"timing='fast': expected one of recorded, asap"),
-    ("loop=maybe", r"loop='maybe': expected one of"),
-    ("max_frames=-1", r"max_frames='-1': expected an int >= 0"),
-    ("speed=2", r"unknown query key 'speed'"),
+    ("loop=maybe", r"loop='maybe': expected 0/1"),
+    ("max_frames=-1", r"max_frames='-1': expected an integer >= 0"),
+    ("speed=2", r"unknown parameter 'speed'; known: timing, loop, max_frames"),
 ])
 def test_bad_url_queries_are_named(tmp_path, query, expect):
     with pytest.raises(SourceError, match=expect):

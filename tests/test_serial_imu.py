@@ -9,8 +9,19 @@ import pytest
 import serial
 
 from illuminet.hw.serial_imu import (
-    ImuMatcher, ImuProtocolError, ImuStage, LineParser, SerialImu, _OffsetClock, checksum, format_line,
-    list_ports, parse_line, parse_serial_url, rotation_from_list, write_samples,
+    ImuMatcher,
+    ImuProtocolError,
+    ImuStage,
+    LineParser,
+    SerialImu,
+    _OffsetClock,
+    checksum,
+    format_line,
+    list_ports,
+    parse_line,
+    parse_serial_url,
+    rotation_from_list,
+    write_samples,
 )
 from illuminet.runtime.config import apply_overrides, defaults
 from illuminet.runtime.frame import Frame, ImuSample, Intrinsics

@@ -13,7 +13,12 @@ import pytest
 
 from illuminet.runtime.frame import Exposure, ImuSample
 from illuminet.runtime.stream.session import (
-    FORMAT_NAME, CorruptFrame, SessionError, SessionReader, SessionWriter, safe_relpath,
+    FORMAT_NAME,
+    CorruptFrame,
+    SessionError,
+    SessionReader,
+    SessionWriter,
+    safe_relpath,
 )
 
 from ._sessions import H, W, complete_lines, frames, make_session, same_frame, spawn, wait_for_lines
@@ -46,7 +51,8 @@ def _set_manifest(path, **changes):
 
 def test_round_trip_is_bit_exact_with_all_metadata(tmp_path):
     fs = frames(4)
-    imu = (ImuSample(t_ns=5, accel=(0.1, -9.8, 0.2), gyro=(0.01, 0.0, -0.02)), ImuSample(t_ns=6, accel=(0.0, -9.7, 0.1)))
+    imu = (ImuSample(t_ns=5, accel=(0.1, -9.8, 0.2), gyro=(0.01, 0.0, -0.02)),
+           ImuSample(t_ns=6, accel=(0.0, -9.7, 0.1)))
     fs[1] = fs[1].replace(imu=imu, exposure=Exposure(exposure_us=1000.0, iso=200.0, wb_gains=(1.9, 1.0, 1.6),
                                                      color_temperature_k=4200.0))
     fs[2] = fs[2].replace(depth=None, gravity=None)

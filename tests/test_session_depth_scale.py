@@ -103,7 +103,8 @@ def test_depth_file_at_the_wrong_scale_is_a_corrupt_frame(tmp_path):
     lines[1] = json.dumps(d)
     (tmp_path / "s" / "frames.jsonl").write_text("\n".join(lines) + "\n")
     r = SessionReader(tmp_path / "s")
-    with pytest.raises(CorruptFrame, match=r"size mismatch: image is 64x48, the manifest says 64x48 / depth.scale 2 = 32x24"):
+    with pytest.raises(CorruptFrame,
+                       match=r"size mismatch: image is 64x48, the manifest says 64x48 / depth.scale 2 = 32x24"):
         r.read(1)
     assert len(r.check()) == 1
 

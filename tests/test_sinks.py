@@ -11,12 +11,17 @@ import pytest
 from illuminet.hw.replay import ReplaySource
 from illuminet.pipeline import build_sinks
 from illuminet.runtime.config import ConfigError, apply_overrides, defaults
+from illuminet.runtime.stage import Stage
 from illuminet.runtime.stream.loop import run_loop
 from illuminet.runtime.stream.session import SessionReader
 from illuminet.runtime.stream.sinks import (
-    NullSink, PngSequenceSink, SessionRecorderSink, SinkError, VideoSink, output_picture,
+    NullSink,
+    PngSequenceSink,
+    SessionRecorderSink,
+    SinkError,
+    VideoSink,
+    output_picture,
 )
-from illuminet.runtime.stage import Stage
 
 from ._sessions import H, W, frames, same_frame
 

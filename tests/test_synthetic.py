@@ -7,8 +7,8 @@ import pytest
 
 from illuminet.hw import open_source
 from illuminet.hw.synthetic import SCENES, SyntheticError, SyntheticSource, open_url
-from illuminet.runtime.groundtruth import lighting as L
 from illuminet.runtime.assets.objects import load_object
+from illuminet.runtime.groundtruth import lighting as L
 from illuminet.runtime.physics import linearize
 
 
@@ -32,13 +32,15 @@ def test_registered_and_reads_until_end():
     "url, match",
     [
         ("synthetic://moon?seed=1", "scene must be one of"),
-        ("synthetic://indoor?sed=1", "unknown parameter"),
-        ("synthetic://indoor?seed=x", "seed must be an integer"),
+        ("synthetic://indoor?sed=1", "unknown parameter 'sed'; known: seed, size"),
+        ("synthetic://indoor?seed=x", "seed='x': expected an integer in 0..2147483647"),
         ("synthetic://indoor?size=640", "WIDTHxHEIGHT"),
-        ("synthetic://indoor?path=fly", "path must be one of"),
+        ("synthetic://indoor?path=fly", "path='fly': expected one of static, orbit"),
         ("synthetic://indoor?hdr=/x.hdr", "outdoor scene only"),
         ("synthetic://outdoor?hdr=/nonexistent/x.hdr", "HDR map not found: /nonexistent/x.hdr"),
-        ("synthetic://indoor?table=2", "table must be 0 or 1"),
+        ("synthetic://indoor?table=2", "table='2': expected 0/1"),
+        ("synthetic://indoor?size=16x16", "size='16x16': expected WIDTHxHEIGHT with sides in 32..4096"),
+        ("synthetic://indoor?frames=0", "frames='0': expected an integer in 1..10000000"),
     ],
 )
 def test_bad_urls_say_what_is_wrong(url, match):

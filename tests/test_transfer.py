@@ -8,8 +8,8 @@ import pytest
 from illuminet.runtime.config import apply_overrides, defaults
 from illuminet.runtime.frame import Frame, Intrinsics
 from illuminet.runtime.scene import ObjectShading
-from illuminet.runtime.stage import FrameError
 from illuminet.runtime.sh import sh_eval, sh_fit
+from illuminet.runtime.stage import FrameError
 from illuminet.runtime.stages.shading import ShadingStage, dominant_light_from_oi, preprocess_plane
 
 from ._learn_helpers import plane_light

@@ -66,7 +66,6 @@ def _pair(seed=0):
 
 @pytest.fixture(scope="module")
 def calib_file(tmp_path_factory):
-    pytest.importorskip("illuminet.calibration.stereo", reason="host stereo (calibration package) not in this build")
     K = [[F, 0.0, (W - 1) / 2], [0.0, F, (H - 1) / 2], [0.0, 0.0, 1.0]]
     d = {
         "format": "illuminet-calibration", "version": 1,
@@ -195,11 +194,13 @@ def test_lost_device_reconnects_with_backoff(calib_file):
     src = v4l2.V4l2Source(v4l2.StereoGrabber(cap), calib_file, reconnect=True, max_failures=3)
     src.BACKOFF_START_S = 0.01
 
-    def failing_open(orig=cap.open, state={"n": 0}):
-        if cap.opened == 1 and state["n"] < 2:  # the first two reopen attempts fail
-            state["n"] += 1
+    orig_open, failed = cap.open, []
+
+    def failing_open():
+        if cap.opened == 1 and len(failed) < 2:  # the first two reopen attempts fail
+            failed.append(1)
             raise v4l2.V4l2Error("no such device")
-        orig()
+        orig_open()
 
     cap.open = failing_open
     with src:

@@ -43,7 +43,14 @@ from a per-scene bank at a random offset (so consecutive frames get different no
 drawing a million Gaussians per frame). With the static path the geometry is cached as well.
 """
 
-from illuminet.hw.synthetic.scene import OAKD_INTRINSICS_1280, PATHS, SCENES, SyntheticError, SyntheticScene, build_scene
+from illuminet.hw.synthetic.scene import (
+           OAKD_INTRINSICS_1280,
+           PATHS,
+           SCENES,
+           SyntheticError,
+           SyntheticScene,
+           build_scene,
+)
 from illuminet.hw.synthetic.source import SyntheticSource, open_url
 from illuminet.hw.synthetic.textures import make_albedo_tile
 

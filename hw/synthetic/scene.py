@@ -7,12 +7,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from illuminet.runtime.groundtruth import lighting as L
-from illuminet.runtime.frame import Intrinsics
-from illuminet.runtime.stages.odometry import invert
-from illuminet.runtime.scene import Plane
-
 from illuminet.hw.synthetic.textures import make_albedo_tile
+from illuminet.runtime.frame import Intrinsics
+from illuminet.runtime.groundtruth import lighting as L
+from illuminet.runtime.scene import Plane
+from illuminet.runtime.stages.odometry import invert
 
 SCENES = ("indoor", "outdoor", "lamp", "spatial")
 PATHS = ("static", "orbit")
@@ -64,7 +63,8 @@ class SyntheticPlane:
     def contains(self, p: np.ndarray) -> np.ndarray:
         """Mask of world points (on the plane) inside the rectangle."""
         a, b = self.axes
-        return (p[..., a] >= self.lo[0]) & (p[..., a] <= self.hi[0]) & (p[..., b] >= self.lo[1]) & (p[..., b] <= self.hi[1])
+        return ((p[..., a] >= self.lo[0]) & (p[..., a] <= self.hi[0])
+                & (p[..., b] >= self.lo[1]) & (p[..., b] <= self.hi[1]))
 
 
 @dataclass
@@ -101,7 +101,8 @@ def _room_planes(rng, lo, hi, floor_kind):
         coord = lo[axis] if side == 0 else hi[axis]
         planes.append(SyntheticPlane(name, "wall", axis, coord, +1.0 if side == 0 else -1.0, others,
                                      lo[list(others)], hi[list(others)], *paint))
-    planes.append(SyntheticPlane("ceiling", "ceiling", 1, hi[1], -1.0, (0, 2), lo[[0, 2]], hi[[0, 2]], *mk("ceiling", rng)))
+    planes.append(SyntheticPlane("ceiling", "ceiling", 1, hi[1], -1.0, (0, 2), lo[[0, 2]], hi[[0, 2]],
+                                 *mk("ceiling", rng)))
     return planes
 
 
@@ -137,7 +138,7 @@ class SyntheticScene:
     object_positions: np.ndarray
     intrinsics: Intrinsics
     poses: list[np.ndarray]  # T_world_cam per frame
-    sky: "_Sky | None" = None
+    sky: _Sky | None = None
     room: tuple[np.ndarray, np.ndarray] | None = None
     hdr_path: str | None = None
     info: dict = field(default_factory=dict)
@@ -294,7 +295,8 @@ def _camera_poses(rng, kind, target, n_frames, path, room):
             break
         lo, hi = room
         margin = 0.45  # the orbit swings up to +-25 deg: keep it inside the room
-        if np.all(eye[[0, 2]] > lo[[0, 2]] + margin) and np.all(eye[[0, 2]] < hi[[0, 2]] - margin) and eye[1] < hi[1] - 0.2:
+        if (np.all(eye[[0, 2]] > lo[[0, 2]] + margin) and np.all(eye[[0, 2]] < hi[[0, 2]] - margin)
+                and eye[1] < hi[1] - 0.2):
             break
     else:
         raise RuntimeError("could not place the camera inside the room")
@@ -388,7 +390,8 @@ def build_scene(kind: str, seed: int, size: tuple[int, int] = (640, 400), frames
         w = rng.uniform(6.0, 12.0)
         lo2 = np.array([0.0, -w / 2]) if axis == 0 else np.array([-w / 2, 0.0])
         hi2 = np.array([rng.uniform(4, 8), w / 2]) if axis == 0 else np.array([w / 2, rng.uniform(4, 8)])
-        planes.append(SyntheticPlane("facade", "wall", axis, coord, sign, others, lo2, hi2, *make_albedo_tile("brick", rng)))
+        planes.append(SyntheticPlane("facade", "wall", axis, coord, sign, others, lo2, hi2,
+                                     *make_albedo_tile("brick", rng)))
         occluders.append(Occluder(axis, coord, others, lo2, hi2))
     scene = SyntheticScene(kind, seed, lights, planes, occluders, positions, intr, poses, sky, room, hdr, info)
     for p in scene.planes:
@@ -413,7 +416,8 @@ def _add_table(rng, room, positions, poses, planes, occluders, info) -> None:
     else:
         info["table_centre"] = None  # no place found: the room goes without a table
         return
-    planes.append(SyntheticPlane("table", "table", 1, 0.72, +1.0, (0, 2), occ.lo, occ.hi, *make_albedo_tile("tabletop", rng)))
+    planes.append(SyntheticPlane("table", "table", 1, 0.72, +1.0, (0, 2), occ.lo, occ.hi,
+                                 *make_albedo_tile("tabletop", rng)))
     occluders.append(occ)
     info["table_centre"] = c.tolist()
 

@@ -4,18 +4,17 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from urllib.parse import parse_qs, urlsplit
+from urllib.parse import urlsplit
 
 import numpy as np
 
-from illuminet.runtime.groundtruth import lighting as L
+from illuminet.hw import parse_query, query_bool, query_choice, query_int, query_size
+from illuminet.hw.synthetic.scene import PATHS, SyntheticError, SyntheticScene, build_scene
 from illuminet.runtime.frame import Exposure, Frame
-from illuminet.runtime.stages.odometry import invert
+from illuminet.runtime.groundtruth import lighting as L
 from illuminet.runtime.scene import SYNTHETIC_GT
 from illuminet.runtime.stage import Source
-
-from illuminet.hw.synthetic.scene import SyntheticError, SyntheticScene, build_scene
-
+from illuminet.runtime.stages.odometry import invert
 
 STEREO_BASELINE_M = 0.075
 DISPARITY_NOISE_PX = 0.08
@@ -47,7 +46,8 @@ class _Renderer:
         intr = scene.intrinsics
         u, v = np.meshgrid(np.arange(intr.width, dtype=np.float32), np.arange(intr.height, dtype=np.float32))
         self.rays_cam = np.ascontiguousarray(
-            np.stack([((u - intr.cx) / intr.fx).ravel(), ((v - intr.cy) / intr.fy).ravel(), np.ones(u.size, np.float32)])
+            np.stack([((u - intr.cx) / intr.fx).ravel(), ((v - intr.cy) / intr.fy).ravel(),
+                      np.ones(u.size, np.float32)])
         )  # (3, N)
         self.planes = []
         for p in scene.planes:
@@ -233,7 +233,8 @@ class SyntheticSource(Source):
         k = np.float32(exp.scale)
         gain = np.float32(exp.iso / 100.0)
         x = rad * k
-        sigma = np.sqrt(np.maximum(x, 0) * (gain / FULL_WELL_E) + (READ_NOISE_E * gain / FULL_WELL_E) ** 2 + ADC_NOISE**2)
+        sigma = np.sqrt(np.maximum(x, 0) * (gain / FULL_WELL_E) + (READ_NOISE_E * gain / FULL_WELL_E) ** 2
+                        + ADC_NOISE**2)
         off = int(rng.integers(0, self._bank.size - x.size))
         x = x + sigma * self._bank[off : off + x.size].reshape(x.shape)
         q = np.clip(x * np.float32(_SRGB_LUT_SIZE - 1) + np.float32(0.5), 0, _SRGB_LUT_SIZE - 1).astype(np.int32)
@@ -276,7 +277,8 @@ def _stereo_depth(z: np.ndarray, fx: float, rng: np.random.Generator, bank: np.n
     with np.errstate(divide="ignore"):
         disp = np.where(valid, fb / np.maximum(z, 1e-6), 0).astype(np.float32)
     noise = bank[off : off + z.size].reshape(z.shape)
-    disp = np.round((disp + np.float32(DISPARITY_NOISE_PX) * noise) / np.float32(DISPARITY_STEP_PX)) * np.float32(DISPARITY_STEP_PX)
+    step = np.float32(DISPARITY_STEP_PX)
+    disp = np.round((disp + np.float32(DISPARITY_NOISE_PX) * noise) / step) * step
     # holes where depth jumps (occlusion / matching failure at edges), dilated a few pixels
     jump = np.zeros_like(valid)
     dz = np.abs(np.diff(z, axis=1)) > 0.04 * z[:, 1:]
@@ -299,17 +301,12 @@ def _stereo_depth(z: np.ndarray, fx: float, rng: np.random.Generator, bank: np.n
     return out
 
 
-def _parse_size(s: str) -> tuple[int, int]:
-    try:
-        w, h = (int(x) for x in s.lower().split("x"))
-    except ValueError:
-        raise SyntheticError(f"synthetic size must be WIDTHxHEIGHT like 640x400, got {s!r}") from None
-    if not (32 <= w <= 4096 and 32 <= h <= 4096):
-        raise SyntheticError(f"synthetic size {s!r} out of range (32..4096 per side)")
-    return w, h
-
-
-_PARAMS = ("seed", "size", "width", "height", "frames", "path", "hdr", "table", "lights")
+#: the parameters of ``synthetic://SCENE?...`` and their parsers (sizes: 32..4096 per side)
+_PARAMS = {
+    "seed": query_int(0, 2**31 - 1), "size": query_size(32, 4096), "width": query_int(32, 4096),
+    "height": query_int(32, 4096), "frames": query_int(1, 10_000_000), "path": query_choice(*PATHS), "hdr": str,
+    "table": query_bool, "lights": query_int(1, 1024),
+}
 
 
 def open_url(url: str, config=None) -> SyntheticSource:
@@ -318,40 +315,14 @@ def open_url(url: str, config=None) -> SyntheticSource:
     if parts.scheme != "synthetic":
         raise SyntheticError(f"not a synthetic:// URL: {url!r}")
     kind = (parts.netloc or parts.path.strip("/")) or "indoor"
-    q = parse_qs(parts.query, keep_blank_values=True)
-    unknown = sorted(set(q) - set(_PARAMS))
-    if unknown:
-        raise SyntheticError(f"{url!r}: unknown parameter(s) {', '.join(unknown)}; known: {', '.join(_PARAMS)}")
-
-    def one(name, default):
-        return q[name][-1] if name in q else default
-
-    def integer(name, default, lo, hi):
-        v = one(name, None)
-        if v is None:
-            return default
-        try:
-            iv = int(v)
-        except ValueError:
-            raise SyntheticError(f"{url!r}: {name} must be an integer, got {v!r}") from None
-        if not lo <= iv <= hi:
-            raise SyntheticError(f"{url!r}: {name} must be in [{lo}, {hi}], got {iv}")
-        return iv
-
-    seed = integer("seed", 0, 0, 2**31 - 1)
-    frames = integer("frames", 60, 1, 10_000_000)
-    n_lights = integer("lights", 32, 1, 1024)
-    table = one("table", None)
-    if table is not None and table not in ("0", "1"):
-        raise SyntheticError(f"{url!r}: table must be 0 or 1, got {table!r}")
-    hdr = one("hdr", None)
+    q = parse_query(url, _PARAMS, error=SyntheticError)
+    hdr = q.get("hdr")
     if hdr is not None and kind != "outdoor":
         raise SyntheticError(f"{url!r}: hdr= applies to the outdoor scene only")
     if hdr is not None and not Path(hdr).is_file():
         raise SyntheticError(f"{url!r}: HDR map not found: {hdr}")
-    size = one("size", None)
-    if size is None and ("width" in q or "height" in q):  # width=640&height=400 spelling
-        size = f"{one('width', '640')}x{one('height', '400')}"
-    scene = build_scene(kind, seed, _parse_size(size or "640x400"), frames, one("path", "static"),
-                        hdr or None, None if table is None else table == "1", n_lights)
+    size = q.get("size") or (q.get("width", 640), q.get("height", 400))  # or the width=640&height=400 spelling
+    frames = q.get("frames", 60)
+    scene = build_scene(kind, q.get("seed", 0), size, frames, q.get("path", "static"), hdr or None, q.get("table"),
+                        q.get("lights", 32))
     return SyntheticSource(scene, frames, url)

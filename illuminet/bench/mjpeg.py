@@ -30,10 +30,10 @@ import cv2
 import numpy as np
 
 from illuminet.runtime.frame import Frame, Intrinsics
-from illuminet.runtime.stream.loop import run_loop
-from illuminet.runtime.stream.mjpeg import BOUNDARY, MjpegSink
 from illuminet.runtime.scene import COMPOSITE
 from illuminet.runtime.stage import Source, Stage
+from illuminet.runtime.stream.loop import run_loop
+from illuminet.runtime.stream.mjpeg import BOUNDARY, MjpegSink
 
 W, H = 640, 400
 

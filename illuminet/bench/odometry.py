@@ -21,8 +21,8 @@ import time
 
 import numpy as np
 
-from illuminet.runtime.scene import ODOMETRY
 from illuminet.runtime.config import Config, apply_overrides
+from illuminet.runtime.scene import ODOMETRY
 from illuminet.runtime.stream.timing import Samples
 
 URL = "synthetic://indoor?seed=0&frames=40&path=orbit"

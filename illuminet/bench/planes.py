@@ -301,7 +301,8 @@ def run(args: argparse.Namespace, cfg: Config) -> dict:
         print(f"  {m:7s} median {r['median_ms']:6.2f} ms  p99 {r['p99_ms']:6.2f} ms  (CPU {r['cpu_median_ms']:5.2f} ms)"
               f"  normal err median "
               f"{r['normal_err_deg_median']:.3f} deg (max {r['normal_err_deg_max']:.3f})  offset err median "
-              f"{r['offset_err_mm_median']:.2f} mm (max {r['offset_err_mm_max']:.2f})  missed {r['missed']}/{r['expected']}"
+              f"{r['offset_err_mm_median']:.2f} mm (max {r['offset_err_mm_max']:.2f})  "
+              f"missed {r['missed']}/{r['expected']}"
               f"  spurious {r['spurious']}")
     out["methods"] = cmp
     return out

@@ -50,8 +50,8 @@ def _scene(seed: int = 0):
 
 
 def run(args, cfg) -> dict:
-    from illuminet.runtime.render.gl import get_context, renderer_name
     from illuminet.runtime.assets.objects import load_object
+    from illuminet.runtime.render.gl import get_context, renderer_name
     from illuminet.runtime.render.stage import RenderStage
 
     quick = bool(getattr(args, "quick", False))
@@ -88,7 +88,8 @@ def run(args, cfg) -> dict:
     st.close()
     w, c = wall.summary(), cpu.summary()
     print(f"renderer: {renderer_name(get_context())}; object builtin:vase ({st_vertices(mesh)} vertices), "
-          f"antialias {stats.get('antialias')}, shadow map {cfg.render.shadow_map}, crop {info.crop[2]}x{info.crop[3]} px")
+          f"antialias {stats.get('antialias')}, shadow map {cfg.render.shadow_map}, "
+          f"crop {info.crop[2]}x{info.crop[3]} px")
     print(f"render+composite 1280x800: wall median {w['median_ms']:.2f} ms, p99 {w['p99_ms']:.2f} ms; "
           f"CPU median {c['median_ms']:.2f} ms, p99 {c['p99_ms']:.2f} ms  (target <= {TARGET_MS:.0f} ms median; "
           f"{n} frames, shadow redraws {stats.get('shadow_redraws')})")

@@ -1,7 +1,7 @@
 """``illuminet bench replay``: replay throughput of a 640x400 RGB-D session through a null sink.
 
-Records a session into a temporary folder (frames from ``synthetic://indoor`` when that source is in
-this build, else from :func:`numpy_rgbd_frames`), then replays it with ``timing=asap`` through the
+Records a session into a temporary folder (frames from ``synthetic://indoor``; from
+:func:`numpy_rgbd_frames` at other sizes than 640x400), then replays it with ``timing=asap`` through the
 streaming loop into a :class:`~illuminet.runtime.stream.sinks.NullSink` several times and prints the median
 frames per second (target: >= 150 on two cores) and per-step timing. Also reports the recording
 (write) rate and the session size per frame.
@@ -9,12 +9,12 @@ frames per second (target: >= 150 on two cores) and per-step timing. Also report
 
 from __future__ import annotations
 
-import importlib.util
 import shutil
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -63,33 +63,28 @@ def numpy_rgbd_frames(n: int, width: int = WIDTH, height: int = HEIGHT, seed: in
 
 
 def _frames(n: int, cfg: Config, width: int, height: int) -> tuple[str, Iterator[Frame]]:
-    """Source frames for the benchmark session: synthetic:// when present (and of the asked size), else numpy ones."""
-    if importlib.util.find_spec("illuminet.hw.synthetic") is not None:
-        from illuminet.hw import open_source
-        url = f"synthetic://indoor?seed=0&frames={n}"
+    """Source frames for the benchmark session: ``synthetic://indoor`` at its 640x400, numpy ones at
+    other sizes (the tests' small sessions)."""
+    from illuminet.hw import open_source
+
+    url = f"synthetic://indoor?seed=0&frames={n}"
+    if (width, height) != (WIDTH, HEIGHT):
+        print(f"  ({url} is {WIDTH}x{HEIGHT}, not {width}x{height}; using numpy frames)")
+        return "numpy_rgbd_frames(seed=0)", numpy_rgbd_frames(n, width, height)
+    src = open_source(url, cfg)
+    src.open()
+
+    def gen():
         try:
-            src = open_source(url, cfg)
-            src.open()
-        except Exception as e:  # the synthetic source belongs to another part; fall back, say so
-            print(f"  ({url} unavailable: {e}; using numpy frames)")
-        else:
-            first = src.read()
-            if first is not None and first.size == (width, height) and first.depth is not None:
-                def gen():
-                    try:
-                        yield first
-                        for _ in range(n - 1):
-                            f = src.read()
-                            if f is None:
-                                return
-                            yield f
-                    finally:
-                        src.close()
-                return url, gen()
+            for _ in range(n):
+                f = src.read()
+                if f is None:
+                    return
+                yield f
+        finally:
             src.close()
-            got = "nothing" if first is None else f"{first.size[0]}x{first.size[1]}"
-            print(f"  ({url} gives {got}, not {width}x{height} RGB-D; using numpy frames)")
-    return "numpy_rgbd_frames(seed=0)", numpy_rgbd_frames(n, width, height)
+
+    return url, gen()
 
 
 def record_session(path: Path, n: int, cfg: Config, color: str = "raw", width: int = WIDTH,

@@ -23,7 +23,7 @@ def run(args, cfg) -> dict:
     repeat = 10 if getattr(args, "quick", False) else 60
     for scale in (0.5, 1.0):
         hs = HostStereo(scene.calibration, scale=scale)
-        t = measure(lambda: hs.compute(scene.left, scene.right), repeat=repeat)
+        t = measure(lambda hs=hs: hs.compute(scene.left, scene.right), repeat=repeat)
         # CPU time per pair (all threads): what one pair costs on an idle core, whatever else runs on
         # this machine (wall-clock medians on a shared machine include waiting for a core)
         cpu = []
@@ -37,7 +37,8 @@ def run(args, cfg) -> dict:
         key = f"scale_{scale:g}"
         out[key] = {"time": t, "error": err, "num_disparities": hs.num_disparities}
         print(f"host stereo 640x400, matching at scale {scale:g} ({hs.num_disparities} disparities): "
-              f"median {t['median_ms']:.1f} ms, p99 {t['p99_ms']:.1f} ms (n={t['n']}), CPU time {t['cpu_median_ms']:.1f} ms; "
+              f"median {t['median_ms']:.1f} ms, p99 {t['p99_ms']:.1f} ms (n={t['n']}), "
+              f"CPU time {t['cpu_median_ms']:.1f} ms; "
               f"depth error median {100 * err['median_rel']:.2f} %, p90 {100 * err['p90_rel']:.2f} %, "
               f">5 % off {100 * err['bad_5pct']:.1f} % of valid, valid {100 * err['valid']:.1f} % of pixels")
     ok = out["scale_0.5"]["time"]["median_ms"] <= 35.0

@@ -16,10 +16,10 @@ import time
 import numpy as np
 
 from illuminet.hw.synthetic import open_url
-from illuminet.runtime.groundtruth import lighting as L
 from illuminet.runtime.assets.objects import load_object, proxy_mesh
-from illuminet.runtime.stream.timing import Samples
+from illuminet.runtime.groundtruth import lighting as L
 from illuminet.runtime.groundtruth.visibility import VisibilityField, exact_visibility
+from illuminet.runtime.stream.timing import Samples
 
 FRAME_TARGET_MS = 50.0
 VISIBILITY_TARGET_S = 10.0
@@ -64,7 +64,8 @@ def run(args, cfg) -> dict:
         flag = ""
         if "640x400" in name:
             flag = "ok" if s["median_ms"] <= FRAME_TARGET_MS else f"over the {FRAME_TARGET_MS:.0f} ms target"
-        print(f"{name:28s} {s['median_ms']:10.1f} {s['p99_ms']:8.1f} {s['cpu_median_ms']:10.1f} {s['build_s']:8.2f}  {flag}")
+        print(f"{name:28s} {s['median_ms']:10.1f} {s['p99_ms']:8.1f} {s['cpu_median_ms']:10.1f} "
+              f"{s['build_s']:8.2f}  {flag}")
 
     mesh = proxy_mesh(load_object("builtin:vase"), 1000)
     t0 = time.perf_counter()

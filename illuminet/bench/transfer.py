@@ -19,8 +19,8 @@ import numpy as np
 from illuminet.runtime.assets.bundle import load_bundle
 from illuminet.runtime.config import apply_overrides
 from illuminet.runtime.scene import LightEstimate, PlaneLight
-from illuminet.runtime.stream.timing import measure
 from illuminet.runtime.stages.shading import ShadingStage, preprocess_plane
+from illuminet.runtime.stream.timing import measure
 
 TARGET_MS = 2.0
 TARGET_PRT_MS = 1.0

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import importlib.util
 import json
 import os
 import platform
@@ -30,12 +29,8 @@ BENCHES: dict[str, str] = {
 }
 
 
-def available() -> list[str]:
-    return [n for n in BENCHES if importlib.util.find_spec(f"illuminet.bench.{n}") is not None]
-
-
 def register(sub) -> None:
-    names = available()
+    names = list(BENCHES)
     p = sub.add_parser(
         "bench", help="run benchmarks and print their figures",
         description="Benchmarks: " + "; ".join(f"{n}: {BENCHES[n]}" for n in names),
@@ -47,10 +42,10 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace, cfg) -> int:
-    names = args.names or available()
-    unknown = [n for n in names if n not in available()]
+    names = args.names or list(BENCHES)
+    unknown = [n for n in names if n not in BENCHES]
     if unknown:
-        print(f"illuminet bench: unknown benchmark(s) {', '.join(unknown)}; available: {', '.join(available())}",
+        print(f"illuminet bench: unknown benchmark(s) {', '.join(unknown)}; available: {', '.join(BENCHES)}",
               file=sys.stderr)
         return 2
     print(f"# machine: {platform.machine()} {os.cpu_count()} cores, python {platform.python_version()}")

@@ -83,7 +83,8 @@ def cmd_board(args, cfg) -> int:
     side = out.with_suffix(".json")
     side.write_text(json.dumps({"board": spec.to_dict()}, indent=2) + "\n")
     print(f"wrote {out} ({spec.describe()}; {spec.size_mm[0]:g} x {spec.size_mm[1]:g} mm, "
-          f"{img.shape[1]}x{img.shape[0]} px at {args.dpi:g} dpi) and {side} (pass --board {side} to the other commands)")
+          f"{img.shape[1]}x{img.shape[0]} px at {args.dpi:g} dpi) and {side} "
+          f"(pass --board {side} to the other commands)")
     print("print at 100 % (actual size), then measure one square: its size is what --square-mm must say")
     return 0
 
@@ -154,8 +155,8 @@ def cmd_intrinsics(args, cfg) -> int:
         for lab, (r, c) in (("fx", (0, 0)), ("fy", (1, 1)), ("cx", (0, 2)), ("cy", (1, 2))):
             print(f"  {lab}: reference {K0[r, c]:.2f}, ours {K1[r, c]:.2f} ({100 * (K1[r, c] / K0[r, c] - 1):+.2f} %)")
     if args.output:
-        meta = {"tool": "illuminet calibrate intrinsics", "board": spec.to_dict(), "images": [str(p) for p in res.paths],
-                "fixed": list(res.fixed)}
+        meta = {"tool": "illuminet calibrate intrinsics", "board": spec.to_dict(),
+                "images": [str(p) for p in res.paths], "fixed": list(res.fixed)}
         _write(Calibration({args.name: res.camera}, meta=meta), args.output)
     return 0
 
@@ -224,7 +225,8 @@ def cmd_import_depthai(args, cfg) -> int:
 
     cal = import_depthai(args.json, args.left_socket, args.right_socket)
     for n, c in cal.cameras.items():
-        print(f"{n}: {c.model} {c.width}x{c.height} fx={c.K[0, 0]:.2f} fy={c.K[1, 1]:.2f} cx={c.K[0, 2]:.2f} cy={c.K[1, 2]:.2f}")
+        print(f"{n}: {c.model} {c.width}x{c.height} fx={c.K[0, 0]:.2f} fy={c.K[1, 1]:.2f} "
+              f"cx={c.K[0, 2]:.2f} cy={c.K[1, 2]:.2f}")
     if cal.stereo is not None:
         T = cal.stereo.T
         print(f"stereo {cal.stereo.left} -> {cal.stereo.right}: baseline {cal.stereo.baseline_m * 1000:.2f} mm, "
@@ -238,7 +240,8 @@ def cmd_import_depthai(args, cfg) -> int:
 
 def register(sub) -> None:
     """Add ``calibrate`` and its subcommands to the ``illuminet`` parser."""
-    p = sub.add_parser("calibrate", help="camera calibration: board, capture, intrinsics, stereo, photometric, import-depthai",
+    p = sub.add_parser("calibrate",
+                       help="camera calibration: board, capture, intrinsics, stereo, photometric, import-depthai",
                        description="Camera calibration with a ChArUco board; see docs/calibration.md.")
     csub = p.add_subparsers(dest="calibrate_command", metavar="SUBCOMMAND")
     csub.required = True
@@ -270,9 +273,11 @@ def register(sub) -> None:
     i.add_argument("--dist", choices=("none", "standard", "rational"), default="standard",
                    help="pinhole distortion: none, standard k1 k2 p1 p2 k3, rational +k4..k6 (default standard)")
     i.add_argument("--guess", metavar="FILE[:CAMERA]", help="starting intrinsics (our file or a DepthAI JSON)")
-    i.add_argument("--fix", metavar="LIST", help="comma list held at the guess: focal, aspect, principal_point, distortion, tangential")
+    i.add_argument("--fix", metavar="LIST",
+                   help="comma list held at the guess: focal, aspect, principal_point, distortion, tangential")
     i.add_argument("--min-views", type=int, help="fewest views accepted (default 4, or 1 with --fix)")
-    i.add_argument("--compare", metavar="FILE[:CAMERA]", help="also report a reference calibration's fit on these images")
+    i.add_argument("--compare", metavar="FILE[:CAMERA]",
+                   help="also report a reference calibration's fit on these images")
     i.add_argument("--name", default="left", help="camera name in the file (default left)")
     i.set_defaults(func=_guard(cmd_intrinsics))
 
@@ -292,7 +297,8 @@ def register(sub) -> None:
     ph = csub.add_parser("photometric", help="camera response curve from an exposure bracket (Debevec-Malik)")
     ph.add_argument("bracket_dir", metavar="BRACKET_DIR", help="images of a static scene at several exposure times")
     ph.add_argument("-o", "--output", default="response.npy", help="LUT file (.npy, default response.npy)")
-    ph.add_argument("--times", metavar="JSON", help='{"file name": seconds}; default: exposures.json in the folder, else file names')
+    ph.add_argument("--times", metavar="JSON",
+                    help='{"file name": seconds}; default: exposures.json in the folder, else file names')
     ph.add_argument("--samples", type=int, default=120, help="pixel samples for Debevec (default 120)")
     ph.add_argument("--smoothness", type=float, default=10.0, help="Debevec lambda (default 10)")
     ph.add_argument("--calibration", metavar="FILE", help="also record the LUT in this calibration file")

@@ -209,11 +209,11 @@ def make_default_session(path: str | Path, *, seed: int = DEFAULT_SESSION_SEED,
     SessionError
         When ``path`` already holds a session.
     """
+    import cv2
+
     from illuminet.hw import open_source
     from illuminet.runtime.config import defaults
     from illuminet.runtime.stream.session import SessionWriter
-
-    import cv2
 
     url = default_session_source_url(seed, frames)
     w, h = DEFAULT_SESSION_SIZE

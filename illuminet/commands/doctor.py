@@ -21,8 +21,8 @@ import json
 import os
 import platform
 import sys
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from typing import Callable
 
 OK, MISSING, NONE = "OK", "MISSING", "NONE"
 

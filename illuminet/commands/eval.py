@@ -48,7 +48,7 @@ def _ablation(ev, epochs: int) -> None:
     """Retrain the GAN stage twice (paper losses vs without shading + smoothness) on the bundle's data."""
     import numpy as np
 
-    from illuminet.models.train import Trainer, TrainConfig, predict_jax
+    from illuminet.models.train import TrainConfig, Trainer, predict_jax
 
     b = ev.bundle
     work = b.path / "work"
@@ -105,11 +105,8 @@ def run(args: argparse.Namespace, cfg) -> int:
     if args.camera_scenes > 0:
         from illuminet.models.eval import run_camera
 
-        try:
-            report["camera"] = run_camera(ev, cfg, n_scenes=args.camera_scenes, seed=args.seed,
-                                          progress=Progress("camera", 1))
-        except ImportError as e:  # a build without the planes stages or the synthetic camera
-            print(f"illuminet eval: synthetic-camera suite skipped: {e}", file=sys.stderr)
+        report["camera"] = run_camera(ev, cfg, n_scenes=args.camera_scenes, seed=args.seed,
+                                      progress=Progress("camera", 1))
     report["eval_wall_s"] = round(time.time() - t0, 1)
     out = Path(args.out or Path("eval") / ev.bundle.name)
     out.mkdir(parents=True, exist_ok=True)

@@ -29,7 +29,8 @@ def register(sub) -> None:
     p.add_argument("--intrinsics", required=True, metavar="FX,FY,CX,CY|JSON", help="colour camera intrinsics")
     p.add_argument("--anchor", required=True, metavar="X,Y", help="pixel where the object stands")
     p.add_argument("--bundle", default=None, help="object bundle (default: [model] bundle)")
-    p.add_argument("--precision", choices=("int8", "fp32"), default=None, help="ONNX chain (default: [model] precision)")
+    p.add_argument("--precision", choices=("int8", "fp32"), default=None,
+                   help="ONNX chain (default: [model] precision)")
     p.add_argument("--exposure", metavar="US,ISO", default=None,
                    help="exposure time (microseconds) and ISO, when known (absolute units)")
     p.add_argument("--out", required=True, metavar="NPZ", help="output file")
@@ -102,7 +103,7 @@ def run(args: argparse.Namespace, cfg) -> int:
         print(f"illuminet relight: {e}", file=sys.stderr)
         return 2
     res.save(args.out)
-    print(f"wrote {args.out}: {len(res.vertices)} vertices, method {res.method}, plane from {res.plane_source} "
-          f"({res.plane_observed:.0%} of the grid observed), mean radiance "
+    print(f"wrote {args.out}: {len(res.vertices)} vertices, method {res.method}, "
+          f"{res.plane_observed:.0%} of the plane grid observed, mean radiance "
           f"{np.round(res.radiance.mean(0), 4).tolist()}")
     return 0

@@ -32,7 +32,8 @@ def _add_source_flags(p: argparse.ArgumentParser) -> None:
                    help="replay timing: follow recorded timestamps, or as fast as possible ([source] timing)")
     g.add_argument("--loop", action=argparse.BooleanOptionalAction, default=None,
                    help="replay: start again at the end ([source] loop)")
-    g.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames, 0 = no limit ([source] max_frames)")
+    g.add_argument("--max-frames", type=int, metavar="N",
+                   help="stop after N frames, 0 = no limit ([source] max_frames)")
 
 
 def _add_output_flags(p: argparse.ArgumentParser, *, record: bool = True) -> None:
@@ -132,8 +133,8 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
     except (SourceError, SinkError, SessionError) as e:
         print(f"illuminet: {e}", file=sys.stderr)
         return 1
-    except ModuleNotFoundError as e:  # a source module that is not part of this build
-        print(f"illuminet: source {url!r} is not available in this build ({e})", file=sys.stderr)
+    except ModuleNotFoundError as e:  # e.g. oakd:// without the depthai package installed
+        print(f"illuminet: source {url!r} needs a Python package that is not installed ({e})", file=sys.stderr)
         return 1
     rc = 0
     try:

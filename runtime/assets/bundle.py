@@ -207,7 +207,8 @@ def load_bundle(spec: str | Path, verify: bool = True) -> Bundle:
             raise BundleError(f"{path}: missing file {name}")
         size = p.stat().st_size
         if size != rec.get("bytes"):
-            raise BundleError(f"{p}: size {size} bytes, {METADATA} records {rec.get('bytes')} (file damaged or replaced)")
+            raise BundleError(
+                f"{p}: size {size} bytes, {METADATA} records {rec.get('bytes')} (file damaged or replaced)")
         if verify:
             digest = _sha256(p)
             if digest != rec.get("sha256"):
@@ -252,7 +253,8 @@ def _check_shapes(b: Bundle, where: Path) -> None:
     need(V == counts.get("proxy"), f"{V} proxy vertices, metadata says {counts.get('proxy')}")
     need(b.proxy_index.ndim == 1 and (V == 0 or (b.proxy_index.min() >= 0 and b.proxy_index.max() < R)),
          f"proxy_index must index the {R} render vertices")
-    need(b.proxy_edges.ndim == 2 and b.proxy_edges.shape[1] == 2, f"proxy_edges must be (E, 2), got {b.proxy_edges.shape}")
+    need(b.proxy_edges.ndim == 2 and b.proxy_edges.shape[1] == 2,
+         f"proxy_edges must be (E, 2), got {b.proxy_edges.shape}")
     need(b.proxy_edges.size == 0 or b.proxy_edges.max() < V, f"proxy_edges index outside 0..{V - 1}")
     need(b.carry_index.shape == b.carry_weight.shape and b.carry_index.ndim == 2 and len(b.carry_index) == R,
          f"carry_index {b.carry_index.shape} and carry_weight {b.carry_weight.shape} must both be (R={R}, k)")

@@ -68,7 +68,8 @@ def _catmull_rom(points: np.ndarray, samples: int) -> np.ndarray:
         t = np.linspace(0.0, 1.0, 16, endpoint=False)[:, None]
         p0, p1, p2, p3 = p[i - 1], p[i], p[i + 1], p[i + 2]
         dense.append(
-            0.5 * ((2 * p1) + (-p0 + p2) * t + (2 * p0 - 5 * p1 + 4 * p2 - p3) * t**2 + (-p0 + 3 * p1 - 3 * p2 + p3) * t**3)
+            0.5 * ((2 * p1) + (-p0 + p2) * t + (2 * p0 - 5 * p1 + 4 * p2 - p3) * t**2
+                   + (-p0 + 3 * p1 - 3 * p2 + p3) * t**3)
         )
     dense.append(points[-1][None])
     dense = np.vstack(dense)
@@ -134,7 +135,8 @@ def normalise(mesh: trimesh.Trimesh, height: float | None = DEFAULT_HEIGHT) -> t
     return mesh
 
 
-def load_object(spec: str, detail: str = "render", height: float | None = DEFAULT_HEIGHT, up: str = "y") -> trimesh.Trimesh:
+def load_object(spec: str, detail: str = "render", height: float | None = DEFAULT_HEIGHT,
+                up: str = "y") -> trimesh.Trimesh:
     """Load an object by spec: ``builtin:NAME`` or a mesh file path.
 
     Parameters

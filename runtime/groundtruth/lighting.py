@@ -95,17 +95,17 @@ class PointLights:
     def __len__(self) -> int:
         return self.positions.shape[0]
 
-    def transformed(self, R: np.ndarray, t: np.ndarray | None = None) -> "PointLights":
+    def transformed(self, R: np.ndarray, t: np.ndarray | None = None) -> PointLights:
         """The lights moved by a rigid transform: ``p' = R p + t`` (intensities unchanged)."""
         R = np.asarray(R, dtype=np.float64)
         t = np.zeros(3) if t is None else np.asarray(t, dtype=np.float64).reshape(3)
         return PointLights(self.positions @ R.T + t, self.intensities.copy())
 
-    def translated(self, t: np.ndarray) -> "PointLights":
+    def translated(self, t: np.ndarray) -> PointLights:
         """The lights moved by ``t`` (metres)."""
         return self.transformed(np.eye(3), t)
 
-    def scaled(self, k: float | np.ndarray) -> "PointLights":
+    def scaled(self, k: float | np.ndarray) -> PointLights:
         """The lights with intensities multiplied by ``k`` (scalar or RGB)."""
         k = np.asarray(k, dtype=np.float64)
         return PointLights(self.positions.copy(), self.intensities * k)
@@ -114,7 +114,7 @@ class PointLights:
         """Total radiant power per channel, W: 4 pi sum(I) for isotropic point lights."""
         return 4.0 * np.pi * self.intensities.sum(axis=0)
 
-    def concatenated(self, other: "PointLights") -> "PointLights":
+    def concatenated(self, other: PointLights) -> PointLights:
         """Both sets of lights together."""
         return PointLights(
             np.concatenate([self.positions, other.positions]),
@@ -125,7 +125,7 @@ class PointLights:
         return {"positions": self.positions.tolist(), "intensities": self.intensities.tolist()}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "PointLights":
+    def from_dict(cls, d: dict) -> PointLights:
         return cls(np.asarray(d["positions"], float), np.asarray(d["intensities"], float))
 
 
@@ -469,7 +469,8 @@ def equirect_directions(height: int, width: int) -> np.ndarray:
     phi = np.pi * (2.0 * (np.arange(width) + 0.5) / width - 1.0)
     st = np.sin(theta)[:, None]
     return np.stack(
-        [st * np.sin(phi)[None, :], np.broadcast_to(np.cos(theta)[:, None], (height, width)), -st * np.cos(phi)[None, :]],
+        [st * np.sin(phi)[None, :], np.broadcast_to(np.cos(theta)[:, None], (height, width)),
+         -st * np.cos(phi)[None, :]],
         axis=-1,
     )
 

@@ -42,7 +42,6 @@ from illuminet.runtime.render.shaders import (
 )
 from illuminet.runtime.render.shadow import RECEIVER_FS, RECEIVER_VS, ShadowCaster
 
-
 #: anti-aliasing methods ([render] antialias): "edge" filters the object layer's silhouette (cheap),
 #: "msaa" draws it multisampled ([render] msaa samples; llvmpipe pays ~2x the object's cost), "off"
 ANTIALIAS = ("edge", "msaa", "off")

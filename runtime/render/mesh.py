@@ -104,7 +104,7 @@ class RenderMesh:
     def n_vertices(self) -> int:
         return len(self.vertices)
 
-    def scaled(self, s: float) -> "RenderMesh":
+    def scaled(self, s: float) -> RenderMesh:
         """The same mesh with vertex positions multiplied by ``s`` (about the object origin)."""
         if not (s > 0 and np.isfinite(s)):
             raise ValueError(f"[render] object_scale: expected a positive number, got {s!r}")
@@ -112,7 +112,7 @@ class RenderMesh:
                           self.parts, self.source, self.closed)
 
     @classmethod
-    def from_trimesh(cls, mesh, source: str = "<trimesh>", texture: np.ndarray | None = None) -> "RenderMesh":
+    def from_trimesh(cls, mesh, source: str = "<trimesh>", texture: np.ndarray | None = None) -> RenderMesh:
         """Convert a ``trimesh.Trimesh`` or ``trimesh.Scene`` (its visuals become the albedo).
 
         ``texture`` overrides the material's image (used when trimesh could not decode it).
@@ -308,7 +308,7 @@ def _load_obj(path: Path) -> RenderMesh:
     if not geoms:
         raise ValueError(f"{path}: no faces found in the OBJ file")
     meshes, textures = [], []
-    for name, g in geoms.items():
+    for g in geoms.values():
         vis = g.get("visual")
         uv = getattr(vis, "uv", None) if vis is not None else None
         m = trimesh.Trimesh(vertices=g["vertices"], faces=g["faces"], process=False)

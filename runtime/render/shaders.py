@@ -21,7 +21,6 @@ import numpy as np
 
 from illuminet.runtime.physics import srgb_to_linear
 
-
 #: entries of the linear -> code value table used to encode (interpolated in the shader)
 ENCODE_LUT_SIZE = 4096
 

@@ -17,10 +17,12 @@ own exposure.
 from __future__ import annotations
 
 import logging
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
+from illuminet.runtime.assets.bundle import BundleError, load_bundle
 from illuminet.runtime.frame import Frame
 from illuminet.runtime.render.compositor import Compositor
 from illuminet.runtime.render.mesh import load_render_mesh, mesh_from_bundle
@@ -89,8 +91,8 @@ class RenderStage(Stage):
         if mesh_src is None:
             spec = self.cfg.model.bundle
             try:
-                bundle = _load_bundle(spec)
-            except (RuntimeError, ValueError) as e:
+                bundle = load_bundle(spec)
+            except BundleError as e:
                 if not str(spec).startswith("builtin:"):
                     raise
                 # the shading stage falls back to a baseline in this case; draw the same built-in
@@ -199,15 +201,3 @@ def _exposure_scale(frame: Frame) -> float:
         return float(pl.exposure_scale)
     s = frame.exposure.scale
     return float(s) if s is not None else 1.0
-
-
-
-def _load_bundle(spec: str):
-    try:
-        from illuminet.runtime.assets.bundle import load_bundle
-    except ImportError as e:
-        raise RuntimeError(
-            f"[model] bundle = {spec!r}: the bundle loader illuminet.runtime.assets.bundle is not available ({e}); "
-            "give RenderStage a mesh (mesh=PATH or a trimesh) instead"
-        ) from None
-    return load_bundle(spec)

@@ -51,9 +51,9 @@ import numpy as np
 
 from illuminet.runtime.config import Config
 from illuminet.runtime.frame import Frame
-from illuminet.runtime.stages.odometry import Odometry, invert
 from illuminet.runtime.scene import ANCHOR, ODOMETRY, PLANES, Anchor, Plane
 from illuminet.runtime.stage import LogOnce, Stage
+from illuminet.runtime.stages.odometry import Odometry, invert
 
 log = logging.getLogger(__name__)
 

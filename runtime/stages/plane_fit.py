@@ -354,7 +354,8 @@ def inlier_threshold(z: np.ndarray, at_1m: float) -> np.ndarray:
     return np.minimum(at_1m * zz * zz, MAX_INLIER_M)
 
 
-def fit_plane(P: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
+def fit_plane(P: np.ndarray, weights: np.ndarray | None = None
+              ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
     """Weighted least-squares plane through points (orthogonal regression).
 
     Returns normal (towards the camera, d > 0), offset d, centroid, eigenvalues (ascending) and
@@ -520,7 +521,7 @@ class DetectParams:
     score_subset: int = 3000
 
     @classmethod
-    def from_config(cls, cfg: Config) -> "DetectParams":
+    def from_config(cls, cfg: Config) -> DetectParams:
         p = cfg.planes
         return cls(max_planes=p.max_planes, min_area_m2=p.min_area_m2, inlier_threshold_m=p.inlier_threshold_m)
 

@@ -44,13 +44,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from illuminet.runtime.stages.anchor import object_frame
 from illuminet.runtime.config import Config
 from illuminet.runtime.frame import Frame
 from illuminet.runtime.physics import linearize, load_response_lut
-from illuminet.runtime.stages.plane_fit import inlier_threshold
 from illuminet.runtime.scene import ANCHOR, ODOMETRY, PLANE_LIGHT, PLANES, Anchor, PlaneLight
 from illuminet.runtime.stage import LogOnce, Stage
+from illuminet.runtime.stages.anchor import object_frame
+from illuminet.runtime.stages.plane_fit import inlier_threshold
 
 log = logging.getLogger(__name__)
 
@@ -229,7 +229,8 @@ class CellFusion:
         # times this frame's coverage; decays while the cell is not seen.
         window = 1.0 / (1.0 - f) if f > 0 else 1.0
         c_obs = np.minimum(self.nobs / window, 1.0) * np.clip(coverage / MIN_CELL_COVERAGE, 0, 1) ** 0.5
-        self.conf = np.where(take | blend, np.maximum(c_obs, 0.5 * self.conf), self.conf * max(f, 0.5)).astype(np.float32)
+        self.conf = np.where(take | blend, np.maximum(c_obs, 0.5 * self.conf),
+                             self.conf * max(f, 0.5)).astype(np.float32)
         self.conf[out & ~persistent] *= 0.9
 
     @property

@@ -32,9 +32,10 @@ import json
 import logging
 import threading
 import time
+from collections.abc import Callable
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-from typing import Any, Callable
+from typing import Any
 
 import cv2
 import numpy as np
@@ -204,7 +205,7 @@ class _Hub:
         self.closed_event.set()
 
 
-def _make_handler(sink: "MjpegSink"):
+def _make_handler(sink: MjpegSink):
     hub = sink._hub
 
     class Handler(BaseHTTPRequestHandler):

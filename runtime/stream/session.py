@@ -41,9 +41,10 @@ import datetime as _dt
 import json
 import logging
 import os
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
-from typing import Any, Iterator, Mapping
+from typing import Any
 
 import cv2
 import numpy as np
@@ -323,7 +324,7 @@ class SessionWriter:
             raise SessionError(f"{self.path}: OpenCV could not encode a {rgb.shape} colour frame as {self.color}")
         return buf.tobytes()
 
-    def encode(self, frame: Frame) -> "EncodedFrame":
+    def encode(self, frame: Frame) -> EncodedFrame:
         """Compress a frame's images (thread-safe: no writer state is touched).
 
         Lets a recorder encode several frames in parallel and commit them in order with
@@ -356,7 +357,7 @@ class SessionWriter:
         """
         return self.commit(self.encode(frame))
 
-    def commit(self, enc: "EncodedFrame") -> int:
+    def commit(self, enc: EncodedFrame) -> int:
         """Write an encoded frame's files, then its index line (the commit point); returns its index."""
         frame = enc.frame
         if self._closed:
@@ -420,7 +421,7 @@ class SessionWriter:
             self._manifest.update(finalized=True, frame_count=self.count, closed=_utc_now())
             _atomic_write_json(self.path / MANIFEST, self._manifest, self.fsync)
 
-    def __enter__(self) -> "SessionWriter":
+    def __enter__(self) -> SessionWriter:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -461,7 +462,8 @@ def _need(d: Mapping[str, Any], key: str, types: tuple[type, ...], where: str) -
 
 
 def _vec(v: Any, n: int, where: str) -> tuple[float, ...]:
-    if not (isinstance(v, list) and len(v) == n and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)):
+    numbers = isinstance(v, list) and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
+    if not (numbers and len(v) == n):
         raise SessionError(f"{where}: expected a list of {n} numbers, got {v!r}")
     return tuple(float(x) for x in v)
 
@@ -559,7 +561,8 @@ class SessionReader:
         try:
             Intrinsics.from_dict(intr)
         except (KeyError, TypeError, ValueError) as e:
-            raise SessionError(f"{where}: key 'intrinsics': expected fx, fy, cx, cy, width, height numbers ({e!r})") from None
+            raise SessionError(
+                f"{where}: key 'intrinsics': expected fx, fy, cx, cy, width, height numbers ({e!r})") from None
         color = _need(m, "color", (dict,), where)
         if color.get("encoding") not in COLOR_ENCODINGS:
             raise SessionError(

@@ -21,8 +21,8 @@ import numpy as np
 
 from illuminet.runtime.frame import Frame
 from illuminet.runtime.scene import COMPOSITE
-from illuminet.runtime.stream.session import DEFAULT_PNG_COMPRESSION, SessionWriter
 from illuminet.runtime.stage import Sink
+from illuminet.runtime.stream.session import DEFAULT_PNG_COMPRESSION, SessionWriter
 
 log = logging.getLogger(__name__)
 
