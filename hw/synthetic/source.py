@@ -14,7 +14,7 @@ from illuminet.runtime.stages.odometry import invert
 from illuminet.runtime.scene import SYNTHETIC_GT
 from illuminet.runtime.stage import Source
 
-from illuminet.hw.synthetic.scene import SyntheticError, SyntheticScene, build_scene
+from illuminet.hw.synthetic.scene import DEFAULT_BOUNCES, MAX_BOUNCES, ROOM_LABELS, SyntheticError, SyntheticScene, build_scene
 
 
 STEREO_BASELINE_M = 0.075
@@ -56,7 +56,8 @@ class _Renderer:
                 raise ValueError(f"albedo tiles must be a power of two in size, got {S}")
             self.planes.append(dict(
                 axis=p.axis, coord=np.float32(p.coord), sign=p.sign, axes=p.axes,
-                bounded=bool(np.isfinite(p.lo).all() and (scene.room is None or p.label == "table")),
+                # a room's own planes close a box: whatever ray meets one inside its bounds
+                bounded=bool(np.isfinite(p.lo).all() and (scene.room is None or p.label not in ROOM_LABELS)),
                 lo=p.lo.astype(np.float32), hi=p.hi.astype(np.float32),
                 S=S, k=np.float32(S / p.albedo_period_m), albedo=p.albedo_tile.reshape(-1, 3),
                 grid=(p.irradiance_grid / np.float32(np.pi)).astype(np.float32).reshape(-1, 3),
@@ -309,7 +310,7 @@ def _parse_size(s: str) -> tuple[int, int]:
     return w, h
 
 
-_PARAMS = ("seed", "size", "width", "height", "frames", "path", "hdr", "table", "lights")
+_PARAMS = ("seed", "size", "width", "height", "frames", "path", "hdr", "table", "lights", "bounce", "boxes")
 
 
 def open_url(url: str, config=None) -> SyntheticSource:
@@ -341,6 +342,10 @@ def open_url(url: str, config=None) -> SyntheticSource:
     seed = integer("seed", 0, 0, 2**31 - 1)
     frames = integer("frames", 60, 1, 10_000_000)
     n_lights = integer("lights", 32, 1, 1024)
+    bounce = integer("bounce", DEFAULT_BOUNCES, 0, MAX_BOUNCES)
+    boxes = integer("boxes", None, 0, 8)
+    if boxes is not None and kind == "outdoor":
+        raise SyntheticError(f"{url!r}: boxes= applies to the room scenes only (not outdoor)")
     table = one("table", None)
     if table is not None and table not in ("0", "1"):
         raise SyntheticError(f"{url!r}: table must be 0 or 1, got {table!r}")
@@ -353,5 +358,5 @@ def open_url(url: str, config=None) -> SyntheticSource:
     if size is None and ("width" in q or "height" in q):  # width=640&height=400 spelling
         size = f"{one('width', '640')}x{one('height', '400')}"
     scene = build_scene(kind, seed, _parse_size(size or "640x400"), frames, one("path", "static"),
-                        hdr or None, None if table is None else table == "1", n_lights)
+                        hdr or None, None if table is None else table == "1", n_lights, bounce, boxes)
     return SyntheticSource(scene, frames, url)
