@@ -377,7 +377,7 @@ class SyntheticScene:
         from illuminet.hw.synthetic import bounce as B
 
         T_wo = self.poses[frame % len(self.poses)] @ np.asarray(T_cam_obj, float)
-        hv = _hemisphere(mesh if visibility else None, pts, nrm)
+        hv = object_hemisphere(mesh if visibility else None, pts, nrm)
         R = T_wo[:3, :3]
         origins = hv.origins() @ R.T + T_wo[:3, 3]
         dirs = hv.directions @ R.T.astype(np.float32)
@@ -385,23 +385,25 @@ class SyntheticScene:
         return hv, B.object_radiance(self, origins, dirs, shadow)
 
 
-_HEMISPHERES: dict = {}
+_OBJECT_HEMISPHERES: dict = {}
 
 
-def _hemisphere(mesh, pts: np.ndarray, nrm: np.ndarray):
-    """The object's cosine-distributed rays and self-visibility, cached per geometry (a few seconds of
-    ray casts for a 9000-vertex mesh; the evaluation asks for the same mesh in every scene)."""
+def object_hemisphere(mesh, pts: np.ndarray, nrm: np.ndarray):
+    """The :class:`~illuminet.runtime.groundtruth.hemisphere.HemisphereVisibility` (object frame) with
+    which the ground truth gathers indirect light at ``pts``, cached per geometry (a few seconds of
+    ray casts for a 9000-vertex mesh; the evaluation asks for the same mesh in every scene and uses
+    it for the PRT oracle too). ``mesh=None``: nothing blocks."""
     from illuminet.hw.synthetic.bounce import EPS, OBJECT_DIRECTIONS
     from illuminet.runtime.groundtruth.hemisphere import HemisphereVisibility
 
     parts = [pts, nrm] + ([np.asarray(mesh.vertices), np.asarray(mesh.faces)] if mesh is not None else [])
     key = hash(tuple(np.ascontiguousarray(a).tobytes() for a in parts))
-    hv = _HEMISPHERES.get(key)
+    hv = _OBJECT_HEMISPHERES.get(key)
     if hv is None:
         hv = HemisphereVisibility(mesh, pts, nrm, OBJECT_DIRECTIONS, eps=EPS)
-        if len(_HEMISPHERES) >= 4:
-            _HEMISPHERES.pop(next(iter(_HEMISPHERES)))
-        _HEMISPHERES[key] = hv
+        if len(_OBJECT_HEMISPHERES) >= 4:
+            _OBJECT_HEMISPHERES.pop(next(iter(_OBJECT_HEMISPHERES)))
+        _OBJECT_HEMISPHERES[key] = hv
     return hv
 
 
