@@ -16,6 +16,9 @@ Methods, all in the same run: ours (int8 and fp32 ONNX), constant prior (the bun
 shading times the plane scale), ambient (the plane's mean irradiance everywhere), SH (second-order
 spherical harmonics fitted by least squares to all observed RGB-D samples with their normals:
 here the plane's observed cells), and the oracle (SH projected from the true lights).
+
+These are the *lighting suites* (the training data's grid simulation of a plane patch). The end-to-end
+suites on the synthetic camera, through the pipeline's own stages, are :mod:`illuminet.models.camera_eval`.
 """
 
 from __future__ import annotations
@@ -27,14 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
-from illuminet.models import datagen
 from illuminet.runtime.assets.bundle import Bundle, TransferChain, load_bundle
-from illuminet.runtime.scene import ANCHOR, PLANE_LIGHT
-from illuminet.runtime.sh import SH_A_HAT as _A_HAT
-from illuminet.runtime.sh import sh9, sh_eval
-from illuminet.runtime.sh import sh_fit as sh_fit_rgbd
-from illuminet.runtime.stage import StageChain
 from illuminet.runtime.stages.shading import LUMA, dominant_light_from_oi, preprocess_plane
+
+from illuminet.models import datagen
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +47,7 @@ SEED_BASE = 1_000_003  # test seeds never collide with training seeds (seed*1000
 
 # --------------------------------------------------------------------------- spherical harmonics
 # the SH basis and the RGB-D fit live in the runtime (the stage's `sh` mode uses them too)
+from illuminet.runtime.sh import SH_A_HAT as _A_HAT, sh9, sh_eval, sh_fit as sh_fit_rgbd  # noqa: E402
 
 #: regularisation strengths tried on validation cases for the SH baseline (the best one is used)
 SH_LAMBDAS = (0.0, 1e-3, 1e-2, 0.1, 1.0, 10.0)
@@ -213,15 +213,14 @@ class Evaluator:
 
     def flicker(self, suite: str, n: int, frames: int, smoothing: float, seed: int) -> dict:
         """Mean frame-to-frame change of the intensities on static scenes (fresh plane noise per frame)."""
-        suite_no = self.suites().index(suite) if suite in self.suites() else 9
-        rng = np.random.default_rng(SEED_BASE + 999 + 10 * seed + suite_no)
+        rng = np.random.default_rng(SEED_BASE + 999 + 10 * seed + (self.suites().index(suite) if suite in self.suites() else 9))
         out: dict[str, list] = {}
         for _ in range(n):
             pos, rgb, e_plane, _, _ = self._case(suite, rng)
             k = 0.18 / max(float((0.5 * e_plane @ LUMA).mean() / np.pi), 1e-12)
             prev: dict = {}
             ema = None
-            for _frame in range(frames):
+            for t in range(frames):
                 # the same lighting, a new measurement: noise, texture and masks change per frame only
                 # through sensor noise: a static camera sees the same plane texture and holes
                 frng = np.random.default_rng(int(rng.integers(1 << 31)))
@@ -245,14 +244,16 @@ def _fmt(v, nd=3):
 
 
 def markdown(report: dict) -> str:
+    """The lighting suites' report (empty when they were skipped with ``--cases 0``)."""
     suites = list(report["suites"])
+    if not suites:
+        return f"# Evaluation: bundle `{report['bundle']}`\n"
     methods = [m for m in list(METHODS) + ["ablation_full", "ablation_noshsm"]
                if m in report["suites"][suites[0]]]
     lines = [f"# Evaluation: bundle `{report['bundle']}`", "",
              f"{report['n_cases']} test cases per suite, every render vertex ({report['render_vertices']}) front "
              f"and back; {report['exposure']}. Test seeds differ from training seeds"
-             + (f"; real HDR suite uses held-out maps: {', '.join(report['hdr_test_maps'])}"
-                if report['hdr_test_maps'] else "")
+             + (f"; real HDR suite uses held-out maps: {', '.join(report['hdr_test_maps'])}" if report['hdr_test_maps'] else "")
              + f". SH baseline regulariser chosen on separate validation cases: lambda = {report.get('sh_lambda')}"
              + ".", "", "## Relighting error (the paper's table)", "",
              "| Method | " + " | ".join(f"{s} MAE | {s} RMSE" for s in suites) + " |",
@@ -287,6 +288,8 @@ def markdown(report: dict) -> str:
 
 
 def finish(report: dict) -> dict:
+    if not report["suites"]:
+        return report
     report["int8_vs_fp32_mae_max_diff"] = float(max(
         abs(r["ours_int8"]["mae"] - r["ours_fp32"]["mae"]) for r in report["suites"].values()))
     wins = {}
@@ -301,149 +304,10 @@ def write_outputs(report: dict, out_dir: Path, figure_png: Path | None = None) -
     (out_dir / "eval.json").write_text(json.dumps(report, indent=2) + "\n")
     md = markdown(report)
     if "camera" in report:
+        from illuminet.models.camera_eval import markdown as camera_markdown
+
         md += camera_markdown(report["camera"])
     if figure_png is not None:
         md += f"\n![ground truth, baselines and ours, front and back]({figure_png.name})\n"
     (out_dir / "eval.md").write_text(md)
     return {"json": str(out_dir / "eval.json"), "md": str(out_dir / "eval.md")}
-
-
-# --------------------------------------------------------------------------- end to end, synthetic camera
-
-CAMERA_KINDS = ("indoor", "outdoor", "lamp", "spatial")
-CAMERA_SH_LAMBDAS = (0.0, 1e-2, 0.1)
-
-
-def run_camera(ev: Evaluator, cfg, kinds=CAMERA_KINDS, n_scenes: int = 8, frames: int = 3, seed: int = 0,
-               progress=None) -> dict:
-    """End to end on the synthetic camera (``synthetic://KIND``): rendered RGB-D frames with sensor
-    noise, auto exposure, textured planes and stereo-like depth go through the real plane, anchor and
-    plane-light stages; the object is placed at the scene's default position and compared with
-    ``scene.true_object_shading`` (exact self-shadowing and scene occlusion) on every render vertex.
-
-    Baselines see the same frame: constant prior, ambient from the picture's mean radiance, SH fitted
-    to **all valid RGB-D pixels** (normals from depth; walls, table and floor, whatever is in view;
-    the best regulariser of CAMERA_SH_LAMBDAS per scene kind is reported) and the oracle SH of the
-    true lights.
-    """
-    import trimesh
-
-    b = ev.bundle
-    mesh = trimesh.Trimesh(b.vertices, b.faces, process=False)
-    out = {}
-    done = 0
-    for kind in kinds:
-        acc: dict[str, list] = {}
-        ang: dict[str, list] = {}
-        failed = 0
-        for i in range(n_scenes):
-            f, sc = _camera_scene_frame(cfg, kind, SEED_BASE % 100_000 + 31 * seed + i, i, frames)
-            done += 1
-            if progress:
-                progress(done, len(kinds) * n_scenes)
-            anchor, pl = f.results.get(ANCHOR.name), f.results.get(PLANE_LIGHT.name)
-            if anchor is None or anchor.synthetic or pl is None or not np.any(pl.mask):
-                failed += 1
-                continue
-            T = anchor.T_cam_obj
-            fi = frames - 1
-            true_e = sc.true_object_shading(mesh, T, frame=fi, normals=b.normals)
-            k = float(f.exposure.scale) if f.exposure.scale else float(pl.exposure_scale)
-            preds = _camera_predictions(ev, cfg, f, sc, T, fi, k)
-            oi_true = sc.true_object_oi(mesh, T, frame=fi, points=b.proxy_vertices, normals=b.proxy_normals)
-            d_true = dominant_light_from_oi(oi_true)[0]
-            for m, (pe, pd) in preds.items():
-                acc.setdefault(m, []).append(case_metrics(pe, true_e, k))
-                a = angle_deg(pd, d_true)
-                if a is not None:
-                    ang.setdefault(m, []).append(a)
-        out[kind] = _camera_summary(acc, ang)
-        out[kind]["_scenes"] = {"evaluated": n_scenes - failed, "no_plane": failed}
-    return out
-
-
-def _camera_scene_frame(cfg, kind: str, scene_seed: int, i: int, frames: int):
-    """The last of ``frames`` frames of one synthetic scene through planes, anchor (the object at the
-    scene's ``i``-th default position, cycling) and plane light; returns (frame, scene)."""
-    from illuminet.hw.synthetic import open_url
-    from illuminet.runtime.config import apply_overrides
-    from illuminet.runtime.stages.anchor import AnchorStage
-    from illuminet.runtime.stages.plane_light import PlaneLightStage
-    from illuminet.runtime.stages.planes import PlaneStage
-
-    src = open_url(f"synthetic://{kind}?seed={scene_seed}&frames={frames}")
-    src.open()
-    sc = src.scene
-    T0 = sc.default_anchor(0, position=i % len(sc.object_positions))
-    c = apply_overrides(cfg, [("anchor", "mode", "point"), ("anchor", "point", [float(x) for x in T0[:3, 3]])])
-    stages = [PlaneStage(c), AnchorStage(c), PlaneLightStage(c)]
-    for st in stages:
-        st.open()
-    f, chain = None, StageChain(stages, source=src)
-    for _ in range(frames):
-        f = chain(src.read())
-    for st in stages:
-        st.close()
-    src.close()
-    return f, sc
-
-
-def _camera_predictions(ev: Evaluator, cfg, f, sc, T: np.ndarray, fi: int, k: float) -> dict:
-    """method -> (shading per render vertex, dominant light direction or None) for one camera frame."""
-    from illuminet.runtime.groundtruth import baselines as BL
-    from illuminet.runtime.physics import linearize
-
-    b = ev.bundle
-    pl = f.results[PLANE_LIGHT.name]
-    albedo = float(cfg.plane_light.assumed_albedo)
-    x, s = preprocess_plane(pl.irradiance, pl.mask, b.grid, b.pool, pl.confidence)
-    preds = {}
-    for prec, ch in ev.chains.items():
-        oi, sh = ch(x)
-        preds[f"ours_{prec}"] = (b.carry(np.maximum(sh, 0) * s), dominant_light_from_oi(oi)[0])
-    preds["constant"] = (b.carry(b.prior_shading * s), None)
-    lin = linearize(f.color)
-    preds["ambient"] = (BL.ambient_shading(BL.ambient_from_image(lin, albedo, k), len(b.vertices)), None)
-    nrm, e = BL.sh_samples_from_rgbd(lin, f.depth, f.intrinsics, albedo, T[:3, :3].T, k)
-    for lam in CAMERA_SH_LAMBDAS:
-        coef = sh_fit_rgbd(nrm, e, lam=lam)
-        preds[f"sh_rgbd@{lam}"] = (sh_eval(coef, b.normals), sh_dominant(coef))
-    coef_o = BL.sh_from_lights(sc.object_lights(T, fi), ev.centre)
-    preds["oracle_sh"] = (sh_eval(coef_o, b.normals), sh_dominant(coef_o))
-    return preds
-
-
-def _camera_summary(acc: dict[str, list], ang: dict[str, list]) -> dict:
-    """Mean metrics and median angle per method over a kind's scenes; the SH baseline with its best lambda."""
-    res = {}
-    for m, lst in acc.items():
-        res[m] = {key: float(np.mean([d[key] for d in lst])) for key in ("mae", "rmse", "si_rmse")}
-        res[m]["angle_deg"] = float(np.median(ang[m])) if m in ang else None
-    if res:
-        best = min(CAMERA_SH_LAMBDAS, key=lambda lam: res[f"sh_rgbd@{lam}"]["mae"])
-        res["sh_rgbd"] = dict(res[f"sh_rgbd@{best}"], lam=best)
-        for lam in CAMERA_SH_LAMBDAS:
-            res.pop(f"sh_rgbd@{lam}")
-    return res
-
-
-def camera_markdown(cam: dict) -> str:
-    kinds = [k for k in cam if "ours_int8" in cam[k]]
-    if not kinds:
-        return ""
-    lines = ["", "## End to end on the synthetic camera (planes -> anchor -> plane light -> transfer)", "",
-             "Rendered RGB-D frames (sensor noise, auto exposure, textured planes, stereo depth noise and holes) "
-             "through the project's stages; ground truth from `scene.true_object_shading`. SH from RGB-D is fitted "
-             "to every valid pixel of the frame (floor, walls, table) with the best regulariser per scene kind.", "",
-             "| Method | " + " | ".join(f"{k} MAE | {k} RMSE | {k} angle" for k in kinds) + " |",
-             "|---|" + "---|---|---|" * len(kinds)]
-    for m in ("ours_int8", "ours_fp32", "constant", "ambient", "sh_rgbd", "oracle_sh"):
-        row = [LABELS[m]]
-        for k in kinds:
-            r = cam[k].get(m, {})
-            row += [_fmt(r.get("mae")), _fmt(r.get("rmse")), _fmt(r.get("angle_deg"), 1)]
-        lines.append("| " + " | ".join(row) + " |")
-    lines.append("")
-    lines.append("Scenes evaluated (no real plane under the object: skipped): "
-                 + ", ".join(f"{k} {cam[k]['_scenes']['evaluated']} ({cam[k]['_scenes']['no_plane']})" for k in cam))
-    return "\n".join(lines) + "\n"

@@ -13,8 +13,13 @@ from illuminet.runtime.groundtruth import lighting as L
 from illuminet.runtime.scene import Plane
 from illuminet.runtime.stages.odometry import invert
 
-SCENES = ("indoor", "outdoor", "lamp", "spatial")
+SCENES = ("indoor", "outdoor", "lamp", "spatial", "cluttered")
 PATHS = ("static", "orbit")
+#: diffuse inter-reflections baked into a scene unless the URL says otherwise (``bounce=N``)
+DEFAULT_BOUNCES = 8
+MAX_BOUNCES = 16
+#: the planes that enclose a room (closed box: the renderer need not test their bounds)
+ROOM_LABELS = ("floor", "wall", "ceiling")
 
 #: OAK-D-like colour intrinsics at 1280x800 (mono sensors' field of view: ~77 deg horizontal).
 OAKD_INTRINSICS_1280 = Intrinsics(fx=800.0, fy=800.0, cx=639.5, cy=399.5, width=1280, height=800)
@@ -48,6 +53,8 @@ class SyntheticPlane:
     strong_lights: np.ndarray | None = None  # indices of the lights whose shadow edges are exact
     grid_lo: np.ndarray | None = None
     grid_cell_m: float = 0.01
+    direct_grid: np.ndarray | None = None  # (nu, nv, 3) direct light alone when bounces were added
+    lattice: "object | None" = None  # bounce.Lattice: radiosity patches (when bounces were baked)
 
     @property
     def normal(self) -> np.ndarray:
@@ -92,6 +99,39 @@ class Occluder:
         return cross & (xa >= self.lo[0]) & (xa <= self.hi[0]) & (xb >= self.lo[1]) & (xb <= self.hi[1])
 
 
+@dataclass
+class BoxOccluder:
+    """A solid axis-aligned box (furniture, a crate) that blocks light: corners ``lo``, ``hi``."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+
+    def blocks(self, p: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """Whether the segments p -> q pass through the box (slab test). p: (..., 3), q broadcastable."""
+        p, q = np.broadcast_arrays(np.asarray(p, float), np.asarray(q, float))
+        shape = p.shape[:-1]
+        p, q = p.reshape(-1, 3), q.reshape(-1, 3)
+        alive = np.arange(p.shape[0])
+        t0 = np.zeros(p.shape[0])
+        t1 = np.ones(p.shape[0])
+        # one axis at a time, keeping only the segments still crossing every slab so far: most
+        # segments miss a small box in the first horizontal slab already
+        for ax in (0, 2, 1):
+            pa = p[alive, ax]
+            da = q[alive, ax] - pa
+            da[da == 0] = 1e-30  # parallel: inside the slab for all t, or never
+            a = (self.lo[ax] - pa) / da
+            b = (self.hi[ax] - pa) / da
+            lo_t = np.maximum(t0[alive], np.minimum(a, b))
+            hi_t = np.minimum(t1[alive], np.maximum(a, b))
+            keep = lo_t < hi_t
+            alive = alive[keep]
+            t0[alive], t1[alive] = lo_t[keep], hi_t[keep]
+        out = np.zeros(p.shape[0], bool)
+        out[alive] = True
+        return out.reshape(shape)
+
+
 def _room_planes(rng, lo, hi, floor_kind):
     mk = make_albedo_tile
     planes = [SyntheticPlane("floor", "floor", 1, lo[1], +1.0, (0, 2), lo[[0, 2]], hi[[0, 2]], *mk(floor_kind, rng))]
@@ -107,6 +147,10 @@ def _room_planes(rng, lo, hi, floor_kind):
 
 
 # --------------------------------------------------------------------------------------- scene
+
+
+#: SyntheticPlane labels as runtime.scene.Plane labels (a box's top is a table, its sides walls)
+_CAM_LABELS = {"ground": "floor", "ceiling": "other"}
 
 
 def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -134,7 +178,7 @@ class SyntheticScene:
     seed: int
     lights: L.PointLights
     planes: list[SyntheticPlane]
-    occluders: list[Occluder]
+    occluders: list  # Occluder | BoxOccluder
     object_positions: np.ndarray
     intrinsics: Intrinsics
     poses: list[np.ndarray]  # T_world_cam per frame
@@ -142,6 +186,20 @@ class SyntheticScene:
     room: tuple[np.ndarray, np.ndarray] | None = None
     hdr_path: str | None = None
     info: dict = field(default_factory=dict)
+    bounces: int = 0  # diffuse inter-reflections baked by bake() (0 = direct light only)
+
+    def bake(self, bounces: int = DEFAULT_BOUNCES) -> None:
+        """Precompute the light on every plane: direct light on a fine grid, then ``bounces`` diffuse
+        inter-reflections between the planes (:mod:`~illuminet.hw.synthetic.bounce`)."""
+        from illuminet.hw.synthetic import bounce as B
+
+        if not 0 <= int(bounces) <= MAX_BOUNCES:
+            raise SyntheticError(f"bounces must be in [0, {MAX_BOUNCES}], got {bounces}")
+        for p in self.planes:
+            p.direct_grid, p.lattice = None, None
+            _bake_irradiance(self, p, self.poses)
+        B.bake(self, int(bounces))
+        self.bounces = int(bounces)
 
     # ------------------------------------------------------------------ poses and frames
     def T_cam_world(self, frame: int = 0) -> np.ndarray:
@@ -174,7 +232,8 @@ class SyntheticScene:
                 continue
             area = float(np.prod(np.minimum(p.hi - p.lo, 1e3)))
             out.append(Plane(id=i, normal=n, offset=off, centroid=c, area_m2=area,
-                             label={"ground": "floor", "ceiling": "other"}.get(p.label, p.label)))
+                             label=_CAM_LABELS.get(p.label, p.label) if p.label != "box" else
+                             ("table" if p.axis == 1 else "wall")))
         return out
 
     # ------------------------------------------------------------------ ground truth
@@ -187,13 +246,53 @@ class SyntheticScene:
             vis[occ.blocks(p[:, None, :] + 1e-6 * np.array([0, 1.0, 0]), lp[None, :, :])] = 0.0
         return vis
 
-    def true_plane_irradiance(self, points_cam: np.ndarray, normal_cam: np.ndarray, frame: int = 0) -> np.ndarray:
-        """Irradiance (P, 3) at camera-frame points with a camera-frame normal (one (3,) or (P, 3))."""
+    def true_plane_irradiance(self, points_cam: np.ndarray, normal_cam: np.ndarray, frame: int = 0,
+                              indirect: bool = True) -> np.ndarray:
+        """Irradiance (P, 3) at camera-frame points with a camera-frame normal (one (3,) or (P, 3)).
+
+        Direct light exactly, plus (``indirect`` and ``bounces > 0``) the baked inter-reflection: read
+        from the plane's radiosity lattice for points on a plane facing along ``normal``, gathered
+        over the hemisphere (:meth:`indirect_irradiance`) elsewhere.
+        """
         pts = np.asarray(points_cam, float).reshape(-1, 3)
         nrm = np.broadcast_to(np.asarray(normal_cam, float).reshape(-1, 3), pts.shape)
         Tw = self.poses[frame % len(self.poses)]
         pw = pts @ Tw[:3, :3].T + Tw[:3, 3]
-        return L.irradiance(pts, nrm, self.lights_cam(frame), self.occlusion(pw))
+        e = L.irradiance(pts, nrm, self.lights_cam(frame), self.occlusion(pw))
+        if indirect and self.bounces > 0:
+            nw = nrm @ Tw[:3, :3].T
+            which = self._plane_of(pw, normals_world=nw)
+            for j in np.unique(which[which >= 0]):
+                p, on = self.planes[j], which == j
+                e[on] += p.lattice.sample(p.lattice.bounce, pw[on, p.axes[0]], pw[on, p.axes[1]])
+            off = which < 0
+            if off.any():
+                e[off] += self.indirect_irradiance(pw[off], nw[off])
+        return e
+
+    def indirect_irradiance(self, points_world: np.ndarray, normals_world: np.ndarray,
+                            n_directions: int | None = None) -> np.ndarray:
+        """Irradiance (P, 3) that the planes' inter-reflected light gives world points with world
+        normals (nothing blocks but the planes; bounces 1..``bounces``); zeros when ``bounces == 0``."""
+        from illuminet.hw.synthetic import bounce as B
+        from illuminet.runtime.groundtruth.hemisphere import HemisphereVisibility
+
+        pts = np.asarray(points_world, float).reshape(-1, 3)
+        if self.bounces == 0:
+            return np.zeros((pts.shape[0], 3))
+        hv = HemisphereVisibility(None, pts, normals_world, n_directions or B.OBJECT_DIRECTIONS, eps=B.EPS)
+        return hv.irradiance(B.object_radiance(self, hv.origins(), hv.directions))
+
+    def _plane_of(self, pw: np.ndarray, tol: float = 0.01, normals_world: np.ndarray | None = None) -> np.ndarray:
+        """Index of the first plane within ``tol`` of each world point and inside its bounds (-1: none);
+        with normals, only a plane whose front faces that way counts."""
+        which = np.full(pw.shape[0], -1)
+        for j, p in enumerate(self.planes):
+            on = (which < 0) & (np.abs(pw[:, p.axis] - p.coord) <= tol) & p.contains(pw)
+            if normals_world is not None:
+                on &= normals_world @ p.normal > 0.99
+            which[on] = j
+        return which
 
     def albedo_at(self, points_cam: np.ndarray, frame: int = 0, tol: float = 0.01) -> np.ndarray:
         """True linear albedo (P, 3) at camera-frame points on the scene's planes; NaN off every plane.
@@ -204,9 +303,9 @@ class SyntheticScene:
         Tw = self.poses[frame % len(self.poses)]
         pw = pts @ Tw[:3, :3].T + Tw[:3, 3]
         out = np.full((pts.shape[0], 3), np.nan)
-        todo = np.ones(pts.shape[0], bool)
-        for p in self.planes:
-            on = todo & (np.abs(pw[:, p.axis] - p.coord) <= tol) & p.contains(pw)
+        which = self._plane_of(pw, tol)
+        for j, p in enumerate(self.planes):
+            on = which == j
             if not on.any():
                 continue
             S = p.albedo_tile.shape[0]
@@ -215,7 +314,6 @@ class SyntheticScene:
             ia = np.floor(pw[on, a] * k).astype(np.int64) % S
             ib = np.floor(pw[on, b] * k).astype(np.int64) % S
             out[on] = p.albedo_tile[ia, ib]
-            todo &= ~on
         return out
 
     def object_lights(self, T_cam_obj: np.ndarray, frame: int = 0) -> L.PointLights:
@@ -224,26 +322,43 @@ class SyntheticScene:
         return self.lights.transformed(T_obj_world[:3, :3], T_obj_world[:3, 3])
 
     def true_object_oi(self, mesh, T_cam_obj: np.ndarray, visibility: bool = True, frame: int = 0,
-                       points: np.ndarray | None = None, normals: np.ndarray | None = None) -> np.ndarray:
-        """Ground-truth OI (V, 3, 3) in the object frame; see :meth:`true_object_shading`."""
+                       points: np.ndarray | None = None, normals: np.ndarray | None = None,
+                       indirect: bool = True) -> np.ndarray:
+        """Ground-truth OI (V, 3, 3) in the object frame; see :meth:`true_object_shading`.
+
+        The indirect light's share is its vector irradiance ``integral L(w) w dw`` (so that the OI's
+        dot with the normal is still the irradiance)."""
         pts, nrm, lights, vis = self._object_terms(mesh, T_cam_obj, visibility, frame, points, normals)
-        return L.oi_point_lights(pts, nrm, lights, vis)
+        oi = L.oi_point_lights(pts, nrm, lights, vis)
+        if indirect and self.bounces > 0:
+            hv, rad = self._object_indirect(mesh, T_cam_obj, visibility, frame, pts, nrm)
+            oi = oi + hv.vector_irradiance(rad)
+        return oi
 
     def true_object_shading(self, mesh, T_cam_obj: np.ndarray, visibility: bool = True, frame: int = 0,
-                            points: np.ndarray | None = None, normals: np.ndarray | None = None) -> np.ndarray:
+                            points: np.ndarray | None = None, normals: np.ndarray | None = None,
+                            indirect: bool = True) -> np.ndarray:
         """Ground-truth irradiance (V, 3) on the mesh's vertices, scene-referred linear RGB.
 
         Parameters
         ----------
-        mesh : trimesh.Trimesh in the object frame
+        mesh : trimesh.Trimesh in the object frame (may be ``None`` with ``points``, ``normals`` and
+            ``visibility=False``)
         T_cam_obj : 4x4 pose of the object in the camera frame of ``frame``
         visibility : include self-shadowing (exact ray casts) and occlusion by the scene
-            (table, facade, ground); False = every light in front of a vertex counts
+            (table, facade, ground, boxes); False = every light in front of a vertex counts
         frame : which frame's camera ``T_cam_obj`` refers to
         points, normals : evaluate here instead of the mesh's vertices / vertex normals
+        indirect : add the light the planes inter-reflect (``bounces`` of them, baked with the scene;
+            with ``visibility`` the object hides planes from itself and its shadow darkens the plane
+            it stands on); False = direct light only
         """
         pts, nrm, lights, vis = self._object_terms(mesh, T_cam_obj, visibility, frame, points, normals)
-        return L.irradiance(pts, nrm, lights, vis)
+        e = L.irradiance(pts, nrm, lights, vis)
+        if indirect and self.bounces > 0:
+            hv, rad = self._object_indirect(mesh, T_cam_obj, visibility, frame, pts, nrm)
+            e = e + hv.irradiance(rad)
+        return e
 
     def _object_terms(self, mesh, T_cam_obj, visibility, frame, points, normals):
         from illuminet.runtime.groundtruth.visibility import exact_visibility
@@ -257,6 +372,40 @@ class SyntheticScene:
             pw = pts @ T_wo[:3, :3].T + T_wo[:3, 3]
             vis = exact_visibility(mesh, pts, lights, normals=nrm).astype(float) * self.occlusion(pw)
         return pts, nrm, lights, vis
+
+    def _object_indirect(self, mesh, T_cam_obj, visibility, frame, pts, nrm):
+        """(HemisphereVisibility in the object frame, radiance (V, n, 3) arriving along its rays)."""
+        from illuminet.hw.synthetic import bounce as B
+
+        T_wo = self.poses[frame % len(self.poses)] @ np.asarray(T_cam_obj, float)
+        hv = object_hemisphere(mesh if visibility else None, pts, nrm)
+        R = T_wo[:3, :3]
+        origins = hv.origins() @ R.T + T_wo[:3, 3]
+        dirs = hv.directions @ R.T.astype(np.float32)
+        shadow = B.support_shadow(self, mesh, T_wo) if visibility and mesh is not None else None
+        return hv, B.object_radiance(self, origins, dirs, shadow)
+
+
+_OBJECT_HEMISPHERES: dict = {}
+
+
+def object_hemisphere(mesh, pts: np.ndarray, nrm: np.ndarray):
+    """The :class:`~illuminet.runtime.groundtruth.hemisphere.HemisphereVisibility` (object frame) with
+    which the ground truth gathers indirect light at ``pts``, cached per geometry (a few seconds of
+    ray casts for a 9000-vertex mesh; the evaluation asks for the same mesh in every scene and uses
+    it for the PRT oracle too). ``mesh=None``: nothing blocks."""
+    from illuminet.hw.synthetic.bounce import EPS, OBJECT_DIRECTIONS
+    from illuminet.runtime.groundtruth.hemisphere import HemisphereVisibility
+
+    parts = [pts, nrm] + ([np.asarray(mesh.vertices), np.asarray(mesh.faces)] if mesh is not None else [])
+    key = hash(tuple(np.ascontiguousarray(a).tobytes() for a in parts))
+    hv = _OBJECT_HEMISPHERES.get(key)
+    if hv is None:
+        hv = HemisphereVisibility(mesh, pts, nrm, OBJECT_DIRECTIONS, eps=EPS)
+        if len(_OBJECT_HEMISPHERES) >= 4:
+            _OBJECT_HEMISPHERES.pop(next(iter(_OBJECT_HEMISPHERES)))
+        _OBJECT_HEMISPHERES[key] = hv
+    return hv
 
 
 @dataclass
@@ -330,10 +479,70 @@ def _lamp_lights(rng):
     return lamp.concatenated(ambient), lo, hi
 
 
+def _cluttered_lights(rng, n_lights):
+    """The indoor environment dimmed to 20-40 % plus one key light (a ceiling spot or a tall lamp
+    1.6-2.4 m high, 0.8-2 m to the side) giving 10-40 units: boxes cast clear shadows on the floor."""
+    ambient, lo, hi = L.sample_indoor_scene(rng, max(n_lights - 1, 1))
+    ambient = ambient.scaled(rng.uniform(0.2, 0.4))
+    for _ in range(100):
+        r, a = rng.uniform(0.8, 2.0), rng.uniform(0, 2 * np.pi)
+        pos = np.array([r * np.cos(a), min(rng.uniform(1.6, 2.4), hi[1] - 0.1), r * np.sin(a)])
+        if np.all(pos[[0, 2]] > lo[[0, 2]] + 0.2) and np.all(pos[[0, 2]] < hi[[0, 2]] - 0.2):
+            break
+    key = L.PointLights(pos[None], L.color_temperature_rgb(rng.uniform(2700, 4500))[None])
+    e0 = L.irradiance(np.zeros((1, 3)), np.array([[0, 1.0, 0]]), key)[0] @ L._LUMA
+    return key.scaled(rng.uniform(10, 40) / e0).concatenated(ambient), lo, hi
+
+
+def _add_boxes(rng, room, positions, poses, planes, occluders, info, n_boxes) -> None:
+    """``n_boxes`` solid boxes (crates, cabinets: 0.25-0.6 m wide, 0.2-0.9 m high) on the floor
+    0.25-1.3 m from the object: they shadow the floor and, from some lights, the object. None hides
+    the object from the camera, overlaps another or stands under the table."""
+    lo, hi = room
+    eyes = np.array([T[:3, 3] for T in poses[:: max(1, len(poses) // 8)]])
+    targets = np.concatenate([positions + [0, 0.01, 0], positions + [0, 0.26, 0]])
+    table = info.get("table_centre")
+    placed: list[BoxOccluder] = []
+    kinds = ("wood", "paint", "tabletop")
+    for _ in range(200):
+        if len(placed) >= n_boxes:
+            break
+        w, d, h = rng.uniform(0.25, 0.6), rng.uniform(0.25, 0.6), rng.uniform(0.2, 0.9)
+        r, a = rng.uniform(0.25, 1.3), rng.uniform(0, 2 * np.pi)
+        c = positions[0][[0, 2]] + (r + max(w, d) / 2) * np.array([np.cos(a), np.sin(a)])
+        box = BoxOccluder(np.array([c[0] - w / 2, 0.0, c[1] - d / 2]), np.array([c[0] + w / 2, h, c[1] + d / 2]))
+        if np.any(box.lo[[0, 2]] < lo[[0, 2]] + 0.2) or np.any(box.hi[[0, 2]] > hi[[0, 2]] - 0.2):
+            continue
+        gap = np.maximum(box.lo[[0, 2]] - positions[:, [0, 2]], positions[:, [0, 2]] - box.hi[[0, 2]]).max(axis=1)
+        if np.any(gap < 0.2):  # keep 20 cm from every object position
+            continue
+        if any(np.all(box.lo[[0, 2]] < b.hi[[0, 2]] + 0.05) and np.all(b.lo[[0, 2]] < box.hi[[0, 2]] + 0.05) for b in placed):
+            continue
+        if table is not None and np.all(np.abs(c - np.asarray(table)) < np.array([0.6 + w / 2, 0.4 + d / 2])):
+            continue
+        if box.blocks(eyes[:, None, :], targets[None, :, :]).any() or np.any(np.all((eyes > box.lo) & (eyes < box.hi), axis=1)):
+            continue
+        placed.append(box)
+    for k, box in enumerate(placed):
+        tile = make_albedo_tile(kinds[k % len(kinds)], rng)
+        blo, bhi = box.lo, box.hi
+        planes.append(SyntheticPlane(f"box{k}_top", "box", 1, bhi[1], +1.0, (0, 2), blo[[0, 2]], bhi[[0, 2]], *tile))
+        for axis, side in ((0, 0), (0, 1), (2, 0), (2, 1)):
+            others = (1, 2) if axis == 0 else (0, 1)
+            coord = blo[axis] if side == 0 else bhi[axis]
+            planes.append(SyntheticPlane(f"box{k}_{'xz'[axis // 2]}{side}", "box", axis, coord,
+                                         -1.0 if side == 0 else +1.0, others, blo[list(others)], bhi[list(others)], *tile))
+        occluders.append(box)
+    info["boxes"] = [[b.lo.tolist(), b.hi.tolist()] for b in placed]
+
+
 def build_scene(kind: str, seed: int, size: tuple[int, int] = (640, 400), frames: int = 60,
                 path: str = "static", hdr: str | None = None, table: bool | None = None,
-                n_lights: int = 32) -> SyntheticScene:
-    """Create a synthetic scene (deterministic in ``seed``); see the module docstring for kinds."""
+                n_lights: int = 32, bounce: int = DEFAULT_BOUNCES, boxes: int | None = None) -> SyntheticScene:
+    """Create a synthetic scene (deterministic in ``seed``); see the module docstring for kinds.
+
+    ``bounce`` diffuse inter-reflections are baked (0 = direct light only); ``boxes`` solid boxes
+    stand around the object (default: 2-4 in ``cluttered``, none elsewhere; rooms only)."""
     if kind not in SCENES:
         raise SyntheticError(f"synthetic scene must be one of {', '.join(SCENES)}, got {kind!r}")
     if path not in PATHS:
@@ -342,20 +551,22 @@ def build_scene(kind: str, seed: int, size: tuple[int, int] = (640, 400), frames
     intr = OAKD_INTRINSICS_1280.scaled(*size)
     positions = np.zeros((1, 3))
     room = None
-    occluders: list[Occluder] = []
+    occluders: list = []
     sky = None
     use_table = False
     info: dict = {}
-    if kind in ("indoor", "lamp", "spatial"):
+    if kind in ("indoor", "lamp", "spatial", "cluttered"):
         if kind == "indoor":
             lights, lo, hi = L.sample_indoor_scene(rng, n_lights)
         elif kind == "lamp":
             lights, lo, hi = _lamp_lights(rng)
+        elif kind == "cluttered":
+            lights, lo, hi = _cluttered_lights(rng, n_lights)
         else:
             lights, positions, lo, hi = L.sample_spatial_room(rng, n_lights)
         room = (lo, hi)
         planes = _room_planes(rng, lo, hi, rng.choice(["wood", "tiles", "carpet"]))
-        use_table = (kind == "indoor") if table is None else bool(table)
+        use_table = (kind in ("indoor", "cluttered")) if table is None else bool(table)
     else:
         if hdr:
             img = L.load_hdr(hdr)
@@ -379,6 +590,9 @@ def build_scene(kind: str, seed: int, size: tuple[int, int] = (640, 400), frames
     poses = _camera_poses(rng, kind, positions[0], frames, path, room)
     if room is not None and use_table:
         _add_table(rng, room, positions, poses, planes, occluders, info)
+    n_boxes = (int(rng.integers(2, 5)) if kind == "cluttered" else 0) if boxes is None else int(boxes)
+    if room is not None and n_boxes > 0:
+        _add_boxes(rng, room, positions, poses, planes, occluders, info, n_boxes)
     if kind == "outdoor":
         # put the facade behind the object as seen from the camera, facing the camera
         cam = poses[0][:3, 3]
@@ -394,8 +608,7 @@ def build_scene(kind: str, seed: int, size: tuple[int, int] = (640, 400), frames
                                      *make_albedo_tile("brick", rng)))
         occluders.append(Occluder(axis, coord, others, lo2, hi2))
     scene = SyntheticScene(kind, seed, lights, planes, occluders, positions, intr, poses, sky, room, hdr, info)
-    for p in scene.planes:
-        _bake_irradiance(scene, p, poses)
+    scene.bake(bounce)
     return scene
 
 

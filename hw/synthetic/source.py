@@ -9,7 +9,9 @@ from urllib.parse import urlsplit
 import numpy as np
 
 from illuminet.hw import parse_query, query_bool, query_choice, query_int, query_size
-from illuminet.hw.synthetic.scene import PATHS, SyntheticError, SyntheticScene, build_scene
+from illuminet.hw.synthetic.scene import (
+    DEFAULT_BOUNCES, MAX_BOUNCES, PATHS, ROOM_LABELS, SyntheticError, SyntheticScene, build_scene,
+)
 from illuminet.runtime.frame import Exposure, Frame
 from illuminet.runtime.groundtruth import lighting as L
 from illuminet.runtime.scene import SYNTHETIC_GT
@@ -56,7 +58,8 @@ class _Renderer:
                 raise ValueError(f"albedo tiles must be a power of two in size, got {S}")
             self.planes.append(dict(
                 axis=p.axis, coord=np.float32(p.coord), sign=p.sign, axes=p.axes,
-                bounded=bool(np.isfinite(p.lo).all() and (scene.room is None or p.label == "table")),
+                # a room's own planes close a box: whatever ray meets one inside its bounds
+                bounded=bool(np.isfinite(p.lo).all() and (scene.room is None or p.label not in ROOM_LABELS)),
                 lo=p.lo.astype(np.float32), hi=p.hi.astype(np.float32),
                 S=S, k=np.float32(S / p.albedo_period_m), albedo=p.albedo_tile.reshape(-1, 3),
                 grid=(p.irradiance_grid / np.float32(np.pi)).astype(np.float32).reshape(-1, 3),
@@ -89,19 +92,50 @@ class _Renderer:
             ax = p["axis"]
             if p["sign"] * (o[ax] - p["coord"]) <= 0:  # one-sided: the camera is behind it
                 continue
-            t = (p["coord"] - o[ax]) * inv[ax]
+            sel = self._footprint(p, T_world_cam) if p["bounded"] else None
+            if sel is not None and sel.size == 0:  # out of view
+                continue
+            dd, iv = (d, inv) if sel is None else (d[:, sel], inv[:, sel])
+            bt = best_t if sel is None else best_t[sel]
+            t = (p["coord"] - o[ax]) * iv[ax]
             ok = t > 0
-            ok &= t < best_t
+            ok &= t < bt
             if p["bounded"]:
                 a, b = p["axes"]
-                xa = o[a] + t * d[a]
-                xb = o[b] + t * d[b]
+                xa = o[a] + t * dd[a]
+                xb = o[b] + t * dd[b]
                 ok &= (xa >= p["lo"][0]) & (xa <= p["hi"][0]) & (xb >= p["lo"][1]) & (xb <= p["hi"][1])
-            np.copyto(best_t, t, where=ok)
-            np.copyto(best_i, np.int8(i), where=ok)
+            if sel is None:
+                np.copyto(best_t, t, where=ok)
+                np.copyto(best_i, np.int8(i), where=ok)
+            else:
+                hit = sel[ok]
+                best_t[hit] = t[ok]
+                best_i[hit] = np.int8(i)
         res = (best_i, best_t, d, o)
         self._cache = (key, res)
         return res
+
+    def _footprint(self, p: dict, T_world_cam: np.ndarray) -> np.ndarray | None:
+        """Pixels whose rays can meet a bounded rectangle: its projected bounding box (a small
+        box face covers a few per cent of the picture; a cluttered room has ~20 of them), or
+        ``None`` (test every pixel) when the rectangle reaches behind the camera."""
+        intr = self.scene.intrinsics
+        a, b = p["axes"]
+        c = np.zeros((4, 3))
+        c[:, p["axis"]] = p["coord"]
+        c[:, a] = [p["lo"][0], p["lo"][0], p["hi"][0], p["hi"][0]]
+        c[:, b] = [p["lo"][1], p["hi"][1], p["lo"][1], p["hi"][1]]
+        cam = (c - T_world_cam[:3, 3]) @ T_world_cam[:3, :3]  # world -> camera: R^T (x - t)
+        if np.any(cam[:, 2] <= 1e-3):
+            return None if np.any(cam[:, 2] > 1e-3) else np.zeros(0, np.int64)
+        u = intr.fx * cam[:, 0] / cam[:, 2] + intr.cx
+        v = intr.fy * cam[:, 1] / cam[:, 2] + intr.cy
+        u0, u1 = max(int(np.floor(u.min())) - 1, 0), min(int(np.ceil(u.max())) + 2, intr.width)
+        v0, v1 = max(int(np.floor(v.min())) - 1, 0), min(int(np.ceil(v.max())) + 2, intr.height)
+        if u0 >= u1 or v0 >= v1:
+            return np.zeros(0, np.int64)
+        return (np.arange(v0, v1)[:, None] * intr.width + np.arange(u0, u1)[None, :]).ravel()
 
     def render(self, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Radiance (N, 3) float32 and clean depth (N,) float32 (0 where nothing is hit).
@@ -305,7 +339,7 @@ def _stereo_depth(z: np.ndarray, fx: float, rng: np.random.Generator, bank: np.n
 _PARAMS = {
     "seed": query_int(0, 2**31 - 1), "size": query_size(32, 4096), "width": query_int(32, 4096),
     "height": query_int(32, 4096), "frames": query_int(1, 10_000_000), "path": query_choice(*PATHS), "hdr": str,
-    "table": query_bool, "lights": query_int(1, 1024),
+    "table": query_bool, "lights": query_int(1, 1024), "bounce": query_int(0, MAX_BOUNCES), "boxes": query_int(0, 8),
 }
 
 
@@ -316,6 +350,9 @@ def open_url(url: str, config=None) -> SyntheticSource:
         raise SyntheticError(f"not a synthetic:// URL: {url!r}")
     kind = (parts.netloc or parts.path.strip("/")) or "indoor"
     q = parse_query(url, _PARAMS, error=SyntheticError)
+    boxes = q.get("boxes")
+    if boxes is not None and kind == "outdoor":
+        raise SyntheticError(f"{url!r}: boxes= applies to the room scenes only (not outdoor)")
     hdr = q.get("hdr")
     if hdr is not None and kind != "outdoor":
         raise SyntheticError(f"{url!r}: hdr= applies to the outdoor scene only")
@@ -324,5 +361,5 @@ def open_url(url: str, config=None) -> SyntheticSource:
     size = q.get("size") or (q.get("width", 640), q.get("height", 400))  # or the width=640&height=400 spelling
     frames = q.get("frames", 60)
     scene = build_scene(kind, q.get("seed", 0), size, frames, q.get("path", "static"), hdr or None, q.get("table"),
-                        q.get("lights", 32))
+                        q.get("lights", 32), q.get("bounce", DEFAULT_BOUNCES), boxes)
     return SyntheticSource(scene, frames, url)
