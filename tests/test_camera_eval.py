@@ -52,12 +52,15 @@ def test_every_suite_and_column_is_reported(ci_run, capsys):
             for key in ("mae", "rmse", "mae_abs", "rmse_lin", "chroma"):
                 assert r[key] is not None and np.isfinite(r[key]), (suite, m, key)
             assert f"| {suite} | " in md
-        for m in ("ours", "nosmooth", "model", "sh_rgbd", "oracle_sh", "oracle_prt"):
+        for m in ("model", "sh_rgbd", "oracle_sh", "oracle_prt"):
             assert res[m]["angle"] is not None, (suite, m)
+        # the estimate reports no primary light when none dominates (then it has no angle)
+        for m in ("ours", "nosmooth"):
+            assert res[m]["angle"] is None or 0.0 <= res[m]["angle"] <= 180.0, (suite, m)
         for m in ("ours", "nosmooth", "model", "constant", "ambient", "sh_rgbd"):
             assert res[m]["flicker"] is not None, (suite, m)
-        # the chain's default shading is the learned transfer today: the two rows agree
-        assert res["ours"]["mae"] == pytest.approx(res["model"]["mae"])
+        # the chain's default shading (PRT lit by the light estimate) is not the learned transfer
+        assert res["ours"]["mae"] != pytest.approx(res["model"]["mae"])
         # without temporal smoothing the estimate moves more from frame to frame
         assert res["nosmooth"]["flicker"] >= res["ours"]["flicker"]
 
