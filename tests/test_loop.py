@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 
 from illuminet.hw.replay import ReplaySource
-from illuminet.runtime.stage import Sink, Stage
+from illuminet.runtime.stage import Sink, Source, Stage
 from illuminet.runtime.stream.loop import LoopStats, run_loop
 from illuminet.runtime.stream.session import SessionReader
 from illuminet.runtime.stream.sinks import NullSink
 
-from ._sessions import make_session, spawn, wait_for_lines
+from ._sessions import frames, make_session, spawn, wait_for_lines
 
 
 class SeqStage(Stage):
@@ -146,70 +146,134 @@ def test_sink_failure_is_counted(session):
         run_loop(_asap(session), [], [Collect(fail_on={1})], strict=True)
 
 
-def test_live_source_keeps_newest_frame_and_counts_drops(tmp_path):
-    """A live source at 200 fps into a 25 ms stage: the loop skips frames instead of lagging behind."""
-    make_session(tmp_path / "fast", 60, fps=200.0)
-    sink = Collect()
-    src = ReplaySource(tmp_path / "fast", timing="recorded")
-    assert src.live
-    st = run_loop(src, [SeqStage(delay_s=0.025)], [sink])
+class FastLiveSource(Source):
+    """A camera that delivers ``n`` frames as fast as the reader thread asks (live: flow-limited)."""
+
+    name = "fast-camera"
+    live = True
+
+    def __init__(self, n):
+        self.frames = frames(n)
+        self.delivered = 0
+        self.cond = threading.Condition()
+
+    def read(self):
+        with self.cond:
+            if self.delivered == len(self.frames):
+                return None
+            f = self.frames[self.delivered]
+            self.delivered += 1
+            self.cond.notify_all()
+            return f
+
+    def wait_delivered(self, k, timeout=5.0):
+        with self.cond:
+            assert self.cond.wait_for(lambda: self.delivered >= k, timeout), f"camera stuck at {self.delivered}"
+
+
+class WaitForCamera(Stage):
+    """A slow stage, slowness made exact: on frame k it returns only once the camera has delivered
+    frame k + ``ahead`` (or its last frame), so the loop is always behind by that many frames."""
+
+    name = "slow"
+
+    def __init__(self, source, ahead):
+        self.source, self.ahead = source, ahead
+
+    def process(self, frame):
+        self.source.wait_delivered(min(frame.seq + 1 + self.ahead, len(self.source.frames)))
+        return frame
+
+
+def test_live_source_keeps_newest_frame_and_counts_drops(session):
+    """A live camera faster than a stage: the loop skips frames instead of lagging behind."""
+    assert ReplaySource(session, timing="recorded").live  # a replay at its recorded pace is live too
+    src, sink = FastLiveSource(60), Collect()
+    st = run_loop(src, [WaitForCamera(src, ahead=5)], [sink])
     seqs = [f.seq for f in sink.frames]
-    assert st.dropped > 20, st.to_dict()
-    assert st.frames + st.dropped <= 60
-    assert st.frames + st.dropped >= 58  # at most the frame in hand at the end is neither
+    assert st.frames + st.dropped == 60, st.to_dict()  # every frame was either processed or dropped
+    assert st.dropped >= 4 * (st.frames - 1)  # the 5 delivered during each stage call but the newest
     assert all(b > a for a, b in zip(seqs, seqs[1:]))
-    assert seqs[-1] >= 58  # the newest frames are the ones processed
-    # the same session replayed asap drops nothing
-    st2 = run_loop(ReplaySource(tmp_path / "fast", timing="asap"), [SeqStage(delay_s=0.002)], [NullSink()])
-    assert st2.dropped == 0 and st2.frames == 60
+    assert seqs[-1] == 59  # the newest frame is the one processed
+    # a non-live source (replay asap) is read in the loop's thread: nothing is dropped
+    st2 = run_loop(_asap(session), [SeqStage(delay_s=0.002)], [NullSink()])
+    assert st2.dropped == 0 and st2.frames == 10
+
+
+class StopAt(Collect):
+    """A sink that sets ``stop`` once it has written ``n`` frames (the stop request of a user)."""
+
+    def __init__(self, stop, n):
+        super().__init__()
+        self.stop, self.n = stop, n
+
+    def write(self, frame):
+        super().write(frame)
+        if len(self.frames) == self.n:
+            self.stop.set()
 
 
 def test_max_frames_and_stop_event(session):
     st = run_loop(_asap(session, loop=True), [], [], max_frames=25)
     assert st.frames == 25 and st.end_reason == "max_frames"
+    # a stop request ends the stream after the frame in hand, on a live (recorded-pace) source too
     stop = threading.Event()
-    sink = Collect()
-    threading.Timer(0.2, stop.set).start()
-    t0 = time.monotonic()
+    sink = StopAt(stop, 3)
     st = run_loop(ReplaySource(session, timing="recorded", loop=True), [], [sink], stop_event=stop)
-    elapsed = time.monotonic() - t0
-    assert st.end_reason == "stopped" and elapsed < 2.0 and sink.closed
-    assert 3 <= st.frames <= 30 * elapsed + 2  # a 30 fps recording, played at its pace until stopped
+    assert st.end_reason == "stopped" and st.frames == 3 and sink.closed
 
 
 def test_stop_does_not_wait_for_a_slow_live_source(tmp_path):
     make_session(tmp_path / "slow", 3, fps=0.5)  # the replay sleeps 2 s between frames
     stop = threading.Event()
-    threading.Timer(0.3, stop.set).start()
     t0 = time.monotonic()
-    st = run_loop(ReplaySource(tmp_path / "slow", timing="recorded"), [], [], stop_event=stop)
+    # stop as soon as the first frame is out: the reader thread is then asleep until the next one
+    st = run_loop(ReplaySource(tmp_path / "slow", timing="recorded"), [], [StopAt(stop, 1)], stop_event=stop)
     assert st.frames == 1 and st.end_reason == "stopped"
-    assert time.monotonic() - t0 < 1.5
+    assert time.monotonic() - t0 < 1.5  # not the 2 s the source would take to give the next frame
 
 
 def test_snapshot_is_thread_safe_and_on_stats_is_called(session):
+    """Another thread reads the live statistics while the loop runs: every 10th frame the sink hands
+    the turn to a reader thread and waits until it has taken its snapshot (no polling, no sleeps)."""
     stats = LoopStats()
     polled, reports = [], []
-    done = threading.Event()
+    turn, taken, done = threading.Event(), threading.Event(), threading.Event()
 
-    def poll():
-        while not done.is_set():
+    def reader():
+        while True:
+            turn.wait(5.0)
+            turn.clear()
+            if done.is_set():
+                return
             polled.append(stats.snapshot())
-    t = threading.Thread(target=poll)
+            taken.set()
+
+    class HandOver(NullSink):
+        def write(self, frame):
+            if frame.seq % 10 == 9:
+                turn.set()
+                assert taken.wait(5.0), "the reader thread did not take its snapshot"
+                taken.clear()
+
+    t = threading.Thread(target=reader)
     t.start()
     try:
-        run_loop(_asap(session, loop=True), [SeqStage(delay_s=0.002)], [NullSink()], max_frames=150,
-                 stats=stats, on_stats=reports.append, stats_interval_s=0.05)
+        run_loop(_asap(session, loop=True), [SeqStage(delay_s=0.002)], [HandOver()], max_frames=60,
+                 stats=stats, on_stats=reports.append, stats_interval_s=0.0)
     finally:
         done.set()
+        turn.set()
         t.join()
-    assert len(polled) > 5
+    # each snapshot was taken from the other thread while the loop ran, inside frame 10k + 9's sink
+    assert [p["frames"] for p in polled] == [9, 19, 29, 39, 49, 59] and all(p["running"] for p in polled)
     last = stats.snapshot()
-    assert last["frames"] == 150 and last["running"] is False and last["fps"] > 0 and last["fps_recent"] > 0
+    assert last["frames"] == 60 and last["running"] is False and last["fps"] > 0 and last["fps_recent"] > 0
     assert set(last["stages_ms"]) == {"source", "stage:level", "sink:null", "total"}
     assert last["stages_ms"]["stage:level"] >= 2.0
-    assert len(reports) >= 2 and reports[-1]["frames"] == 150
-    assert all(a["frames"] <= b["frames"] for a, b in zip(polled, polled[1:]))
+    # stats_interval_s = 0: on_stats after every frame, and once more at the end
+    assert len(reports) == 61 and [r["frames"] for r in reports[:60]] == list(range(1, 61))
+    assert reports[-1]["frames"] == 60 and reports[-1]["running"] is False
     json.loads(json.dumps(last))
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -12,7 +14,7 @@ pytest.importorskip("onnx")
 
 def test_tiny_training_to_bundle_and_relight(tmp_path):
     from illuminet.models.export import write_bundle
-    from illuminet.models.train import Trainer, make_config
+    from illuminet.models.train import Trainer, make_config, predict_jax
     from illuminet.runtime.assets.bundle import TransferChain, load_bundle
     from illuminet.runtime.config import defaults
     from illuminet.runtime.relight import relight
@@ -20,13 +22,28 @@ def test_tiny_training_to_bundle_and_relight(tmp_path):
 
     from ._learn_helpers import floor_rgbd, plane_light
 
-    cfg = make_config("tiny", object="builtin:bowl", seed=3)
+    # the tiny preset with enough epochs to learn something: each GAE epoch is 3 steps on 48 samples,
+    # so epochs are cheap next to JAX's compilation (which dominates this test's time)
+    cfg = make_config("tiny", object="builtin:bowl", seed=3, epochs_gae=5, epochs_colour=3, epochs_finetune=40)
     out = tmp_path / "bundle"
     tr = Trainer(cfg, out, show_progress=False)
     result = tr.train()
     assert set(result) >= {"plane", "object", "colour", "gen", "gen_state"}
     for stage in ("plane_gae", "object_gae", "colour_gae", "gan", "finetune"):
         assert (out / "work" / f"{stage}.npz").is_file()
+    # it learned: every non-adversarial stage's training loss fell by 10 % or more from its first
+    # epoch to its last (measured: 19-53 %; the GAN's losses are a game, not a descent)
+    log = [json.loads(line) for line in (out / "work" / "log.jsonl").read_text().splitlines()]
+    for stage in ("plane_gae", "object_gae", "colour_gae", "finetune"):
+        losses = [r["train_loss"] for r in log if r["stage"] == stage]
+        assert len(losses) >= 3 and losses[-1] < 0.9 * losses[0], (stage, losses)
+    # and the whole chain beats the constant prior (the mean training shading, what the bundle ships
+    # as its fallback) on its own training set by 5 % or more (measured: 11 %, MAE 0.213 vs 0.239)
+    train = tr.data["train"]
+    _, shading = predict_jax(result, tr.a_plane, tr.a_obj, tr.normals, train["plane"])
+    mae_model = float(np.abs(np.asarray(shading) - train["shading"]).mean())
+    mae_prior = float(np.abs(train["shading"].mean(0) - train["shading"]).mean())
+    assert mae_model < 0.95 * mae_prior, (mae_model, mae_prior)
     path = write_bundle(out, result, tr, command="pytest tiny")
     b = load_bundle(out)
     assert b.meta["training"]["seed"] == 3 and b.meta["training"]["config"]["preset"] == "tiny"
