@@ -35,7 +35,7 @@ class SyntheticPlane:
     """
 
     name: str
-    label: str  # "floor", "wall", "ceiling", "table", "ground"
+    label: str  # "floor", "wall", "ceiling", "table", "ground", "box" (a face of a clutter box)
     axis: int
     coord: float
     sign: float
@@ -173,7 +173,7 @@ class SyntheticScene:
                 continue
             area = float(np.prod(np.minimum(p.hi - p.lo, 1e3)))
             out.append(Plane(id=i, normal=n, offset=off, centroid=c, area_m2=area,
-                             label={"ground": "floor", "ceiling": "other"}.get(p.label, p.label)))
+                             label={"ground": "floor", "ceiling": "other", "box": "other"}.get(p.label, p.label)))
         return out
 
     # ------------------------------------------------------------------ ground truth
@@ -330,8 +330,13 @@ def _lamp_lights(rng):
 
 def build_scene(kind: str, seed: int, size: tuple[int, int] = (640, 400), frames: int = 60,
                 path: str = "static", hdr: str | None = None, table: bool | None = None,
-                n_lights: int = 32) -> SyntheticScene:
-    """Create a synthetic scene (deterministic in ``seed``); see the module docstring for kinds."""
+                n_lights: int = 32, clutter: int = 0) -> SyntheticScene:
+    """Create a synthetic scene (deterministic in ``seed``); see the module docstring for kinds.
+
+    ``clutter`` boxes stand on the floor around the object (:func:`_add_boxes`): real objects that
+    cast shadows onto the floor (the shadow cue's test scenes). ``clutter=0`` leaves the scene exactly
+    as without the parameter.
+    """
     if kind not in SCENES:
         raise SyntheticError(f"synthetic scene must be one of {', '.join(SCENES)}, got {kind!r}")
     if path not in PATHS:
@@ -390,6 +395,10 @@ def build_scene(kind: str, seed: int, size: tuple[int, int] = (640, 400), frames
         hi2 = np.array([rng.uniform(4, 8), w / 2]) if axis == 0 else np.array([w / 2, rng.uniform(4, 8)])
         planes.append(SyntheticPlane("facade", "wall", axis, coord, sign, others, lo2, hi2, *make_albedo_tile("brick", rng)))
         occluders.append(Occluder(axis, coord, others, lo2, hi2))
+    if clutter > 0:
+        # its own random stream, so the rest of the scene is the same with and without clutter
+        _add_boxes(np.random.default_rng([seed, SCENES.index(kind), 17]), clutter, intr, room, positions, poses,
+                   planes, occluders, info)
     scene = SyntheticScene(kind, seed, lights, planes, occluders, positions, intr, poses, sky, room, hdr, info)
     for p in scene.planes:
         _bake_irradiance(scene, p, poses)
@@ -416,6 +425,56 @@ def _add_table(rng, room, positions, poses, planes, occluders, info) -> None:
     planes.append(SyntheticPlane("table", "table", 1, 0.72, +1.0, (0, 2), occ.lo, occ.hi, *make_albedo_tile("tabletop", rng)))
     occluders.append(occ)
     info["table_centre"] = c.tolist()
+
+
+def _add_boxes(rng, n, intr, room, positions, poses, planes, occluders, info) -> None:
+    """``n`` closed boxes standing on the floor (15-50 cm wide, 15-70 cm high), 0.5-1.8 m from the
+    first object position, in view of the first camera, apart from each other and from the object,
+    and never hiding an object from the camera along the path. Each box is five rectangles (top and
+    four sides, facing out) that are drawn and block light. ``info["boxes"]`` lists (lo, hi) corners;
+    fewer than ``n`` when no place is found."""
+    eyes = np.array([T[:3, 3] for T in poses[:: max(1, len(poses) // 8)]])
+    targets = np.concatenate([positions + [0, 0.01, 0], positions + [0, 0.26, 0]])
+    T_cw = invert(poses[0])
+    kinds = ("paint", "tabletop", "wood", "concrete")
+    boxes: list[tuple[np.ndarray, np.ndarray]] = []
+    for _ in range(200 * n):
+        if len(boxes) == n:
+            break
+        half = rng.uniform(0.075, 0.25, 2)
+        h = rng.uniform(0.15, 0.7)
+        r, a = rng.uniform(0.5, 1.8), rng.uniform(0, 2 * np.pi)
+        c = positions[0, [0, 2]] + r * np.array([np.cos(a), np.sin(a)])
+        lo, hi = np.array([c[0] - half[0], 0.0, c[1] - half[1]]), np.array([c[0] + half[0], h, c[1] + half[1]])
+        if room is not None and (np.any(lo[[0, 2]] < room[0][[0, 2]] + 0.2) or np.any(hi[[0, 2]] > room[1][[0, 2]] - 0.2)):
+            continue
+        # clear of the objects (30 cm) and of the other boxes (10 cm)
+        if np.any(np.max(np.abs(c - positions[:, [0, 2]]) - half, axis=1) < 0.3):
+            continue
+        if any(np.all(lo[[0, 2]] < h2[[0, 2]] + 0.1) and np.all(hi[[0, 2]] > l2[[0, 2]] - 0.1) for l2, h2 in boxes):
+            continue
+        # in view of the first camera: its top centre projects inside the picture
+        pc = T_cw[:3, :3] @ np.array([c[0], h, c[1]]) + T_cw[:3, 3]
+        if pc[2] <= 0.4 or not (0 <= intr.fx * pc[0] / pc[2] + intr.cx < intr.width
+                                and 0 <= intr.fy * pc[1] / pc[2] + intr.cy < intr.height):
+            continue
+        faces = _box_faces(lo, hi)
+        if any(f.blocks(eyes[:, None, :], targets[None, :, :]).any() for f in faces):
+            continue
+        boxes.append((lo, hi))
+        tile = make_albedo_tile(kinds[int(rng.integers(len(kinds)))], rng)
+        for k, f in enumerate(faces):
+            planes.append(SyntheticPlane(f"box{len(boxes) - 1}_{k}", "box", f.axis, f.coord, -1.0 if k % 2 else 1.0,
+                                         f.axes, f.lo, f.hi, *tile))
+        occluders.extend(faces)
+    info["boxes"] = [(lo.tolist(), hi.tolist()) for lo, hi in boxes]
+
+
+def _box_faces(lo: np.ndarray, hi: np.ndarray) -> list[Occluder]:
+    """The five faces of a box on the floor: top, then -x, +x, -z, +z sides (outward sign: +, -, +, -, +)."""
+    return [Occluder(1, hi[1], (0, 2), lo[[0, 2]], hi[[0, 2]]),
+            Occluder(0, lo[0], (1, 2), lo[[1, 2]], hi[[1, 2]]), Occluder(0, hi[0], (1, 2), lo[[1, 2]], hi[[1, 2]]),
+            Occluder(2, lo[2], (0, 1), lo[[0, 1]], hi[[0, 1]]), Occluder(2, hi[2], (0, 1), lo[[0, 1]], hi[[0, 1]])]
 
 
 def _bake_irradiance(scene: SyntheticScene, p: SyntheticPlane, poses) -> None:

@@ -56,7 +56,7 @@ class _Renderer:
                 raise ValueError(f"albedo tiles must be a power of two in size, got {S}")
             self.planes.append(dict(
                 axis=p.axis, coord=np.float32(p.coord), sign=p.sign, axes=p.axes,
-                bounded=bool(np.isfinite(p.lo).all() and (scene.room is None or p.label == "table")),
+                bounded=bool(np.isfinite(p.lo).all() and (scene.room is None or p.label in ("table", "box"))),
                 lo=p.lo.astype(np.float32), hi=p.hi.astype(np.float32),
                 S=S, k=np.float32(S / p.albedo_period_m), albedo=p.albedo_tile.reshape(-1, 3),
                 grid=(p.irradiance_grid / np.float32(np.pi)).astype(np.float32).reshape(-1, 3),
@@ -309,7 +309,7 @@ def _parse_size(s: str) -> tuple[int, int]:
     return w, h
 
 
-_PARAMS = ("seed", "size", "width", "height", "frames", "path", "hdr", "table", "lights")
+_PARAMS = ("seed", "size", "width", "height", "frames", "path", "hdr", "table", "lights", "clutter")
 
 
 def open_url(url: str, config=None) -> SyntheticSource:
@@ -341,6 +341,7 @@ def open_url(url: str, config=None) -> SyntheticSource:
     seed = integer("seed", 0, 0, 2**31 - 1)
     frames = integer("frames", 60, 1, 10_000_000)
     n_lights = integer("lights", 32, 1, 1024)
+    clutter = integer("clutter", 0, 0, 12)
     table = one("table", None)
     if table is not None and table not in ("0", "1"):
         raise SyntheticError(f"{url!r}: table must be 0 or 1, got {table!r}")
@@ -353,5 +354,5 @@ def open_url(url: str, config=None) -> SyntheticSource:
     if size is None and ("width" in q or "height" in q):  # width=640&height=400 spelling
         size = f"{one('width', '640')}x{one('height', '400')}"
     scene = build_scene(kind, seed, _parse_size(size or "640x400"), frames, one("path", "static"),
-                        hdr or None, None if table is None else table == "1", n_lights)
+                        hdr or None, None if table is None else table == "1", n_lights, clutter)
     return SyntheticSource(scene, frames, url)

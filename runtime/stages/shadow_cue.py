@@ -1,0 +1,693 @@
+"""The primary light's direction from the real shadows the camera sees: a cue of the light estimate.
+
+A floor lit by a distant sun is uniformly bright, so its irradiance says nothing about the sun's
+azimuth; the shadows that real objects (boxes, chairs, people) cast onto it do. Here the casters'
+geometry is known from depth, so every candidate direction predicts a shadow mask on the floor,
+and the candidate whose mask best matches the observed darkness wins (the idea of Sato, Sato &
+Ikeuchi 1999, "Illumination from shadows", with known geometry instead of a known shape;
+Panagopoulos et al. 2009-2011 and Arief et al. 2012 estimate it without depth). DESIGN.md §6 "Real
+shadows" has the feasibility experiment this follows.
+
+What this module owns
+    * :func:`shadow_direction`: one frame -> :class:`ShadowCue` (or ``None``). Pure numpy + OpenCV;
+      no ground truth, no state.
+    * :class:`ShadowTracker`: the schedule: a full search about once a second, a cheap local refine
+      around the last answer on the frames between (the sun is fixed in the world and the anchor
+      is world-locked, so the last answer in the object frame stays right while the camera moves).
+
+Method
+    1. **Receiver and casters.** The receiver is the anchor's plane (the floor under the object).
+       Depth pixels (every ``stride``-th) within the stereo noise of it are *receiver* samples;
+       pixels higher above it than ``min_caster_m`` (and twice that noise) are *casters*. Each
+       caster is extended straight down to the receiver (its footprint): depth sees only the front
+       of an object, and something standing on the floor is solid down to it. Only the tallest
+       caster per footprint cell matters then, so the casters reduce to a height map on a coarse
+       grid of the receiver (``cell_m``, 3 cm), in plane coordinates.
+    2. **Observed darkness** per receiver cell: ``1 - L / L_ref`` clipped to [0, 1], with ``L`` the
+       cell's mean luminance and ``L_ref`` a local upper percentile (``ref_percentile`` over blocks
+       of ``block_m``), so that albedo and lighting gradients slower than a block matter less.
+       Cells on or next to a footprint are left out (the floor under an object is not seen, and
+       contact shadows there do not say where the light is).
+    3. **Predicted shadow** of a candidate (azimuth phi, zenith angle theta): every caster column
+       of height h casts a segment from its footprint, ``h tan(theta)`` long, away from the light.
+       For one azimuth the grid is rotated so that the shadows run along its rows; then a receiver
+       cell is in shadow when the running maximum of the casters' reach to its left reaches it
+       (``np.maximum.accumulate``): one pass gives the masks of all zenith angles of an azimuth.
+    4. **Score**: Pearson correlation of the predicted mask with the observed darkness over the
+       observed cells. Full search: a 10 deg grid over the upper hemisphere (36 azimuths x 9 zenith
+       angles), the best few peaks refined at 2 deg, then 0.5 deg. Local refine: a 3-1-0.5 deg
+       descent around the prior.
+    5. **Gates**: the peak's *sharpness* (its score minus the best score more than 30 deg away) and
+       the lit/shadow contrast decide the confidence; an overcast or unlit scene still has a best
+       candidate, but a flat one.
+
+Known failure modes (and what the code does about them)
+    * **Whole visible floor in shadow** (e.g. behind a building): no lit reference, no contrast; the
+      score and the lit/shadow ratio show it and the confidence drops (``None`` when nothing
+      scores).
+    * **Sun near the zenith**: shadows shrink to the footprints, the azimuth is undetermined. The
+      elevation is still reported, with ``azimuth_confidence`` near 0 (it measures how much better
+      the best azimuth scores than azimuths more than 45 deg away).
+    * **Soft shadows** (indoor area lights, overcast): the penumbra widens the observed shadow and
+      pulls the best elevation low (a longer predicted shadow covers more of the blur); the
+      sharpness gate lowers the confidence but does not remove the bias.
+    * **The virtual object** is never a caster: it is not in the depth (only real geometry is), and
+      the picture searched is the camera's, not the composite.
+    * **Holes in the depth** are neither casters nor receiver: only valid depth is used; pixels at
+      depth discontinuities (flying pixels between an edge and the background) are dropped; caster
+      cells with no caster neighbours are dropped as speckle. A caster missing from the depth
+      (black or shiny object) leaves its shadow unexplained, which only lowers the score.
+    * **Large walls and ceilings** are not casters by default: their extent beyond the frame is
+      unknown (a facade cut by the top of the picture casts a longer shadow than its visible part,
+      which would pull the elevation low), and a ceiling does not stand on the floor. Tracked
+      planes labelled ``wall`` of at least ``wall_min_area_m2``, planes facing down, and points
+      higher than ``max_caster_m`` are excluded. A table top is a caster (extended down: its
+      legs' region is seldom visible, so the error lands mostly in unobserved cells).
+    * **Near lights** (a lamp 0.5 m away) cast radial shadows: a single distant direction fits
+      them only roughly; the result is the direction seen from the casters' centre.
+
+Frames: camera coordinates (OpenCV) in, the anchor's object frame (+Y up, see
+:class:`~illuminet.runtime.scene.Anchor`) out.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from illuminet.runtime.frame import Intrinsics
+from illuminet.runtime.scene import Plane
+
+LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
+
+
+@dataclass(frozen=True)
+class ShadowParams:
+    """Settings of the search (the defaults are what the tests and ``illuminet bench shadows`` use).
+
+    Attributes
+    ----------
+    stride : int
+        Every ``stride``-th depth pixel in each direction is used (2 at 640x400: 64k samples).
+    cell_m : float
+        Receiver grid cell (metres): the resolution of predicted and observed shadows.
+    max_range_m : float
+        Depth beyond which pixels are ignored (stereo depth noise and cell coverage degrade).
+    on_plane_at_1m : float
+        Receiver tolerance at 1 m (metres), growing with z^2 like stereo noise, clipped to
+        [0.01, 0.10] m.
+    min_caster_m : float
+        A caster is at least this high above the receiver (and twice the receiver tolerance).
+    max_caster_m : float
+        Points higher than this are not casters (ceilings, overhead lamps, tree canopies).
+    wall_min_area_m2 : float
+        Tracked ``wall`` planes at least this large are not casters (see the module docstring);
+        ``inf`` makes every wall a caster.
+    block_m, ref_percentile : float
+        The local reference brightness: this percentile of the cells' luminance per block.
+    min_shadow_cells : int
+        A candidate must predict at least this many observed shadow cells to score.
+    """
+
+    stride: int = 3
+    cell_m: float = 0.03
+    max_range_m: float = 6.0
+    on_plane_at_1m: float = 0.02
+    min_caster_m: float = 0.05
+    max_caster_m: float = 2.5
+    wall_min_area_m2: float = 1.0
+    block_m: float = 1.2
+    ref_percentile: float = 90.0
+    min_shadow_cells: int = 12
+
+
+@dataclass(frozen=True)
+class ShadowCue:
+    """The light direction the shadows point to.
+
+    Attributes
+    ----------
+    direction : (3,) float
+        Unit vector *towards* the light, in the anchor's object frame (+Y up).
+    confidence : float
+        In [0, 1]: how much the direction (elevation at least) can be trusted.
+    azimuth_confidence : float
+        In [0, 1], at most ``confidence``: near 0 when the light is near the zenith (short shadows
+        point nowhere in particular).
+    score : float
+        Correlation of the predicted shadow mask with the observed darkness, in [-1, 1].
+    sharpness : float
+        ``score`` minus the best score more than 30 deg away (full search), or on a ring 25 deg
+        around the answer (local refine).
+    shadow_ratio : float
+        Median luminance in the predicted shadow over that of the lit cells around it (relative to
+        the local reference): ``E_shadow / E_lit`` on the receiver, i.e. the ambient share of the
+        receiver's irradiance (1 = no visible shadow).
+    n_casters : int
+        Caster cells (footprint cells of the receiver grid with something standing on them).
+    receiver_id : int
+        The id of the receiving plane.
+    elapsed_s : float
+        Time spent in :func:`shadow_direction`.
+    search : str
+        ``"full"`` or ``"local"``.
+    """
+
+    direction: np.ndarray
+    confidence: float
+    azimuth_confidence: float
+    score: float
+    sharpness: float
+    shadow_ratio: float
+    n_casters: int
+    receiver_id: int
+    elapsed_s: float
+    search: str = "full"
+
+    @property
+    def elevation_deg(self) -> float:
+        """Elevation of the light above the receiver (degrees)."""
+        return float(np.degrees(np.arcsin(np.clip(self.direction[1], -1.0, 1.0))))
+
+    @property
+    def azimuth_deg(self) -> float:
+        """Azimuth in the object frame's X-Z plane: ``atan2(x, z)`` in degrees."""
+        return float(np.degrees(np.arctan2(self.direction[0], self.direction[2])))
+
+
+# ------------------------------------------------------------------------------------ observation
+
+
+@dataclass
+class _Observation:
+    """One frame reduced to the receiver grid (plane coordinates a, b; cell (i, j) = (b, a))."""
+
+    basis: np.ndarray  # (3, 3) rows e1, e2, n (camera frame): plane coordinates a, b and height
+    R_obj: np.ndarray  # object -> camera rotation
+    lo: np.ndarray  # (2,) a, b of the grid's corner
+    shape: tuple[int, int]  # rows (b), cols (a)
+    cell: float
+    weights: np.ndarray  # (rows, cols) float32: 1 where observed and usable
+    dark: np.ndarray  # (rows, cols) float32 observed darkness in [0, 1]
+    rel: np.ndarray  # (rows, cols) float32 luminance over the local reference
+    caster_ab: np.ndarray  # (C, 2) footprint cell centres, sorted by height (ascending)
+    caster_h: np.ndarray  # (C,) heights (metres)
+    n: float = 0.0
+    mean: float = 0.0
+    var_n: float = 0.0  # n * variance of the darkness
+    n_min: int = 12  # fewest predicted shadow cells (weights) a candidate needs to score
+    stack: np.ndarray = field(default=None)  # (rows, cols, 3) float32: weights * dark, weights, weights * dark^2
+
+
+def _receiver(planes, T_cam_obj: np.ndarray, receiver_id: int | None) -> Plane | None:
+    """The anchor's plane: the given id, else the plane the anchor origin lies on and whose normal
+    is the object's +Y, else the largest horizontal one."""
+    if receiver_id is not None:
+        for p in planes:
+            if p.id == receiver_id:
+                return p
+        return None
+    up, o = T_cam_obj[:3, 1], T_cam_obj[:3, 3]
+    fits = [p for p in planes if float(np.dot(p.normal, up)) > np.cos(np.radians(10)) and abs(p.distance(o)) < 0.05]
+    if fits:
+        return min(fits, key=lambda p: abs(p.distance(o)))
+    horiz = [p for p in planes if p.label in ("floor", "table") and float(np.dot(p.normal, up)) > 0.9]
+    return max(horiz, key=lambda p: p.area_m2) if horiz else None
+
+
+def _dot3(v, X, Y, Z) -> np.ndarray:
+    """``v . (X, Y, Z)`` per point, float32, written out (no BLAS)."""
+    return np.float32(v[0]) * X + np.float32(v[1]) * Y + np.float32(v[2]) * Z
+
+
+def _observe(color_linear, depth, intr: Intrinsics, planes, T_cam_obj, receiver: Plane,
+             prm: ShadowParams) -> _Observation | None:
+    s = prm.stride
+    z = np.ascontiguousarray(depth[::s, ::s], np.float32)
+    rgb = color_linear[::s, ::s]
+    # channel by channel: a matrix product here would start BLAS threads (see _azimuth_scores)
+    lum = (LUMA[0] * rgb[..., 0] + LUMA[1] * rgb[..., 1] + LUMA[2] * rgb[..., 2]).astype(np.float32)
+    valid = np.isfinite(z) & (z > 0) & (z < prm.max_range_m)
+    # depth discontinuities: stereo mixes the two sides there (flying pixels), so neither counts
+    edge = np.zeros_like(valid)
+    jx = np.abs(np.diff(z, axis=1)) > 0.05 * np.minimum(z[:, 1:], z[:, :-1])
+    jy = np.abs(np.diff(z, axis=0)) > 0.05 * np.minimum(z[1:], z[:-1])
+    edge[:, 1:] |= jx
+    edge[:, :-1] |= jx
+    edge[1:] |= jy
+    edge[:-1] |= jy
+    valid &= ~edge
+    vv, uu = np.nonzero(valid)
+    zz = z[vv, uu]
+    u = uu.astype(np.float32) * s
+    v = vv.astype(np.float32) * s
+    X, Y = (u - np.float32(intr.cx)) * np.float32(1 / intr.fx) * zz, (v - np.float32(intr.cy)) * np.float32(1 / intr.fy) * zz
+    L = lum[vv, uu]
+
+    n = np.asarray(receiver.normal, np.float64)
+    R = np.asarray(T_cam_obj, np.float64)[:3, :3]
+    e1 = R[:, 0] - np.dot(R[:, 0], n) * n
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(e1, n)  # object X x Y = Z: (e1, n, e2) is the object frame's (X, Y, Z)
+    origin = T_cam_obj[:3, 3] - receiver.distance(T_cam_obj[:3, 3]) * n
+    basis = np.stack([e1, e2, n]).astype(np.float32)
+    off = basis @ origin
+    a, b, h = (_dot3(basis[k], X, Y, zz) - np.float32(off[k]) for k in range(3))
+
+    tol = np.clip(prm.on_plane_at_1m * np.maximum(zz, 0.5) ** 2, 0.01, 0.10)
+    on = np.abs(h) < tol
+    up = (h > np.maximum(prm.min_caster_m, 2 * tol)) & (h < prm.max_caster_m)
+    # points on large walls and on planes facing down are not casters (module docstring); tested by
+    # distance, not by the planes' inlier masks: a wall's lowest rows go to the floor's inliers
+    for p in planes:
+        if p.id == receiver.id:
+            continue
+        if (p.label == "wall" and p.area_m2 >= prm.wall_min_area_m2) or float(np.dot(p.normal, n)) < -0.7:
+            up &= np.abs(_dot3(p.normal, X, Y, zz) + np.float32(p.offset)) > 2 * tol
+    if on.sum() < 50 or not up.any():
+        return None
+
+    c = prm.cell_m
+    lo = np.array([a[on].min(), b[on].min()]) - c
+    hi = np.array([a[on].max(), b[on].max()]) + c
+    lo = np.minimum(lo, [a[up].min() - c, b[up].min() - c])
+    hi = np.maximum(hi, [a[up].max() + c, b[up].max() + c])
+    cols, rows = (np.ceil((hi - lo) / c).astype(int) + 1)
+    if rows * cols > 600 * 600:  # a grazing view of a huge floor: keep the 18 m x 18 m around the casters
+        ctr = np.array([np.median(a[up]), np.median(b[up])])
+        lo, hi = np.maximum(lo, ctr - 9.0), np.minimum(hi, ctr + 9.0)
+        cols, rows = (np.ceil((hi - lo) / c).astype(int) + 1)
+    inside = (a >= lo[0]) & (a < hi[0]) & (b >= lo[1]) & (b < hi[1])
+    ci = ((b - lo[1]) / c).astype(np.int64)
+    cj = ((a - lo[0]) / c).astype(np.int64)
+    flat = ci * cols + cj
+    size = rows * cols
+
+    r_sel = on & inside
+    cnt = np.bincount(flat[r_sel], minlength=size).astype(np.float32)
+    lsum = np.bincount(flat[r_sel], weights=L[r_sel], minlength=size).astype(np.float32)
+    seen = cnt > 0
+    Lc = np.where(seen, lsum / np.maximum(cnt, 1), 0).astype(np.float32)
+
+    # casters: the tallest per footprint cell; speckle (no caster neighbour) is dropped
+    c_sel = up & inside
+    hmax = np.zeros(size, np.float32)
+    order = np.argsort(h[c_sel])
+    hmax[flat[c_sel][order]] = h[c_sel][order]  # ascending: the tallest is written last
+    hmax = hmax.reshape(rows, cols)
+    has = (hmax > 0).astype(np.float32)
+    neigh = cv2.boxFilter(has, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    hmax[neigh < 2] = 0
+    cidx = np.flatnonzero(hmax.ravel() > 0)
+    if cidx.size == 0:
+        return None
+    ch = hmax.ravel()[cidx]
+    order = np.argsort(ch)
+    cidx, ch = cidx[order], ch[order]
+    cab = np.stack([lo[0] + (cidx % cols + 0.5) * c, lo[1] + (cidx // cols + 0.5) * c], axis=1)
+
+    # local reference brightness: an upper percentile of the seen cells per block, bilinear between
+    seen2 = seen.reshape(rows, cols)
+    L2 = Lc.reshape(rows, cols)
+    B = max(4, int(round(prm.block_m / c)))
+    nbr, nbc = -(-rows // B), -(-cols // B)
+    pad = np.full((nbr * B, nbc * B), np.nan, np.float32)
+    pad[:rows, :cols] = np.where(seen2, L2, np.nan)
+    blocks = pad.reshape(nbr, B, nbc, B).transpose(0, 2, 1, 3).reshape(nbr * nbc, B * B)
+    k = np.sum(np.isfinite(blocks), axis=1)
+    srt = np.sort(blocks, axis=1)  # NaN last
+    q = np.clip(np.floor(prm.ref_percentile / 100.0 * (k - 1)).astype(int), 0, B * B - 1)
+    ref_b = srt[np.arange(srt.shape[0]), q]
+    vals = L2[seen2]
+    kq = int(prm.ref_percentile / 100.0 * (vals.size - 1))
+    global_ref = float(np.partition(vals, kq)[kq])
+    enough = k >= max(8, B * B // 20)
+    ref_b = np.where(enough, ref_b, global_ref).reshape(nbr, nbc).astype(np.float32)
+    ref = cv2.resize(ref_b, (nbc * B, nbr * B), interpolation=cv2.INTER_LINEAR)[:rows, :cols]
+    ref = np.maximum(ref, 1e-6 + 1e-3 * global_ref)
+    rel = np.where(seen2, L2 / ref, 0).astype(np.float32)
+    dark = np.clip(1.0 - rel, 0.0, 1.0).astype(np.float32)
+
+    foot = cv2.dilate((hmax > 0).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    # a cell's weight grows with its samples up to 4 (far cells hold one pixel: texture and noise)
+    w = (np.minimum(cnt.reshape(rows, cols), 4.0) / 4.0 * ~foot).astype(np.float32)
+    obs = _Observation(basis=basis.astype(np.float64), R_obj=R, lo=lo, shape=(rows, cols), cell=c, weights=w,
+                       dark=dark, rel=rel, caster_ab=cab, caster_h=ch, n_min=prm.min_shadow_cells)
+    obs.n = float(w.sum())
+    if obs.n < 50:
+        return None
+    stack = np.empty((rows, cols, 3), np.float32)
+    np.multiply(w, dark, out=stack[..., 0])
+    stack[..., 1] = w
+    np.multiply(stack[..., 0], dark, out=stack[..., 2])
+    obs.stack = stack
+    obs.mean = float(stack[..., 0].sum(dtype=np.float64) / obs.n)
+    obs.var_n = float(stack[..., 2].sum(dtype=np.float64) - obs.n * obs.mean * obs.mean)
+    return obs
+
+
+# ------------------------------------------------------------------------------------ scoring
+
+
+def _direction(phi: float, theta: float) -> np.ndarray:
+    """Plane-basis unit vector towards the light: azimuth phi from e1 towards e2, zenith angle theta."""
+    st = np.sin(theta)
+    return np.array([st * np.cos(phi), st * np.sin(phi), np.cos(theta)])
+
+
+def _azimuth_masks(obs: _Observation, phi: float, tans: np.ndarray, pad: int = 0):
+    """Predicted shadow masks of azimuth ``phi`` for zenith tangents ``tans`` on a canvas whose rows
+    run along the shadows, ``pad`` cells wider than the casters on three sides (not past the far end).
+    Returns (masks (T, rows, cols) bool, canvas -> grid affine 2x3) or None."""
+    c = obs.cell
+    sd = np.array([-np.cos(phi), -np.sin(phi)])  # shadows run away from the light
+    sp = np.array([-sd[1], sd[0]])
+    ab = obs.caster_ab
+    xc = ab[:, 0] * sd[0] + ab[:, 1] * sd[1]
+    yc = ab[:, 0] * sp[0] + ab[:, 1] * sp[1]
+    rows_g, cols_g = obs.shape
+    corners = obs.lo + np.array([[0, 0], [cols_g, 0], [0, rows_g], [cols_g, rows_g]]) * c
+    x0, y0 = float(xc.min()) - (0.5 + pad) * c, float(yc.min()) - (0.5 + pad) * c
+    # up to the grid's far edge, or as far as the longest shadow (plus the ring) reaches
+    far = min(float((corners @ sd).max()), float(xc.max()) + float(obs.caster_h[-1]) * float(np.max(tans)) + pad * c)
+    cols = int(np.ceil((far - x0) / c)) + 1
+    rows = int(np.ceil((float(yc.max()) + (0.5 + pad) * c - y0) / c))
+    if cols <= 1 or rows <= 0:
+        return None
+    I = np.minimum(((yc - y0) / c).astype(np.int64), rows - 1)
+    J = np.minimum(((xc - x0) / c).astype(np.int64), cols - 1)
+    hcan = np.zeros(rows * cols, np.float32)
+    hcan[I * cols + J] = obs.caster_h  # sorted ascending: the tallest per canvas cell wins
+    hcan = hcan.reshape(rows, cols)
+    col = np.arange(cols, dtype=np.float32) + np.float32(0.5)
+    base = np.where(hcan > 0, col[None, :], -np.inf).astype(np.float32)
+    reach = base[None] + hcan[None] * (np.asarray(tans, np.float32)[:, None, None] / np.float32(c))
+    np.maximum.accumulate(reach, axis=2, out=reach)
+    masks = reach >= col[None, None, :]
+    # canvas (J, I) -> grid (col, row) index, pixel centres at integers (for warpAffine)
+    ox = x0 + 0.5 * c
+    oy = y0 + 0.5 * c
+    M = np.array([[sd[0], sp[0], (ox * sd[0] + oy * sp[0] - obs.lo[0]) / c - 0.5],
+                  [sd[1], sp[1], (ox * sd[1] + oy * sp[1] - obs.lo[1]) / c - 0.5]])
+    return masks, M
+
+
+SCORE_MODE = "prod"
+RING_M = 0.3
+
+
+def _azimuth_scores(obs: _Observation, phi: float, tans: np.ndarray) -> np.ndarray:
+    """Score of the predicted masks against the observed darkness for azimuth ``phi`` and each
+    zenith tangent in ``tans`` (T,)."""
+    ring_cells = max(1, int(round(RING_M / obs.cell)))
+    out = _azimuth_masks(obs, phi, tans, pad=ring_cells if SCORE_MODE != "global" else 0)
+    if out is None:
+        return np.zeros(len(tans))
+    masks, M = out
+    T, rows, cols = masks.shape
+    can = cv2.warpAffine(obs.stack, M, (cols, rows), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    # (3, N): sums over masks as a uint8 x float32 einsum, which never starts BLAS threads (a
+    # skinny float matmul does, and on a busy machine that costs several times the work)
+    can = np.ascontiguousarray(can.reshape(-1, 3).T)
+    if SCORE_MODE == "global":
+        sm = np.einsum("tn,kn->tk", masks.reshape(T, -1).view(np.uint8), can).astype(np.float64)
+        return _pearson(obs.n, obs.mean, obs.var_n, sm[:, 0], sm[:, 1], obs.n_min)
+    # the ring around each mask: one dilation of the masks stacked vertically (the canvas has
+    # ring_cells empty rows above and below the casters, so neighbours do not bleed into each other)
+    m8 = masks.view(np.uint8).reshape(T * rows, cols)
+    k = np.ones((2 * ring_cells + 1, 2 * ring_cells + 1), np.uint8)
+    both = np.concatenate([m8.reshape(T, -1), (cv2.dilate(m8, k) - m8).reshape(T, -1)])
+    sums = np.einsum("tn,kn->tk", both, can).astype(np.float64)  # (2T, 3): w*dark, w, w*dark^2
+    sm, sr = sums[:T], sums[T:]
+    contrast = np.where((sm[:, 1] >= obs.n_min) & (sr[:, 1] >= obs.n_min),
+                        sm[:, 0] / np.maximum(sm[:, 1], 1e-9) - sr[:, 0] / np.maximum(sr[:, 1], 1e-9), 0.0)
+    if SCORE_MODE == "contrast":
+        return contrast
+    n = sm[:, 1] + sr[:, 1]
+    mean = (sm[:, 0] + sr[:, 0]) / np.maximum(n, 1e-9)
+    var_n = sm[:, 2] + sr[:, 2] - n * mean * mean
+    local = _pearson(n, mean, var_n, sm[:, 0], sm[:, 1], obs.n_min)
+    if SCORE_MODE == "local":
+        return local
+    glob = _pearson(obs.n, obs.mean, obs.var_n, sm[:, 0], sm[:, 1], obs.n_min)
+    if SCORE_MODE == "prod":
+        return glob * np.maximum(contrast, 0)
+    if SCORE_MODE == "prodl":
+        return glob * np.maximum(local, 0)
+    if SCORE_MODE == "sqrt":
+        return np.sqrt(np.maximum(glob, 0) * np.maximum(contrast, 0))
+    raise ValueError(SCORE_MODE)
+
+
+def _pearson(n, mean, var_n, sd, so, n_min) -> np.ndarray:
+    """Correlation of a binary mask (sum of weights ``so``, of weighted darkness ``sd``) with the
+    darkness over cells of total weight ``n``, mean darkness ``mean`` and ``n * variance`` ``var_n``."""
+    den = np.sqrt(np.maximum(so * (1.0 - so / np.maximum(n, 1e-9)), 0) * np.maximum(var_n, 0))
+    ok = (so >= n_min) & (n - so >= n_min) & (den > 0)
+    return np.where(ok, (sd - so * mean) / np.where(ok, den, 1.0), 0.0)
+
+
+def _mask_on_grid(obs: _Observation, phi: float, theta: float) -> np.ndarray:
+    """The predicted shadow of one direction on the receiver grid (rows, cols) bool."""
+    out = _azimuth_masks(obs, phi, np.array([np.tan(theta)]))
+    if out is None:
+        return np.zeros(obs.shape, bool)
+    masks, M = out
+    Mi = cv2.invertAffineTransform(M)
+    g = cv2.warpAffine(masks[0].astype(np.uint8), Mi, (obs.shape[1], obs.shape[0]),
+                       flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return g.astype(bool)
+
+
+# ------------------------------------------------------------------------------------ search
+
+#: Coarse grid of the full search (radians): 9 zenith angles x 36 azimuths.
+COARSE_THETA = np.radians(np.arange(5.0, 90.0, 10.0))
+COARSE_PHI = np.radians(np.arange(0.0, 360.0, 10.0))
+#: Upper bound of the zenith angle searched (the light 5 deg above the horizon).
+MAX_THETA = np.radians(85.0)
+
+
+def _refine(obs: _Observation, phi: float, theta: float, step_deg: float, half: int) -> tuple[float, float, float]:
+    """Best (score, phi, theta) on a (2*half+1)^2 grid of ``step_deg`` around (phi, theta); the
+    azimuth step widens as 1/sin(theta) so that steps are ``step_deg`` on the sphere."""
+    st = np.radians(step_deg)
+    thetas = np.clip(theta + st * np.arange(-half, half + 1), np.radians(0.5), MAX_THETA)
+    thetas = np.unique(thetas)
+    dphi = min(st / max(np.sin(theta), 0.05), np.pi / half)
+    best = (-np.inf, phi, theta)
+    tans = np.tan(thetas)
+    for k in range(-half, half + 1):
+        p = phi + k * dphi
+        s = _azimuth_scores(obs, p, tans)
+        i = int(np.argmax(s))
+        if s[i] > best[0]:
+            best = (float(s[i]), p, float(thetas[i]))
+    return best
+
+
+def _angle(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Angle (radians) between unit vectors u (..., 3) and v (3,)."""
+    return np.arccos(np.clip(u[..., 0] * v[0] + u[..., 1] * v[1] + u[..., 2] * v[2], -1.0, 1.0))
+
+
+def _full_search(obs: _Observation, n_peaks: int = 3):
+    tans = np.tan(COARSE_THETA)
+    S = np.stack([_azimuth_scores(obs, p, tans) for p in COARSE_PHI])  # (phi, theta)
+    P, Tt = np.meshgrid(COARSE_PHI, COARSE_THETA, indexing="ij")
+    dirs = np.stack([np.sin(Tt) * np.cos(P), np.sin(Tt) * np.sin(P), np.cos(Tt)], axis=-1).reshape(-1, 3)
+    flat = S.ravel()
+    peaks: list[int] = []
+    for i in np.argsort(-flat):
+        if flat[i] <= 0 or len(peaks) == n_peaks:
+            break
+        if all(_angle(dirs[i], dirs[j]) > np.radians(20) for j in peaks):
+            peaks.append(int(i))
+    if not peaks:
+        return None
+    best = (-np.inf, 0.0, 0.0)
+    for i in peaks:
+        r = _refine(obs, float(P.ravel()[i]), float(Tt.ravel()[i]), 2.0, 3)
+        if r[0] > best[0]:
+            best = r
+    best = max(best, _refine(obs, best[1], best[2], 0.5, 3), key=lambda r: r[0])
+    d = _direction(best[1], best[2])
+    far = _angle(dirs, d) > np.radians(30)
+    sharp = best[0] - (float(flat[far].max()) if far.any() else 0.0)
+    dphi = np.abs((P.ravel() - best[1] + np.pi) % (2 * np.pi) - np.pi)
+    other_az = dphi > np.radians(45)
+    az_sharp = best[0] - (float(flat[other_az].max()) if other_az.any() else 0.0)
+    return best, sharp, az_sharp
+
+
+def _local_search(obs: _Observation, phi0: float, theta0: float) -> tuple[float, float, float]:
+    """Best (score, phi, theta) near (phi0, theta0), in few azimuth passes: each pass scores a whole
+    elevation profile (+-10 deg), so only the azimuth is searched: three azimuths 4 deg apart (on
+    the sphere), stepping outwards while the best is at an end, a parabola through the best and its
+    neighbours, then the same at 1 deg around the vertex."""
+    th_off = np.radians(np.arange(-10.0, 10.01, 2.5))
+    cache: dict[float, tuple[float, float]] = {}
+
+    def profile(phi: float, theta_c: float) -> tuple[float, float]:
+        if phi not in cache:
+            th = np.clip(theta_c + th_off, np.radians(0.5), MAX_THETA)
+            s = _azimuth_scores(obs, phi, np.tan(th))
+            i = int(np.argmax(s))
+            cache[phi] = (float(s[i]), float(th[i]))
+        return cache[phi]
+
+    phi, theta = phi0, theta0
+    for step_deg in (4.0, 1.0):
+        dphi = min(np.radians(step_deg) / max(np.sin(theta), 0.1), np.radians(30.0))
+        ks = {k: profile(phi + k * dphi, theta) for k in (-1, 0, 1)}
+        for _ in range(4):  # walk while the best is at an end (a prior up to ~15 deg off)
+            kb = max(ks, key=lambda k: ks[k][0])
+            if kb == min(ks):
+                ks[kb - 1] = profile(phi + (kb - 1) * dphi, theta)
+            elif kb == max(ks):
+                ks[kb + 1] = profile(phi + (kb + 1) * dphi, theta)
+            else:
+                break
+        kb = max(ks, key=lambda k: ks[k][0])
+        off = 0.0
+        if kb - 1 in ks and kb + 1 in ks:
+            ym, y0, yp = ks[kb - 1][0], ks[kb][0], ks[kb + 1][0]
+            den = ym - 2 * y0 + yp
+            off = float(np.clip(0.5 * (ym - yp) / den, -0.5, 0.5)) if den < 0 else 0.0
+        phi, theta = phi + (kb + off) * dphi, ks[kb][1]
+    # the elevation at 0.5 deg at the final azimuth
+    th = np.clip(theta + np.radians(np.arange(-2.0, 2.01, 0.5)), np.radians(0.5), MAX_THETA)
+    s = _azimuth_scores(obs, phi, np.tan(th))
+    i = int(np.argmax(s))
+    best = max(cache.items(), key=lambda kv: kv[1][0])
+    if s[i] >= best[1][0]:
+        return float(s[i]), phi, float(th[i])
+    return best[1][0], best[0], best[1][1]
+
+
+#: Confidence scales (measured on the synthetic scenes, see the tests): full confidence needs a
+#: score of SCORE_FULL, a peak SHARPNESS_FULL above anything 30 deg away (none below
+#: SHARPNESS_MIN: wrong answers and overcast frames stay under it), and the predicted shadow at
+#: most RATIO_FULL as bright as the lit floor around it.
+SCORE_FULL = 0.3
+SHARPNESS_MIN = 0.03
+SHARPNESS_FULL = 0.2
+RATIO_FULL = 0.5
+
+
+def shadow_direction(color_linear: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, planes,
+                     anchor_T_cam_obj: np.ndarray, receiver_id: int | None = None,
+                     params: ShadowParams | None = None, prior: ShadowCue | None = None) -> ShadowCue | None:
+    """The direction towards the light that the shadows on the anchor plane point to.
+
+    Parameters
+    ----------
+    color_linear : (H, W, 3) float
+        The camera picture, linear RGB (any scale: only ratios are used).
+    depth : (H, W) float32
+        Metres, aligned to the colour, 0 where invalid.
+    intrinsics : Intrinsics
+        Of the colour/depth image.
+    planes : sequence of Plane
+        The tracked planes (``results[PLANES]``).
+    anchor_T_cam_obj : (4, 4)
+        The anchor pose (``Anchor.T_cam_obj``): the answer is in its object frame.
+    receiver_id : int, optional
+        The plane the shadows fall on; default: the one the anchor stands on.
+    params : ShadowParams, optional
+    prior : ShadowCue, optional
+        The last answer (same object frame): refine locally around it instead of searching the
+        whole hemisphere (about 10x cheaper; converges from ~10 deg off).
+
+    Returns
+    -------
+    ShadowCue or None
+        None when there is no receiver, no caster, too little observed floor, or no candidate
+        predicts a shadow on the observed floor.
+    """
+    t0 = time.perf_counter()
+    prm = params or ShadowParams()
+    T = np.asarray(anchor_T_cam_obj, np.float64)
+    receiver = _receiver(planes, T, receiver_id)
+    if receiver is None:
+        return None
+    obs = _observe(color_linear, depth, intrinsics, planes, T, receiver, prm)
+    if obs is None:
+        return None
+    if prior is not None:
+        w = obs.basis @ (obs.R_obj @ np.asarray(prior.direction, np.float64))  # object -> camera -> plane
+        theta = float(np.clip(np.arccos(np.clip(w[2], -1, 1)), np.radians(0.5), MAX_THETA))
+        score, phi, theta = _local_search(obs, float(np.arctan2(w[1], w[0])), theta)
+        # the peak's sharpness is measured by the full search; here it scales with the score kept
+        keep = float(np.clip(score / max(prior.score, 1e-9), 0.0, 1.0))
+        sharp = prior.sharpness * keep
+        az_factor = prior.azimuth_confidence / max(prior.confidence, 1e-9) if prior.confidence > 0 else 0.0
+        search = "local"
+    else:
+        res = _full_search(obs)
+        if res is None:
+            return None
+        (score, phi, theta), sharp, az_sharp = res
+        az_factor = float(np.clip((az_sharp - SHARPNESS_MIN) / (SHARPNESS_FULL - SHARPNESS_MIN), 0, 1))
+        search = "full"
+    if not np.isfinite(score) or score <= 0:
+        return None
+    # lit/shadow contrast: predicted shadow against the lit cells within 30 cm of it
+    mask = _mask_on_grid(obs, phi, theta)
+    seen = obs.weights > 0
+    ring = cv2.dilate(mask.astype(np.uint8), np.ones((2 * int(0.3 / obs.cell) + 1,) * 2, np.uint8)).astype(bool)
+    sh, lit = obs.rel[mask & seen], obs.rel[ring & ~mask & seen]
+    ratio = float(np.median(sh) / max(np.median(lit), 1e-6)) if sh.size >= 4 and lit.size >= 4 else 1.0
+    conf = float(np.clip(score / SCORE_FULL, 0, 1)
+                 * np.clip((sharp - SHARPNESS_MIN) / (SHARPNESS_FULL - SHARPNESS_MIN), 0, 1)
+                 * np.clip((1.0 - ratio) / (1.0 - RATIO_FULL), 0, 1))
+    az_conf = conf * az_factor
+    w = _direction(phi, theta)
+    d_obj = obs.R_obj.T @ (obs.basis.T @ w)
+    d_obj /= np.linalg.norm(d_obj)
+    return ShadowCue(direction=d_obj, confidence=float(conf), azimuth_confidence=float(az_conf), score=float(score),
+                     sharpness=float(sharp), shadow_ratio=float(ratio), n_casters=int(obs.caster_h.size),
+                     receiver_id=int(receiver.id), elapsed_s=time.perf_counter() - t0, search=search)
+
+
+class ShadowTracker:
+    """Full search every ``full_every_s`` seconds (or when there is no usable last answer), a local
+    refine around the last answer on the frames between.
+
+    Parameters
+    ----------
+    full_every_s : float
+        Period of the full search (the sun is fixed in the world: about once a second is plenty).
+    min_confidence : float
+        A last answer below this is not refined locally: the next frame searches fully.
+    params : ShadowParams, optional
+    """
+
+    def __init__(self, full_every_s: float = 1.0, min_confidence: float = 0.2, params: ShadowParams | None = None):
+        self.full_every_s = float(full_every_s)
+        self.min_confidence = float(min_confidence)
+        self.params = params
+        self.last: ShadowCue | None = None
+        self._last_full_s: float | None = None
+
+    def reset(self) -> None:
+        """Forget the last answer (the anchor was placed again: its object frame changed)."""
+        self.last = None
+        self._last_full_s = None
+
+    def update(self, color_linear, depth, intrinsics, planes, anchor_T_cam_obj, t_s: float) -> ShadowCue | None:
+        """The cue for the frame at time ``t_s`` (seconds, any origin)."""
+        due = self._last_full_s is None or t_s - self._last_full_s >= self.full_every_s
+        prior = self.last if (self.last is not None and self.last.confidence >= self.min_confidence) else None
+        if due or prior is None:
+            cue = shadow_direction(color_linear, depth, intrinsics, planes, anchor_T_cam_obj, params=self.params)
+            self._last_full_s = t_s
+        else:
+            cue = shadow_direction(color_linear, depth, intrinsics, planes, anchor_T_cam_obj, params=self.params,
+                                   prior=prior)
+        self.last = cue
+        return cue
