@@ -26,8 +26,7 @@ Method
     2. **Observed darkness** per receiver cell: ``1 - L / L_ref`` clipped to [0, 1], with ``L`` the
        cell's mean luminance and ``L_ref`` a local upper percentile (``ref_percentile`` over blocks
        of ``block_m``), so that albedo and lighting gradients slower than a block matter less.
-       Cells on or next to a footprint are left out (the floor under an object is not seen, and
-       contact shadows there do not say where the light is).
+       Footprint cells are left out (the floor under an object is not seen).
     3. **Predicted shadow** of a candidate (azimuth phi, zenith angle theta): every caster column
        of height h casts a segment from its footprint, ``h tan(theta)`` long, away from the light.
        For one azimuth the grid is rotated so that the shadows run along its rows; then a receiver
@@ -45,9 +44,13 @@ Known failure modes (and what the code does about them)
     * **Whole visible floor in shadow** (e.g. behind a building): no lit reference, no contrast; the
       score and the lit/shadow ratio show it and the confidence drops (``None`` when nothing
       scores).
-    * **Sun near the zenith**: shadows shrink to the footprints, the azimuth is undetermined. The
-      elevation is still reported, with ``azimuth_confidence`` near 0 (it measures how much better
-      the best azimuth scores than azimuths more than 45 deg away).
+    * **Sun near the zenith**: shadows shrink to the footprints and the azimuth is undetermined.
+      ``azimuth_confidence`` measures how much better the best azimuth scores than azimuths more
+      than 45 deg away; 6-10 deg from the zenith (shadows of one or two cells) the elevation is
+      still found while the azimuth confidence drops to about 0. Within a few degrees of the zenith
+      no shadow leaves the footprints at all: the answer has no confidence, as for an overcast sky
+      (the two look the same to this cue; the casters' own shading, lit tops and dark sides, would
+      tell them apart).
     * **Soft shadows** (indoor area lights, overcast): the penumbra widens the observed shadow and
       pulls the best elevation low (a longer predicted shadow covers more of the blur); the
       sharpness gate lowers the confidence but does not remove the bias.
@@ -114,7 +117,7 @@ class ShadowParams:
 
     stride: int = 3
     cell_m: float = 0.03
-    max_range_m: float = 6.0
+    max_range_m: float = 4.5
     on_plane_at_1m: float = 0.02
     min_caster_m: float = 0.05
     max_caster_m: float = 2.5
@@ -331,9 +334,10 @@ def _observe(color_linear, depth, intr: Intrinsics, planes, T_cam_obj, receiver:
     rel = np.where(seen2, L2 / ref, 0).astype(np.float32)
     dark = np.clip(1.0 - rel, 0.0, 1.0).astype(np.float32)
 
-    foot = cv2.dilate((hmax > 0).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
-    # a cell's weight grows with its samples up to 4 (far cells hold one pixel: texture and noise)
-    w = (np.minimum(cnt.reshape(rows, cols), 4.0) / 4.0 * ~foot).astype(np.float32)
+    # a cell's weight grows with its samples up to 4 (far cells hold one pixel: texture and noise);
+    # footprint cells do not count (under an object; their neighbours do: a sun near the zenith
+    # casts shadows only a cell or two long)
+    w = (np.minimum(cnt.reshape(rows, cols), 4.0) / 4.0 * (hmax == 0)).astype(np.float32)
     obs = _Observation(basis=basis.astype(np.float64), R_obj=R, lo=lo, shape=(rows, cols), cell=c, weights=w,
                        dark=dark, rel=rel, caster_ab=cab, caster_h=ch, n_min=prm.min_shadow_cells)
     obs.n = float(w.sum())
