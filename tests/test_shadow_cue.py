@@ -88,7 +88,7 @@ def test_local_refine_from_a_prior_ten_degrees_off_converges(sunny):
             cue = shadow_direction(*c.args(), prior=dataclasses.replace(full, direction=off))
             assert cue.search == "local"
             # as good a fit as the full search's (the peak is a few degrees wide: 3 cm cells)
-            assert cue.score >= 0.95 * full.score
+            assert cue.score >= 0.9 * full.score
             assert angle_deg(cue.direction, full.direction) <= 6.0
             assert angle_deg(cue.direction, c.sun) <= 7.0
             assert cue.confidence > 0.5 * full.confidence

@@ -24,8 +24,10 @@ Method
        caster per footprint cell matters then, so the casters reduce to a height map on a coarse
        grid of the receiver (``cell_m``, 3 cm), in plane coordinates.
     2. **Observed darkness** per receiver cell: ``1 - L / L_ref`` clipped to [0, 1], with ``L`` the
-       cell's mean luminance and ``L_ref`` a local upper percentile (``ref_percentile`` over blocks
-       of ``block_m``), so that albedo and lighting gradients slower than a block matter less.
+       cell's mean luminance and ``L_ref`` the lit floor's brightness: a quadratic surface fitted
+       to log luminance with the darker cells (shadows) left out, shifted up to an upper percentile
+       of the lit cells, so that smooth lighting gradients (a lamp's falloff, vignetting) and slow
+       albedo changes matter less.
        Footprint cells are left out (the floor under an object is not seen).
     3. **Predicted shadow** of a candidate (azimuth phi, zenith angle theta): every caster column
        of height h casts a segment from its footprint, ``h tan(theta)`` long, away from the light.
@@ -109,8 +111,9 @@ class ShadowParams:
     wall_min_area_m2 : float
         Tracked ``wall`` planes at least this large are not casters (see the module docstring);
         ``inf`` makes every wall a caster.
-    block_m, ref_percentile : float
-        The local reference brightness: this percentile of the cells' luminance per block.
+    ref_percentile, shadow_drop : float
+        The lit floor's brightness: a smooth surface fitted to the cells' log luminance, leaving out
+        cells more than ``shadow_drop`` under it, shifted up to this percentile of the lit cells.
     min_shadow_cells : int
         A candidate must predict at least this many observed shadow cells to score.
     """
@@ -122,8 +125,8 @@ class ShadowParams:
     min_caster_m: float = 0.05
     max_caster_m: float = 2.5
     wall_min_area_m2: float = 1.0
-    block_m: float = 1.2
     ref_percentile: float = 90.0
+    shadow_drop: float = 0.15
     min_shadow_cells: int = 12
 
 
@@ -202,7 +205,7 @@ class _Observation:
     mean: float = 0.0
     var_n: float = 0.0  # n * variance of the darkness
     n_min: int = 12  # fewest predicted shadow cells (weights) a candidate needs to score
-    stack: np.ndarray = field(default=None)  # (rows, cols, 3) float32: weights * dark, weights, weights * dark^2
+    stack: np.ndarray = field(default=None)  # (rows, cols, 2) float32: weights * dark, weights
 
 
 def _receiver(planes, T_cam_obj: np.ndarray, receiver_id: int | None) -> Plane | None:
@@ -224,6 +227,34 @@ def _receiver(planes, T_cam_obj: np.ndarray, receiver_id: int | None) -> Plane |
 def _dot3(v, X, Y, Z) -> np.ndarray:
     """``v . (X, Y, Z)`` per point, float32, written out (no BLAS)."""
     return np.float32(v[0]) * X + np.float32(v[1]) * Y + np.float32(v[2]) * Z
+
+
+def _lit_surface(L2: np.ndarray, seen2: np.ndarray, q: float, drop: float, iters: int = 4) -> np.ndarray:
+    """The brightness of the lit floor (rows, cols): a quadratic in the plane coordinates fitted to
+    the seen cells' log luminance, cells more than ``drop`` under it left out at each iteration (the
+    shadows), shifted up to the ``q`` percentile of the lit cells' residuals.
+
+    Why a surface and not a local percentile: a lamp's falloff or the lens's vignetting darkens one
+    side of the floor smoothly, and a long predicted shadow over that side would correlate with it
+    (seen on the real OAK-D frames); a quadratic follows such gradients but not a shadow's edges.
+    Normal equations written as einsums (no BLAS threads, see _azimuth_scores)."""
+    rows, cols = L2.shape
+    ii, jj = np.nonzero(seen2)
+    y = np.log(np.maximum(L2[ii, jj], 1e-9)).astype(np.float64)
+    sc = 1.0 / max(rows, cols)
+    x1, x2 = (jj - cols / 2) * sc, (ii - rows / 2) * sc
+    A = np.stack([np.ones_like(x1), x1, x2, x1 * x1, x1 * x2, x2 * x2], axis=1)
+    w = np.ones_like(y)
+    coef = np.zeros(6)
+    for _ in range(iters):
+        AtA = np.einsum("ni,n,nj->ij", A, w, A) + 1e-9 * np.eye(6)
+        coef = np.linalg.solve(AtA, np.einsum("ni,n,n->i", A, w, y))
+        r = y - np.einsum("ni,i->n", A, coef)
+        w = (r > -drop).astype(np.float64)
+    shift = float(np.percentile(r[w > 0], q)) if w.any() else 0.0
+    J, I = np.meshgrid((np.arange(cols) - cols / 2) * sc, (np.arange(rows) - rows / 2) * sc)
+    surf = coef[0] + coef[1] * J + coef[2] * I + coef[3] * J * J + coef[4] * J * I + coef[5] * I * I
+    return np.exp(surf + shift).astype(np.float32)
 
 
 def _observe(color_linear, depth, intr: Intrinsics, planes, T_cam_obj, receiver: Plane,
@@ -312,25 +343,9 @@ def _observe(color_linear, depth, intr: Intrinsics, planes, T_cam_obj, receiver:
     cidx, ch = cidx[order], ch[order]
     cab = np.stack([lo[0] + (cidx % cols + 0.5) * c, lo[1] + (cidx // cols + 0.5) * c], axis=1)
 
-    # local reference brightness: an upper percentile of the seen cells per block, bilinear between
     seen2 = seen.reshape(rows, cols)
     L2 = Lc.reshape(rows, cols)
-    B = max(4, int(round(prm.block_m / c)))
-    nbr, nbc = -(-rows // B), -(-cols // B)
-    pad = np.full((nbr * B, nbc * B), np.nan, np.float32)
-    pad[:rows, :cols] = np.where(seen2, L2, np.nan)
-    blocks = pad.reshape(nbr, B, nbc, B).transpose(0, 2, 1, 3).reshape(nbr * nbc, B * B)
-    k = np.sum(np.isfinite(blocks), axis=1)
-    srt = np.sort(blocks, axis=1)  # NaN last
-    q = np.clip(np.floor(prm.ref_percentile / 100.0 * (k - 1)).astype(int), 0, B * B - 1)
-    ref_b = srt[np.arange(srt.shape[0]), q]
-    vals = L2[seen2]
-    kq = int(prm.ref_percentile / 100.0 * (vals.size - 1))
-    global_ref = float(np.partition(vals, kq)[kq])
-    enough = k >= max(8, B * B // 20)
-    ref_b = np.where(enough, ref_b, global_ref).reshape(nbr, nbc).astype(np.float32)
-    ref = cv2.resize(ref_b, (nbc * B, nbr * B), interpolation=cv2.INTER_LINEAR)[:rows, :cols]
-    ref = np.maximum(ref, 1e-6 + 1e-3 * global_ref)
+    ref = _lit_surface(L2, seen2, prm.ref_percentile, prm.shadow_drop)
     rel = np.where(seen2, L2 / ref, 0).astype(np.float32)
     dark = np.clip(1.0 - rel, 0.0, 1.0).astype(np.float32)
 
@@ -343,13 +358,12 @@ def _observe(color_linear, depth, intr: Intrinsics, planes, T_cam_obj, receiver:
     obs.n = float(w.sum())
     if obs.n < 50:
         return None
-    stack = np.empty((rows, cols, 3), np.float32)
+    stack = np.empty((rows, cols, 2), np.float32)
     np.multiply(w, dark, out=stack[..., 0])
     stack[..., 1] = w
-    np.multiply(stack[..., 0], dark, out=stack[..., 2])
     obs.stack = stack
     obs.mean = float(stack[..., 0].sum(dtype=np.float64) / obs.n)
-    obs.var_n = float(stack[..., 2].sum(dtype=np.float64) - obs.n * obs.mean * obs.mean)
+    obs.var_n = float((stack[..., 0] * dark).sum(dtype=np.float64) - obs.n * obs.mean * obs.mean)
     return obs
 
 
@@ -399,52 +413,40 @@ def _azimuth_masks(obs: _Observation, phi: float, tans: np.ndarray, pad: int = 0
     return masks, M
 
 
-SCORE_MODE = "prod"
+#: Width of the band around a predicted shadow that must be lit (metres): the score's contrast term.
 RING_M = 0.3
 
 
 def _azimuth_scores(obs: _Observation, phi: float, tans: np.ndarray) -> np.ndarray:
-    """Score of the predicted masks against the observed darkness for azimuth ``phi`` and each
-    zenith tangent in ``tans`` (T,)."""
+    """Scores of the predicted masks for azimuth ``phi`` and each zenith tangent in ``tans`` (T,).
+
+    score = Pearson correlation of the mask with the darkness over the whole observed floor (the
+    mask must explain the shadows: too short or too long loses) x max(0, mean darkness inside the
+    mask - mean darkness in a ``RING_M`` band around it) (its edges must be shadow edges: a mask
+    that lands inside a large unexplained shadow, such as a building's, has a dark band too).
+    """
     ring_cells = max(1, int(round(RING_M / obs.cell)))
-    out = _azimuth_masks(obs, phi, tans, pad=ring_cells if SCORE_MODE != "global" else 0)
+    out = _azimuth_masks(obs, phi, tans, pad=ring_cells)
     if out is None:
         return np.zeros(len(tans))
     masks, M = out
     T, rows, cols = masks.shape
     can = cv2.warpAffine(obs.stack, M, (cols, rows), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                          borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    # (3, N): sums over masks as a uint8 x float32 einsum, which never starts BLAS threads (a
+    # (2, N): sums over masks as a uint8 x float32 einsum, which never starts BLAS threads (a
     # skinny float matmul does, and on a busy machine that costs several times the work)
-    can = np.ascontiguousarray(can.reshape(-1, 3).T)
-    if SCORE_MODE == "global":
-        sm = np.einsum("tn,kn->tk", masks.reshape(T, -1).view(np.uint8), can).astype(np.float64)
-        return _pearson(obs.n, obs.mean, obs.var_n, sm[:, 0], sm[:, 1], obs.n_min)
-    # the ring around each mask: one dilation of the masks stacked vertically (the canvas has
+    can = np.ascontiguousarray(can.reshape(-1, 2).T)
+    # the band around each mask: one dilation of the masks stacked vertically (the canvas has
     # ring_cells empty rows above and below the casters, so neighbours do not bleed into each other)
     m8 = masks.view(np.uint8).reshape(T * rows, cols)
     k = np.ones((2 * ring_cells + 1, 2 * ring_cells + 1), np.uint8)
     both = np.concatenate([m8.reshape(T, -1), (cv2.dilate(m8, k) - m8).reshape(T, -1)])
-    sums = np.einsum("tn,kn->tk", both, can).astype(np.float64)  # (2T, 3): w*dark, w, w*dark^2
+    sums = np.einsum("tn,kn->tk", both, can).astype(np.float64)  # (2T, 2): sum of w * dark, of w
     sm, sr = sums[:T], sums[T:]
     contrast = np.where((sm[:, 1] >= obs.n_min) & (sr[:, 1] >= obs.n_min),
                         sm[:, 0] / np.maximum(sm[:, 1], 1e-9) - sr[:, 0] / np.maximum(sr[:, 1], 1e-9), 0.0)
-    if SCORE_MODE == "contrast":
-        return contrast
-    n = sm[:, 1] + sr[:, 1]
-    mean = (sm[:, 0] + sr[:, 0]) / np.maximum(n, 1e-9)
-    var_n = sm[:, 2] + sr[:, 2] - n * mean * mean
-    local = _pearson(n, mean, var_n, sm[:, 0], sm[:, 1], obs.n_min)
-    if SCORE_MODE == "local":
-        return local
-    glob = _pearson(obs.n, obs.mean, obs.var_n, sm[:, 0], sm[:, 1], obs.n_min)
-    if SCORE_MODE == "prod":
-        return glob * np.maximum(contrast, 0)
-    if SCORE_MODE == "prodl":
-        return glob * np.maximum(local, 0)
-    if SCORE_MODE == "sqrt":
-        return np.sqrt(np.maximum(glob, 0) * np.maximum(contrast, 0))
-    raise ValueError(SCORE_MODE)
+    corr = _pearson(obs.n, obs.mean, obs.var_n, sm[:, 0], sm[:, 1], obs.n_min)
+    return corr * np.maximum(contrast, 0.0)
 
 
 def _pearson(n, mean, var_n, sd, so, n_min) -> np.ndarray:
@@ -529,40 +531,39 @@ def _full_search(obs: _Observation, n_peaks: int = 3):
 
 
 def _local_search(obs: _Observation, phi0: float, theta0: float) -> tuple[float, float, float]:
-    """Best (score, phi, theta) near (phi0, theta0), in few azimuth passes: each pass scores a whole
-    elevation profile (+-10 deg), so only the azimuth is searched: three azimuths 4 deg apart (on
-    the sphere), stepping outwards while the best is at an end, a parabola through the best and its
-    neighbours, then the same at 1 deg around the vertex."""
+    """Best (score, phi, theta) near (phi0, theta0) in about four azimuth passes. Each pass scores a
+    whole elevation profile (+-10 deg at 2.5 deg), so only the azimuth is searched: three azimuths
+    3 deg apart on the sphere, stepping outwards while the best is at an end (a prior up to ~15 deg
+    off), the vertex of a parabola through the best and its neighbours, and there the elevation at
+    0.5 deg."""
     th_off = np.radians(np.arange(-10.0, 10.01, 2.5))
     cache: dict[float, tuple[float, float]] = {}
 
-    def profile(phi: float, theta_c: float) -> tuple[float, float]:
+    def profile(phi: float) -> tuple[float, float]:
         if phi not in cache:
-            th = np.clip(theta_c + th_off, np.radians(0.5), MAX_THETA)
+            th = np.clip(theta0 + th_off, np.radians(0.5), MAX_THETA)
             s = _azimuth_scores(obs, phi, np.tan(th))
             i = int(np.argmax(s))
             cache[phi] = (float(s[i]), float(th[i]))
         return cache[phi]
 
-    phi, theta = phi0, theta0
-    for step_deg in (4.0, 1.0):
-        dphi = min(np.radians(step_deg) / max(np.sin(theta), 0.1), np.radians(30.0))
-        ks = {k: profile(phi + k * dphi, theta) for k in (-1, 0, 1)}
-        for _ in range(4):  # walk while the best is at an end (a prior up to ~15 deg off)
-            kb = max(ks, key=lambda k: ks[k][0])
-            if kb == min(ks):
-                ks[kb - 1] = profile(phi + (kb - 1) * dphi, theta)
-            elif kb == max(ks):
-                ks[kb + 1] = profile(phi + (kb + 1) * dphi, theta)
-            else:
-                break
+    dphi = min(np.radians(3.0) / max(np.sin(theta0), 0.1), np.radians(30.0))
+    ks = {k: profile(phi0 + k * dphi) for k in (-1, 0, 1)}
+    for _ in range(4):
         kb = max(ks, key=lambda k: ks[k][0])
-        off = 0.0
-        if kb - 1 in ks and kb + 1 in ks:
-            ym, y0, yp = ks[kb - 1][0], ks[kb][0], ks[kb + 1][0]
-            den = ym - 2 * y0 + yp
-            off = float(np.clip(0.5 * (ym - yp) / den, -0.5, 0.5)) if den < 0 else 0.0
-        phi, theta = phi + (kb + off) * dphi, ks[kb][1]
+        if kb == min(ks):
+            ks[kb - 1] = profile(phi0 + (kb - 1) * dphi)
+        elif kb == max(ks):
+            ks[kb + 1] = profile(phi0 + (kb + 1) * dphi)
+        else:
+            break
+    kb = max(ks, key=lambda k: ks[k][0])
+    off = 0.0
+    if kb - 1 in ks and kb + 1 in ks:
+        ym, y0, yp = ks[kb - 1][0], ks[kb][0], ks[kb + 1][0]
+        den = ym - 2 * y0 + yp
+        off = float(np.clip(0.5 * (ym - yp) / den, -0.5, 0.5)) if den < 0 else 0.0
+    phi, theta = phi0 + (kb + off) * dphi, ks[kb][1]
     # the elevation at 0.5 deg at the final azimuth
     th = np.clip(theta + np.radians(np.arange(-2.0, 2.01, 0.5)), np.radians(0.5), MAX_THETA)
     s = _azimuth_scores(obs, phi, np.tan(th))
