@@ -221,3 +221,52 @@ def test_sun_near_the_zenith_reports_elevation_without_azimuth():
 def test_unlit_raycast_scene_gives_no_confident_direction():
     cue = shadow_direction(*raycast_scene(40, 0, sun=0.0).args())
     assert cue is None or cue.confidence < 0.15
+
+
+# ------------------------------------------------------------------------------ real OAK-D frames
+
+
+@pytest.mark.shared_data
+def test_real_oakd_frames_point_to_the_lamp_or_stay_unconfident(shared_data, capsys):
+    """../shared/data/oakd_rgbd: a plate 16 cm above a green ground under an overhead lamp; its soft
+    shadow is a band along the plate's lower edge in the picture, so the light is high and towards the
+    top of the picture. The shadow is soft and partly inside the depth's invalid margin at the plate's
+    edge, so the cue stays unconfident; what is required: no confident answer elsewhere, and most
+    devices' answers on the side the shadow shows (measured: 5 of 6, elevation 62-71 deg)."""
+    import cv2
+
+    from illuminet.runtime.config import apply_overrides
+    from illuminet.runtime.frame import Frame, depth_from_mm
+    from illuminet.runtime.stages.anchor import object_frame
+    from illuminet.runtime.stages.shadow_cue import ShadowParams
+
+    intr = Intrinsics(512.0, 512.0, 319.5, 179.5, 640, 360)  # not recorded; the data's README
+    # integer-disparity depth (17 mm steps at 0.7 m): the planes' and the receiver's tolerance follow
+    cfg = apply_overrides(defaults(), [("planes", "inlier_threshold_m", 0.045)])
+    prm = ShadowParams(on_plane_at_1m=0.045)
+    rows = []
+    for dev in sorted((shared_data / "oakd_rgbd").iterdir()):
+        d = dev / "01"
+        color = cv2.cvtColor(cv2.imread(str(d / "color.png")), cv2.COLOR_BGR2RGB)
+        depth = depth_from_mm(cv2.imread(str(d / "depth.png"), cv2.IMREAD_UNCHANGED))
+        frame = Frame(seq=0, t_device_ns=0, t_host_ns=0, color=color, depth=depth, intrinsics=intr)
+        planes = PlaneStage(cfg).process(frame).results[PLANES.name]
+        ground = max(planes, key=lambda p: p.area_m2)
+        T = object_frame(ground.normal, ground.intersect(np.array([0.0, 0.0, 1.0])))
+        cue = shadow_direction(srgb_to_linear(color), depth, intr, planes, T, receiver_id=ground.id, params=prm)
+        if cue is None:
+            rows.append((dev.name, None, 0.0, None))
+            continue
+        d_cam = T[:3, :3] @ cue.direction
+        flat = d_cam - (d_cam @ ground.normal) * ground.normal
+        up_img = np.array([0.0, -1.0, 0.0]) - (np.array([0.0, -1.0, 0.0]) @ ground.normal) * ground.normal
+        rows.append((dev.name, angle_deg(flat, up_img), cue.confidence, cue.elevation_deg))
+    with capsys.disabled():
+        print("\n  device               azimuth from picture-up (deg)  confidence  elevation")
+        for name, az, conf, el in rows:
+            print(f"  {name:20s} {'-' if az is None else f'{az:6.1f}':>10s} {conf:18.2f}  "
+                  f"{'-' if el is None else f'{el:5.1f}'}")
+    assert len(rows) == 6
+    for name, az, conf, _ in rows:
+        assert conf < 0.3 or (az is not None and az < 45.0), name
+    assert sum(az is not None and az < 45.0 for _, az, _, _ in rows) >= 4
