@@ -68,6 +68,8 @@ def test_sun_direction_from_box_shadows_on_synthetic_scenes(sunny):
         assert np.isclose(np.linalg.norm(cue.direction), 1.0)
         errs.append(angle_deg(cue.direction, c.sun))
         el_errs.append(abs(cue.elevation_deg - np.degrees(np.arcsin(c.sun[1]))))
+        daz = cue.azimuth_deg - np.degrees(np.arctan2(c.sun[0], c.sun[2]))
+        az_errs.append(abs((daz + 180) % 360 - 180))
         assert cue.confidence > 0.5, (errs[-1], cue)
         assert cue.azimuth_confidence > 0.3
         assert 0.0 < cue.shadow_ratio < 0.5  # a clear sky: the shadow gets a third of the light or less
@@ -75,6 +77,7 @@ def test_sun_direction_from_box_shadows_on_synthetic_scenes(sunny):
     assert np.median(errs) <= 5.0, errs
     assert max(errs) <= 10.0, errs
     assert max(el_errs) <= 6.0, el_errs
+    assert max(az_errs) <= 10.0, az_errs
 
 
 def test_local_refine_from_a_prior_ten_degrees_off_converges(sunny):

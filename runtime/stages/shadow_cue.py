@@ -224,11 +224,6 @@ def _receiver(planes, T_cam_obj: np.ndarray, receiver_id: int | None) -> Plane |
     return max(horiz, key=lambda p: p.area_m2) if horiz else None
 
 
-def _dot3(v, X, Y, Z) -> np.ndarray:
-    """``v . (X, Y, Z)`` per point, float32, written out (no BLAS)."""
-    return np.float32(v[0]) * X + np.float32(v[1]) * Y + np.float32(v[2]) * Z
-
-
 def _lit_surface(L2: np.ndarray, seen2: np.ndarray, q: float, drop: float, iters: int = 4) -> np.ndarray:
     """The brightness of the lit floor (rows, cols): a quadratic in the plane coordinates fitted to
     the seen cells' log luminance, cells more than ``drop`` under it left out at each iteration (the
@@ -257,29 +252,32 @@ def _lit_surface(L2: np.ndarray, seen2: np.ndarray, q: float, drop: float, iters
     return np.exp(surf + shift).astype(np.float32)
 
 
+_RAYS: dict = {}
+
+
+def _rays(intr: Intrinsics, s: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(x / z, y / z) of the camera ray through every ``s``-th pixel (cached: one camera, one size)."""
+    key = (intr.fx, intr.fy, intr.cx, intr.cy, s, shape)
+    if key not in _RAYS:
+        _RAYS.clear()
+        v, u = np.mgrid[0 : shape[0] * s : s, 0 : shape[1] * s : s].astype(np.float32)
+        _RAYS[key] = ((u - np.float32(intr.cx)) / np.float32(intr.fx), (v - np.float32(intr.cy)) / np.float32(intr.fy))
+    return _RAYS[key]
+
+
 def _observe(color_linear, depth, intr: Intrinsics, planes, T_cam_obj, receiver: Plane,
              prm: ShadowParams) -> _Observation | None:
     s = prm.stride
     z = np.ascontiguousarray(depth[::s, ::s], np.float32)
-    rgb = color_linear[::s, ::s]
-    # channel by channel: a matrix product here would start BLAS threads (see _azimuth_scores)
-    lum = (LUMA[0] * rgb[..., 0] + LUMA[1] * rgb[..., 1] + LUMA[2] * rgb[..., 2]).astype(np.float32)
+    rx, ry = _rays(intr, s, z.shape)
     valid = np.isfinite(z) & (z > 0) & (z < prm.max_range_m)
     # depth discontinuities: stereo mixes the two sides there (flying pixels), so neither counts
-    edge = np.zeros_like(valid)
     jx = np.abs(np.diff(z, axis=1)) > 0.05 * np.minimum(z[:, 1:], z[:, :-1])
     jy = np.abs(np.diff(z, axis=0)) > 0.05 * np.minimum(z[1:], z[:-1])
-    edge[:, 1:] |= jx
-    edge[:, :-1] |= jx
-    edge[1:] |= jy
-    edge[:-1] |= jy
-    valid &= ~edge
-    vv, uu = np.nonzero(valid)
-    zz = z[vv, uu]
-    u = uu.astype(np.float32) * s
-    v = vv.astype(np.float32) * s
-    X, Y = (u - np.float32(intr.cx)) * np.float32(1 / intr.fx) * zz, (v - np.float32(intr.cy)) * np.float32(1 / intr.fy) * zz
-    L = lum[vv, uu]
+    valid[:, 1:] &= ~jx
+    valid[:, :-1] &= ~jx
+    valid[1:] &= ~jy
+    valid[:-1] &= ~jy
 
     n = np.asarray(receiver.normal, np.float64)
     R = np.asarray(T_cam_obj, np.float64)[:3, :3]
@@ -287,50 +285,57 @@ def _observe(color_linear, depth, intr: Intrinsics, planes, T_cam_obj, receiver:
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(e1, n)  # object X x Y = Z: (e1, n, e2) is the object frame's (X, Y, Z)
     origin = T_cam_obj[:3, 3] - receiver.distance(T_cam_obj[:3, 3]) * n
-    basis = np.stack([e1, e2, n]).astype(np.float32)
+    basis = np.stack([e1, e2, n])
     off = basis @ origin
-    a, b, h = (_dot3(basis[k], X, Y, zz) - np.float32(off[k]) for k in range(3))
 
-    tol = np.clip(prm.on_plane_at_1m * np.maximum(zz, 0.5) ** 2, 0.01, 0.10)
-    on = np.abs(h) < tol
-    up = (h > np.maximum(prm.min_caster_m, 2 * tol)) & (h < prm.max_caster_m)
+    def coord(e, o):  # e . (x, y, z) - o on the strided grid: z * (e . ray) - o
+        return z * (np.float32(e[0]) * rx + np.float32(e[1]) * ry + np.float32(e[2])) - np.float32(o)
+
+    h = coord(n, off[2])
+    tol = np.clip(np.float32(prm.on_plane_at_1m) * np.maximum(z, np.float32(0.5)) ** 2, np.float32(0.01), np.float32(0.10))
+    on = valid & (np.abs(h) < tol)
+    up = valid & (h > np.maximum(np.float32(prm.min_caster_m), 2 * tol)) & (h < np.float32(prm.max_caster_m))
     # points on large walls and on planes facing down are not casters (module docstring); tested by
     # distance, not by the planes' inlier masks: a wall's lowest rows go to the floor's inliers
     for p in planes:
         if p.id == receiver.id:
             continue
         if (p.label == "wall" and p.area_m2 >= prm.wall_min_area_m2) or float(np.dot(p.normal, n)) < -0.7:
-            up &= np.abs(_dot3(p.normal, X, Y, zz) + np.float32(p.offset)) > 2 * tol
-    if on.sum() < 50 or not up.any():
+            up &= np.abs(coord(p.normal, -p.offset)) > 2 * tol
+    n_on = int(np.count_nonzero(on))
+    if n_on < 50 or not up.any():
         return None
+    a, b = coord(e1, off[0]), coord(e2, off[1])
+    a_on, b_on, a_up, b_up, h_up = a[on], b[on], a[up], b[up], h[up]
+    rgb = color_linear[::s, ::s][on]
+    # channel by channel: a matrix product here would start BLAS threads (see _azimuth_scores)
+    L = (LUMA[0] * rgb[:, 0] + LUMA[1] * rgb[:, 1] + LUMA[2] * rgb[:, 2]).astype(np.float32)
 
     c = prm.cell_m
-    lo = np.array([a[on].min(), b[on].min()]) - c
-    hi = np.array([a[on].max(), b[on].max()]) + c
-    lo = np.minimum(lo, [a[up].min() - c, b[up].min() - c])
-    hi = np.maximum(hi, [a[up].max() + c, b[up].max() + c])
+    lo = np.array([min(a_on.min(), a_up.min()), min(b_on.min(), b_up.min())], np.float64) - c
+    hi = np.array([max(a_on.max(), a_up.max()), max(b_on.max(), b_up.max())], np.float64) + c
     cols, rows = (np.ceil((hi - lo) / c).astype(int) + 1)
     if rows * cols > 600 * 600:  # a grazing view of a huge floor: keep the 18 m x 18 m around the casters
-        ctr = np.array([np.median(a[up]), np.median(b[up])])
+        ctr = np.array([np.median(a_up), np.median(b_up)])
         lo, hi = np.maximum(lo, ctr - 9.0), np.minimum(hi, ctr + 9.0)
         cols, rows = (np.ceil((hi - lo) / c).astype(int) + 1)
-    inside = (a >= lo[0]) & (a < hi[0]) & (b >= lo[1]) & (b < hi[1])
-    ci = ((b - lo[1]) / c).astype(np.int64)
-    cj = ((a - lo[0]) / c).astype(np.int64)
-    flat = ci * cols + cj
     size = rows * cols
 
-    r_sel = on & inside
-    cnt = np.bincount(flat[r_sel], minlength=size).astype(np.float32)
-    lsum = np.bincount(flat[r_sel], weights=L[r_sel], minlength=size).astype(np.float32)
+    def cells(aa, bb):  # flat cell index, and which points fall inside the grid
+        inside = (aa >= lo[0]) & (aa < hi[0]) & (bb >= lo[1]) & (bb < hi[1])
+        return ((bb - lo[1]) / c).astype(np.int64) * cols + ((aa - lo[0]) / c).astype(np.int64), inside
+
+    flat_on, in_on = cells(a_on, b_on)
+    cnt = np.bincount(flat_on[in_on], minlength=size).astype(np.float32)
+    lsum = np.bincount(flat_on[in_on], weights=L[in_on], minlength=size).astype(np.float32)
     seen = cnt > 0
     Lc = np.where(seen, lsum / np.maximum(cnt, 1), 0).astype(np.float32)
 
     # casters: the tallest per footprint cell; speckle (no caster neighbour) is dropped
-    c_sel = up & inside
+    flat_up, in_up = cells(a_up, b_up)
     hmax = np.zeros(size, np.float32)
-    order = np.argsort(h[c_sel])
-    hmax[flat[c_sel][order]] = h[c_sel][order]  # ascending: the tallest is written last
+    order = np.argsort(h_up[in_up])
+    hmax[flat_up[in_up][order]] = h_up[in_up][order]  # ascending: the tallest is written last
     hmax = hmax.reshape(rows, cols)
     has = (hmax > 0).astype(np.float32)
     neigh = cv2.boxFilter(has, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
@@ -353,7 +358,7 @@ def _observe(color_linear, depth, intr: Intrinsics, planes, T_cam_obj, receiver:
     # footprint cells do not count (under an object; their neighbours do: a sun near the zenith
     # casts shadows only a cell or two long)
     w = (np.minimum(cnt.reshape(rows, cols), 4.0) / 4.0 * (hmax == 0)).astype(np.float32)
-    obs = _Observation(basis=basis.astype(np.float64), R_obj=R, lo=lo, shape=(rows, cols), cell=c, weights=w,
+    obs = _Observation(basis=basis, R_obj=R, lo=lo, shape=(rows, cols), cell=c, weights=w,
                        dark=dark, rel=rel, caster_ab=cab, caster_h=ch, n_min=prm.min_shadow_cells)
     obs.n = float(w.sum())
     if obs.n < 50:
