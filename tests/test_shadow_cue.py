@@ -102,8 +102,16 @@ def test_tracker_searches_fully_once_a_second_and_refines_between(sunny):
     tr = ShadowTracker(full_every_s=1.0)
     kinds = [tr.update(*c.args(), t_s=t).search for t in (0.0, 0.1, 0.5, 1.05, 1.2)]
     assert kinds == ["full", "local", "local", "full", "local"]
+    assert (tr.full_searches, tr.local_refines) == (2, 3)
     tr.reset()
     assert tr.update(*c.args(), t_s=1.3).search == "full"
+    # no shadow to see: one full search a second, nothing in between
+    dark = raycast_scene(40, 0, sun=0.0)
+    tr = ShadowTracker(full_every_s=1.0)
+    for t in (0.0, 0.1, 0.2, 0.5, 0.9, 1.0):
+        cue = tr.update(*dark.args(), t_s=t)
+        assert cue is None or cue.confidence < 0.15
+    assert (tr.full_searches, tr.local_refines) == (2, 0)
 
 
 def test_overcast_scene_gives_no_confident_direction():

@@ -34,13 +34,17 @@ Method
        For one azimuth the grid is rotated so that the shadows run along its rows; then a receiver
        cell is in shadow when the running maximum of the casters' reach to its left reaches it
        (``np.maximum.accumulate``): one pass gives the masks of all zenith angles of an azimuth.
-    4. **Score**: Pearson correlation of the predicted mask with the observed darkness over the
-       observed cells. Full search: a 10 deg grid over the upper hemisphere (36 azimuths x 9 zenith
-       angles), the best few peaks refined at 2 deg, then 0.5 deg. Local refine: a 3-1-0.5 deg
-       descent around the prior.
-    5. **Gates**: the peak's *sharpness* (its score minus the best score more than 30 deg away) and
-       the lit/shadow contrast decide the confidence; an overcast or unlit scene still has a best
-       candidate, but a flat one.
+    4. **Score**: the Pearson correlation of the predicted mask with the observed darkness over the
+       observed floor (the mask must explain the shadows), times the contrast between the mask and
+       a 30 cm band around it (its edges must be shadow edges: a mask that lands inside a large
+       unexplained shadow, such as a building's, has a dark band too). Full search: a 10 deg grid
+       over the upper hemisphere (36 azimuths x 9 zenith angles), the best three peaks refined at
+       2 deg, then 0.5 deg. Local refine (``prior``): about four azimuth passes around the prior,
+       each scoring an elevation profile, the azimuth from a parabola through the best three.
+    5. **Gates**: the score, the peak's *sharpness* (its score minus the best score more than 30 deg
+       away) and the lit/shadow contrast decide the confidence; an overcast or unlit scene still
+       has a best candidate, but a flat one. The local refine does not see the whole hemisphere:
+       it carries the last full search's sharpness, scaled by how much of its score it keeps.
 
 Known failure modes (and what the code does about them)
     * **Whole visible floor in shadow** (e.g. behind a building): no lit reference, no contrast; the
@@ -68,8 +72,10 @@ Known failure modes (and what the code does about them)
       planes labelled ``wall`` of at least ``wall_min_area_m2``, planes facing down, and points
       higher than ``max_caster_m`` are excluded. A table top is a caster (extended down: its
       legs' region is seldom visible, so the error lands mostly in unobserved cells).
-    * **Near lights** (a lamp 0.5 m away) cast radial shadows: a single distant direction fits
-      them only roughly; the result is the direction seen from the casters' centre.
+    * **Near lights** (a lamp 0.5 m from the casters) cast radial shadows that no single distant
+      direction fits: the synthetic ``lamp`` scenes give confidence 0. (Sweeping the lamp's
+      footprint with a polar grid around it, where radial shadows run along rows, would extend the
+      same running-maximum pass to point lights.)
 
 Frames: camera coordinates (OpenCV) in, the anchor's object frame (+Y up, see
 :class:`~illuminet.runtime.scene.Anchor`) out.
@@ -146,8 +152,8 @@ class ShadowCue:
     score : float
         Correlation of the predicted shadow mask with the observed darkness, in [-1, 1].
     sharpness : float
-        ``score`` minus the best score more than 30 deg away (full search), or on a ring 25 deg
-        around the answer (local refine).
+        ``score`` minus the best score more than 30 deg away (full search); the local refine
+        carries the prior's, scaled by the share of the prior's score it keeps.
     shadow_ratio : float
         Median luminance in the predicted shadow over that of the lit cells around it (relative to
         the local reference): ``E_shadow / E_lit`` on the receiver, i.e. the ambient share of the
@@ -507,6 +513,8 @@ def _angle(u: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def _full_search(obs: _Observation, n_peaks: int = 3):
+    """((score, phi, theta), sharpness, azimuth sharpness) of the best direction on the hemisphere,
+    or None when no candidate scores (module docstring, steps 4-5)."""
     tans = np.tan(COARSE_THETA)
     S = np.stack([_azimuth_scores(obs, p, tans) for p in COARSE_PHI])  # (phi, theta)
     P, Tt = np.meshgrid(COARSE_PHI, COARSE_THETA, indexing="ij")
@@ -611,7 +619,7 @@ def shadow_direction(color_linear: np.ndarray, depth: np.ndarray, intrinsics: In
     params : ShadowParams, optional
     prior : ShadowCue, optional
         The last answer (same object frame): refine locally around it instead of searching the
-        whole hemisphere (about 10x cheaper; converges from ~10 deg off).
+        whole hemisphere (about 4 azimuth passes instead of about 60; converges from 10-15 deg off).
 
     Returns
     -------
@@ -665,16 +673,25 @@ def shadow_direction(color_linear: np.ndarray, depth: np.ndarray, intrinsics: In
 
 
 class ShadowTracker:
-    """Full search every ``full_every_s`` seconds (or when there is no usable last answer), a local
-    refine around the last answer on the frames between.
+    """Full search every ``full_every_s`` seconds, a local refine around the last answer on the
+    frames between; between full searches without a usable last answer (no shadow seen, or one
+    below ``min_confidence``) nothing is searched and the last answer is returned again, so a
+    scene without shadows costs one full search a second, not one a frame.
 
     Parameters
     ----------
     full_every_s : float
         Period of the full search (the sun is fixed in the world: about once a second is plenty).
     min_confidence : float
-        A last answer below this is not refined locally: the next frame searches fully.
+        A last answer below this is not refined locally.
     params : ShadowParams, optional
+
+    Attributes
+    ----------
+    last : ShadowCue or None
+        The last answer.
+    full_searches, local_refines : int
+        How many of each ran.
     """
 
     def __init__(self, full_every_s: float = 1.0, min_confidence: float = 0.2, params: ShadowParams | None = None):
@@ -682,6 +699,8 @@ class ShadowTracker:
         self.min_confidence = float(min_confidence)
         self.params = params
         self.last: ShadowCue | None = None
+        self.full_searches = 0
+        self.local_refines = 0
         self._last_full_s: float | None = None
 
     def reset(self) -> None:
@@ -691,13 +710,12 @@ class ShadowTracker:
 
     def update(self, color_linear, depth, intrinsics, planes, anchor_T_cam_obj, t_s: float) -> ShadowCue | None:
         """The cue for the frame at time ``t_s`` (seconds, any origin)."""
-        due = self._last_full_s is None or t_s - self._last_full_s >= self.full_every_s
-        prior = self.last if (self.last is not None and self.last.confidence >= self.min_confidence) else None
-        if due or prior is None:
-            cue = shadow_direction(color_linear, depth, intrinsics, planes, anchor_T_cam_obj, params=self.params)
+        if self._last_full_s is None or t_s - self._last_full_s >= self.full_every_s:
+            self.last = shadow_direction(color_linear, depth, intrinsics, planes, anchor_T_cam_obj, params=self.params)
             self._last_full_s = t_s
-        else:
-            cue = shadow_direction(color_linear, depth, intrinsics, planes, anchor_T_cam_obj, params=self.params,
-                                   prior=prior)
-        self.last = cue
-        return cue
+            self.full_searches += 1
+        elif self.last is not None and self.last.confidence >= self.min_confidence:
+            self.last = shadow_direction(color_linear, depth, intrinsics, planes, anchor_T_cam_obj, params=self.params,
+                                         prior=self.last)
+            self.local_refines += 1
+        return self.last
