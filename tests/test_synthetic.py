@@ -41,6 +41,7 @@ def test_registered_and_reads_until_end():
         ("synthetic://indoor?table=2", "table='2': expected 0/1"),
         ("synthetic://indoor?size=16x16", "size='16x16': expected WIDTHxHEIGHT with sides in 32..4096"),
         ("synthetic://indoor?frames=0", "frames='0': expected an integer in 1..10000000"),
+        ("synthetic://outdoor?boxes=13", "boxes='13': expected an integer in 0..12"),
     ],
 )
 def test_bad_urls_say_what_is_wrong(url, match):
@@ -207,6 +208,34 @@ def test_table_never_hides_the_object():
             u, v = int(K.fx * x[0] / x[2] + K.cx), int(K.fy * x[1] / x[2] + K.cy)
             idx = src._renderer.geometry(sc.poses[i])[0].reshape(K.height, K.width)
             assert sc.planes[idx[v, u]].label == "floor", (seed, i)
+
+
+def test_clutter_boxes_stand_in_view_cast_shadows_and_never_hide_the_object():
+    plain = open_url("synthetic://outdoor?seed=5&frames=1&size=160x100").scene
+    src = open_url("synthetic://outdoor?seed=5&frames=1&size=160x100&boxes=3")
+    sc = src.scene
+    boxes = sc.info["boxes"]
+    assert len(boxes) == 3
+    # the rest of the scene is the same as without clutter
+    np.testing.assert_array_equal(sc.lights.positions, plain.lights.positions)
+    np.testing.assert_array_equal(sc.poses[0], plain.poses[0])
+    assert [p.label for p in sc.planes].count("box") == 15 and len(sc.occluders) == len(plain.occluders) + 15
+    src.open()
+    K = sc.intrinsics
+    idx = src._renderer.geometry(sc.poses[0])[0].reshape(K.height, K.width)
+    T = sc.default_anchor(0)
+    x = T[:3, 3]
+    assert sc.planes[idx[int(K.fy * x[1] / x[2] + K.cy), int(K.fx * x[0] / x[2] + K.cx)]].label == "ground"
+    assert sum(sc.planes[i].label == "box" for i in np.unique(idx[idx >= 0])) >= 3  # faces in view
+    # each box shadows the ground just beside it, on the side away from the sun
+    sun = sc.lights.positions[0] / np.linalg.norm(sc.lights.positions[0])
+    away = -sun[[0, 2]] / np.linalg.norm(sun[[0, 2]])
+    for lo, hi in boxes:
+        c = (np.asarray(lo)[[0, 2]] + np.asarray(hi)[[0, 2]]) / 2
+        r = np.max(np.asarray(hi)[[0, 2]] - np.asarray(lo)[[0, 2]]) / 2 + 0.02
+        behind = np.array([[c[0] + r * away[0], 0.0, c[1] + r * away[1]]])
+        front = np.array([[c[0] - 2 * r * away[0], 0.0, c[1] - 2 * r * away[1]]])
+        assert sc.occlusion(behind)[0, 0] == 0 and sc.occlusion(front)[0, 0] == 1
 
 
 def test_hard_shadow_edges_are_exact_at_the_pixel():

@@ -1,7 +1,7 @@
 """``synthetic://`` — a simulated RGB-D camera in a lit scene, with ground truth for evaluation.
 
 URL
-    ``synthetic://SCENE?seed=N&size=WxH&frames=N&path=static|orbit[&hdr=PATH][&table=0|1][&lights=N]``
+    ``synthetic://SCENE?seed=N&size=WxH&frames=N&path=static|orbit[&hdr=PATH][&table=0|1][&lights=N][&bounce=N][&boxes=N]``
     (``width=W&height=H`` is accepted for ``size``)
 
     SCENE
@@ -20,6 +20,8 @@ URL
     frames    frames before the end of the stream (default 60)
     path      ``static`` (default: a fixed camera, frames differ only by noise) or ``orbit``
               (the camera swings +-25 deg around the object and bobs 5 cm, one period per run)
+    boxes     ``N`` boxes (0-12; default 2-4 in ``cluttered``, else 0) standing on the floor 0.5-1.8 m around the object, in view,
+              never hiding it: real objects casting shadows (``scene.info["boxes"]`` lists them)
 
 What a frame holds
     ``color``: the scene's radiance (Lambertian, direct light only: ``albedo * E / pi``), times the

@@ -39,7 +39,7 @@ class SyntheticPlane:
     """
 
     name: str
-    label: str  # "floor", "wall", "ceiling", "table", "ground"
+    label: str  # "floor", "wall", "ceiling", "table", "ground", "box" (a face of a clutter box)
     axis: int
     coord: float
     sign: float
@@ -494,55 +494,16 @@ def _cluttered_lights(rng, n_lights):
     return key.scaled(rng.uniform(10, 40) / e0).concatenated(ambient), lo, hi
 
 
-def _add_boxes(rng, room, positions, poses, planes, occluders, info, n_boxes) -> None:
-    """``n_boxes`` solid boxes (crates, cabinets: 0.25-0.6 m wide, 0.2-0.9 m high) on the floor
-    0.25-1.3 m from the object: they shadow the floor and, from some lights, the object. None hides
-    the object from the camera, overlaps another or stands under the table."""
-    lo, hi = room
-    eyes = np.array([T[:3, 3] for T in poses[:: max(1, len(poses) // 8)]])
-    targets = np.concatenate([positions + [0, 0.01, 0], positions + [0, 0.26, 0]])
-    table = info.get("table_centre")
-    placed: list[BoxOccluder] = []
-    kinds = ("wood", "paint", "tabletop")
-    for _ in range(200):
-        if len(placed) >= n_boxes:
-            break
-        w, d, h = rng.uniform(0.25, 0.6), rng.uniform(0.25, 0.6), rng.uniform(0.2, 0.9)
-        r, a = rng.uniform(0.25, 1.3), rng.uniform(0, 2 * np.pi)
-        c = positions[0][[0, 2]] + (r + max(w, d) / 2) * np.array([np.cos(a), np.sin(a)])
-        box = BoxOccluder(np.array([c[0] - w / 2, 0.0, c[1] - d / 2]), np.array([c[0] + w / 2, h, c[1] + d / 2]))
-        if np.any(box.lo[[0, 2]] < lo[[0, 2]] + 0.2) or np.any(box.hi[[0, 2]] > hi[[0, 2]] - 0.2):
-            continue
-        gap = np.maximum(box.lo[[0, 2]] - positions[:, [0, 2]], positions[:, [0, 2]] - box.hi[[0, 2]]).max(axis=1)
-        if np.any(gap < 0.2):  # keep 20 cm from every object position
-            continue
-        if any(np.all(box.lo[[0, 2]] < b.hi[[0, 2]] + 0.05) and np.all(b.lo[[0, 2]] < box.hi[[0, 2]] + 0.05) for b in placed):
-            continue
-        if table is not None and np.all(np.abs(c - np.asarray(table)) < np.array([0.6 + w / 2, 0.4 + d / 2])):
-            continue
-        if box.blocks(eyes[:, None, :], targets[None, :, :]).any() or np.any(np.all((eyes > box.lo) & (eyes < box.hi), axis=1)):
-            continue
-        placed.append(box)
-    for k, box in enumerate(placed):
-        tile = make_albedo_tile(kinds[k % len(kinds)], rng)
-        blo, bhi = box.lo, box.hi
-        planes.append(SyntheticPlane(f"box{k}_top", "box", 1, bhi[1], +1.0, (0, 2), blo[[0, 2]], bhi[[0, 2]], *tile))
-        for axis, side in ((0, 0), (0, 1), (2, 0), (2, 1)):
-            others = (1, 2) if axis == 0 else (0, 1)
-            coord = blo[axis] if side == 0 else bhi[axis]
-            planes.append(SyntheticPlane(f"box{k}_{'xz'[axis // 2]}{side}", "box", axis, coord,
-                                         -1.0 if side == 0 else +1.0, others, blo[list(others)], bhi[list(others)], *tile))
-        occluders.append(box)
-    info["boxes"] = [[b.lo.tolist(), b.hi.tolist()] for b in placed]
-
-
 def build_scene(kind: str, seed: int, size: tuple[int, int] = (640, 400), frames: int = 60,
                 path: str = "static", hdr: str | None = None, table: bool | None = None,
                 n_lights: int = 32, bounce: int = DEFAULT_BOUNCES, boxes: int | None = None) -> SyntheticScene:
     """Create a synthetic scene (deterministic in ``seed``); see the module docstring for kinds.
 
-    ``bounce`` diffuse inter-reflections are baked (0 = direct light only); ``boxes`` solid boxes
-    stand around the object (default: 2-4 in ``cluttered``, none elsewhere; rooms only)."""
+    ``bounce`` diffuse inter-reflections are baked (0 = direct light only). ``boxes`` closed boxes stand
+    on the floor around the object (:func:`_add_boxes`): real objects that cast shadows onto the floor
+    and, from some lights, onto the object (default: 2-4 in ``cluttered``, none elsewhere). They come
+    from their own random stream, so the rest of the scene is the same with and without them.
+    """
     if kind not in SCENES:
         raise SyntheticError(f"synthetic scene must be one of {', '.join(SCENES)}, got {kind!r}")
     if path not in PATHS:
@@ -590,9 +551,8 @@ def build_scene(kind: str, seed: int, size: tuple[int, int] = (640, 400), frames
     poses = _camera_poses(rng, kind, positions[0], frames, path, room)
     if room is not None and use_table:
         _add_table(rng, room, positions, poses, planes, occluders, info)
-    n_boxes = (int(rng.integers(2, 5)) if kind == "cluttered" else 0) if boxes is None else int(boxes)
-    if room is not None and n_boxes > 0:
-        _add_boxes(rng, room, positions, poses, planes, occluders, info, n_boxes)
+    box_rng = np.random.default_rng([seed, SCENES.index(kind), 17])  # the boxes' own stream
+    n_boxes = (int(box_rng.integers(2, 5)) if kind == "cluttered" else 0) if boxes is None else int(boxes)
     if kind == "outdoor":
         # put the facade behind the object as seen from the camera, facing the camera
         cam = poses[0][:3, 3]
@@ -607,6 +567,8 @@ def build_scene(kind: str, seed: int, size: tuple[int, int] = (640, 400), frames
         planes.append(SyntheticPlane("facade", "wall", axis, coord, sign, others, lo2, hi2,
                                      *make_albedo_tile("brick", rng)))
         occluders.append(Occluder(axis, coord, others, lo2, hi2))
+    if n_boxes > 0:
+        _add_boxes(box_rng, n_boxes, intr, room, positions, poses, planes, occluders, info)
     scene = SyntheticScene(kind, seed, lights, planes, occluders, positions, intr, poses, sky, room, hdr, info)
     scene.bake(bounce)
     return scene
@@ -633,6 +595,57 @@ def _add_table(rng, room, positions, poses, planes, occluders, info) -> None:
                                  *make_albedo_tile("tabletop", rng)))
     occluders.append(occ)
     info["table_centre"] = c.tolist()
+
+
+def _add_boxes(rng, n, intr, room, positions, poses, planes, occluders, info) -> None:
+    """``n`` closed boxes standing on the floor (15-50 cm wide, 15-70 cm high), 0.5-1.8 m from the
+    first object position, in view of the first camera, apart from each other and from the object,
+    and never hiding an object from the camera along the path. Each box is five rectangles (top and
+    four sides, facing out) that are drawn, and one :class:`BoxOccluder` that blocks light.
+    ``info["boxes"]`` lists (lo, hi) corners;
+    fewer than ``n`` when no place is found."""
+    eyes = np.array([T[:3, 3] for T in poses[:: max(1, len(poses) // 8)]])
+    targets = np.concatenate([positions + [0, 0.01, 0], positions + [0, 0.26, 0]])
+    T_cw = invert(poses[0])
+    kinds = ("paint", "tabletop", "wood", "concrete")
+    boxes: list[tuple[np.ndarray, np.ndarray]] = []
+    for _ in range(200 * n):
+        if len(boxes) == n:
+            break
+        half = rng.uniform(0.075, 0.25, 2)
+        h = rng.uniform(0.15, 0.7)
+        r, a = rng.uniform(0.5, 1.8), rng.uniform(0, 2 * np.pi)
+        c = positions[0, [0, 2]] + r * np.array([np.cos(a), np.sin(a)])
+        lo, hi = np.array([c[0] - half[0], 0.0, c[1] - half[1]]), np.array([c[0] + half[0], h, c[1] + half[1]])
+        if room is not None and (np.any(lo[[0, 2]] < room[0][[0, 2]] + 0.2) or np.any(hi[[0, 2]] > room[1][[0, 2]] - 0.2)):
+            continue
+        # clear of the objects (30 cm) and of the other boxes (10 cm)
+        if np.any(np.max(np.abs(c - positions[:, [0, 2]]) - half, axis=1) < 0.3):
+            continue
+        if any(np.all(lo[[0, 2]] < h2[[0, 2]] + 0.1) and np.all(hi[[0, 2]] > l2[[0, 2]] - 0.1) for l2, h2 in boxes):
+            continue
+        # in view of the first camera: its top centre projects inside the picture
+        pc = T_cw[:3, :3] @ np.array([c[0], h, c[1]]) + T_cw[:3, 3]
+        if pc[2] <= 0.4 or not (0 <= intr.fx * pc[0] / pc[2] + intr.cx < intr.width
+                                and 0 <= intr.fy * pc[1] / pc[2] + intr.cy < intr.height):
+            continue
+        faces = _box_faces(lo, hi)
+        if any(f.blocks(eyes[:, None, :], targets[None, :, :]).any() for f in faces):
+            continue
+        boxes.append((lo, hi))
+        tile = make_albedo_tile(kinds[int(rng.integers(len(kinds)))], rng)
+        for k, f in enumerate(faces):
+            planes.append(SyntheticPlane(f"box{len(boxes) - 1}_{k}", "box", f.axis, f.coord, -1.0 if k % 2 else 1.0,
+                                         f.axes, f.lo, f.hi, *tile))
+        occluders.append(BoxOccluder(lo, hi))  # one solid: a slab test instead of five faces
+    info["boxes"] = [(lo.tolist(), hi.tolist()) for lo, hi in boxes]
+
+
+def _box_faces(lo: np.ndarray, hi: np.ndarray) -> list[Occluder]:
+    """The five faces of a box on the floor: top, then -x, +x, -z, +z sides (outward sign: +, -, +, -, +)."""
+    return [Occluder(1, hi[1], (0, 2), lo[[0, 2]], hi[[0, 2]]),
+            Occluder(0, lo[0], (1, 2), lo[[1, 2]], hi[[1, 2]]), Occluder(0, hi[0], (1, 2), lo[[1, 2]], hi[[1, 2]]),
+            Occluder(2, lo[2], (0, 1), lo[[0, 1]], hi[[0, 1]]), Occluder(2, hi[2], (0, 1), lo[[0, 1]], hi[[0, 1]])]
 
 
 def _bake_irradiance(scene: SyntheticScene, p: SyntheticPlane, poses) -> None:

@@ -339,7 +339,7 @@ def _stereo_depth(z: np.ndarray, fx: float, rng: np.random.Generator, bank: np.n
 _PARAMS = {
     "seed": query_int(0, 2**31 - 1), "size": query_size(32, 4096), "width": query_int(32, 4096),
     "height": query_int(32, 4096), "frames": query_int(1, 10_000_000), "path": query_choice(*PATHS), "hdr": str,
-    "table": query_bool, "lights": query_int(1, 1024), "bounce": query_int(0, MAX_BOUNCES), "boxes": query_int(0, 8),
+    "table": query_bool, "lights": query_int(1, 1024), "bounce": query_int(0, MAX_BOUNCES), "boxes": query_int(0, 12),
 }
 
 
@@ -351,8 +351,6 @@ def open_url(url: str, config=None) -> SyntheticSource:
     kind = (parts.netloc or parts.path.strip("/")) or "indoor"
     q = parse_query(url, _PARAMS, error=SyntheticError)
     boxes = q.get("boxes")
-    if boxes is not None and kind == "outdoor":
-        raise SyntheticError(f"{url!r}: boxes= applies to the room scenes only (not outdoor)")
     hdr = q.get("hdr")
     if hdr is not None and kind != "outdoor":
         raise SyntheticError(f"{url!r}: hdr= applies to the outdoor scene only")

@@ -26,6 +26,7 @@ BENCHES: dict[str, str] = {
     "light": "the per-frame lighting estimate (one estimate, and per frame at [light] rate_hz)",
     "stereo": "host stereo depth (SGBM + WLS) per 640x400 pair",
     "demo": "the whole demo pipeline end to end, per-stage timing and peak memory",
+    "shadows": "light direction from real shadows: accuracy on synthetic box scenes, full search and local refine",
 }
 
 
