@@ -160,4 +160,4 @@ def test_cluttered_scene_has_boxes_that_shadow_the_floor_and_never_hide_the_obje
     key = L.PointLights(sc.lights.positions[:1], sc.lights.intensities[:1])
     assert (sc.occlusion(pts, key) == 0).mean() > 0.005
     with pytest.raises(SyntheticError, match="boxes"):
-        open_url("synthetic://outdoor?boxes=2")
+        open_url("synthetic://indoor?boxes=13")

@@ -62,7 +62,7 @@ def test_every_suite_and_column_is_reported(ci_run, capsys):
         # the chain's default shading (PRT lit by the light estimate) is not the learned transfer
         assert res["ours"]["mae"] != pytest.approx(res["model"]["mae"])
         # without temporal smoothing the estimate moves more from frame to frame
-        assert res["nosmooth"]["flicker"] >= res["ours"]["flicker"]
+        assert res["nosmooth"]["flicker"] >= res["ours"]["flicker"] - 1e-6
 
 
 def test_an_oracle_is_never_worse_than_its_fitted_baseline(ci_run):

@@ -219,7 +219,7 @@ def test_clutter_boxes_stand_in_view_cast_shadows_and_never_hide_the_object():
     # the rest of the scene is the same as without clutter
     np.testing.assert_array_equal(sc.lights.positions, plain.lights.positions)
     np.testing.assert_array_equal(sc.poses[0], plain.poses[0])
-    assert [p.label for p in sc.planes].count("box") == 15 and len(sc.occluders) == len(plain.occluders) + 15
+    assert [p.label for p in sc.planes].count("box") == 15 and len(sc.occluders) == len(plain.occluders) + 3
     src.open()
     K = sc.intrinsics
     idx = src._renderer.geometry(sc.poses[0])[0].reshape(K.height, K.width)
