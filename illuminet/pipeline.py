@@ -11,7 +11,7 @@ import importlib.util
 from typing import Any, Callable
 
 from illuminet.runtime.config import Config, ConfigError
-from illuminet.runtime.stream.sinks import PngSequenceSink, SessionRecorderSink, VideoSink
+from illuminet.runtime.stream.sinks import EstimateSink, PngSequenceSink, SessionRecorderSink, VideoSink
 from illuminet.runtime.stage import Sink, Stage
 
 
@@ -71,7 +71,10 @@ def build_sinks(
         ``output.png_dir`` -> :class:`~illuminet.runtime.stream.sinks.PngSequenceSink`,
         ``output.record`` -> :class:`~illuminet.runtime.stream.sinks.SessionRecorderSink`
         (``record_color``, ``record_jpeg_quality``, ``record_fsync``),
-        ``output.mjpeg`` -> ``illuminet.runtime.stream.mjpeg.MjpegSink`` on ``listen``:``port``.
+        ``output.estimates`` -> :class:`~illuminet.runtime.stream.sinks.EstimateSink` (JSONL),
+        ``output.mjpeg`` -> ``illuminet.runtime.stream.mjpeg.MjpegSink`` on ``listen``:``port``
+        (its ``/viewer`` draws ``output.viewer_model``, default the ``[model] bundle``'s built-in
+        object, else ``builtin:vase``).
     stats : callable, optional
         Returns live loop figures (``LoopStats.snapshot``) for the MJPEG status page.
     source_url : str, optional
@@ -95,12 +98,20 @@ def build_sinks(
         sinks.append(VideoSink(out.video, fps=out.fps))
     if out.png_dir:
         sinks.append(PngSequenceSink(out.png_dir))
+    if out.estimates:
+        sinks.append(EstimateSink(out.estimates))
     if out.mjpeg:
         if importlib.util.find_spec("illuminet.runtime.stream.mjpeg") is None:
             raise ConfigError("[output] mjpeg = true, but this build has no MJPEG server (illuminet.runtime.stream.mjpeg)")
         from illuminet.runtime.stream.mjpeg import MjpegSink
 
-        sinks.append(MjpegSink(out.listen, out.port, stats=stats))
+        bundle = str(cfg.model.bundle)
+        model = out.viewer_model or (bundle if bundle.startswith("builtin:") else "builtin:vase")
+        try:
+            sinks.append(MjpegSink(out.listen, out.port, stats=stats, viewer_model=model,
+                                   object_scale=cfg.render.object_scale))
+        except ValueError as e:  # the viewer model: a one-line message naming the key
+            raise ConfigError(str(e)) from None
     return sinks
 
 
