@@ -110,4 +110,5 @@ def model_glb(spec: str, scale: float = 1.0) -> bytes:
         a = float(DEFAULT_ALBEDO)
         mesh.visual = trimesh.visual.TextureVisuals(material=trimesh.visual.material.PBRMaterial(
             baseColorFactor=np.array([a, a, a, 1.0]), metallicFactor=0.0, roughnessFactor=0.9))
-    return trimesh.Scene(mesh).export(file_type="glb")
+    # with normals: without them glTF viewers shade flat (faceted)
+    return trimesh.exchange.gltf.export_glb(trimesh.Scene(mesh), include_normals=True)

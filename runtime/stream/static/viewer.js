@@ -49,7 +49,7 @@ renderer.outputColorSpace = THREE.SRGBColorSpace;
 renderer.toneMapping = tonemap;
 renderer.toneMappingExposure = exposure;
 renderer.shadowMap.enabled = true;
-renderer.shadowMap.type = THREE.PCFSoftShadowMap;
+renderer.shadowMap.type = THREE.PCFShadowMap;  // (PCFSoftShadowMap was removed in r18x)
 stage.appendChild(renderer.domElement);
 
 const scene = new THREE.Scene();
