@@ -8,6 +8,7 @@ import json
 import threading
 import time
 
+import cv2
 import jsonschema
 import numpy as np
 import pytest
@@ -252,3 +253,94 @@ def test_frame_estimate_is_none_without_a_light_result():
     f = frames(1)[0]
     assert frame_estimate(f) is None
     assert frame_estimate(_with_light(f))["frameId"] == f.seq
+
+
+def test_pages_static_files_and_model_are_served_and_traversal_is_refused():
+    with MjpegSink(port=0, viewer_model="builtin:bowl") as sink:
+        status, head, body = _get(sink.port, "/viewer")
+        assert status == 200 and head["content-type"].startswith("text/html")
+        assert b'"three": "/static/three/three.module.js"' in body and b"/static/viewer.js" in body
+        for rel in ("viewer.js", "three/three.module.js", "three/three.core.js", "three/addons/loaders/GLTFLoader.js",
+                    "three/addons/controls/OrbitControls.js", "three/LICENSE", "three/VERSION"):
+            status, head, body = _get(sink.port, "/static/" + rel)
+            assert status == 200 and len(body) > 100, rel
+            if rel.endswith(".js"):
+                assert head["content-type"].startswith("text/javascript"), rel
+        for bad in ("/static/../mjpeg.py", "/static/three/../../viewer.py", "/static/%2e%2e/mjpeg.py",
+                    "/static/.hidden", "/static//etc/passwd"):
+            assert _get(sink.port, bad)[0] == 404, bad
+        status, head, body = _get(sink.port, "/model.glb")
+        assert status == 200 and head["content-type"] == "model/gltf-binary" and body[:4] == b"glTF"
+        import io
+
+        import trimesh
+
+        scene = trimesh.load(io.BytesIO(body), file_type="glb")
+        lo, hi = scene.bounds
+        assert abs(lo[1]) < 1e-6 and 0.05 < hi[1] < 0.5  # standing on y = 0, +Y up, metres
+        # smooth normals are in the file (without them glTF viewers shade flat)
+        n = int.from_bytes(body[12:16], "little")
+        gltf = json.loads(body[20:20 + n])
+        assert "NORMAL" in gltf["meshes"][0]["primitives"][0]["attributes"]
+
+
+def test_camera_stream_is_the_picture_without_the_object():
+    f = frames(1, w=160, h=120)[0]
+    comp = np.zeros_like(f.color)
+    comp[..., 2] = 255
+    with MjpegSink(port=0) as sink:
+        sink.write(f.with_result("composite", comp))
+        out = {}
+        for src in ("composite", "camera"):
+            conn = http.client.HTTPConnection("127.0.0.1", sink.port, timeout=5)
+            conn.request("GET", "/stream.mjpg" + ("?source=camera" if src == "camera" else ""))
+            r = conn.getresponse()
+            assert r.status == 200
+            data = b""
+            while data.count(b"\xff\xd9") < 1:
+                data += r.fp.read1(65536)
+            jpg = data[data.index(b"\xff\xd8"):data.index(b"\xff\xd9") + 2]
+            out[src] = cv2.imdecode(np.frombuffer(jpg, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
+            conn.close()
+        assert _get(sink.port, "/stream.mjpg?source=nope")[0] == 400
+    assert out["composite"][..., 2].mean() > 240
+    assert np.abs(out["camera"].astype(int) - f.color.astype(int)).mean() < 8
+
+
+def test_bad_viewer_model_is_refused_before_the_server_starts(tmp_path):
+    with pytest.raises(ValueError, match="no such file"):
+        MjpegSink(port=0, viewer_model=str(tmp_path / "nope.glb"))
+    (tmp_path / "m.fbx").write_bytes(b"x")
+    with pytest.raises(ValueError, match="unknown mesh format '.fbx'"):
+        MjpegSink(port=0, viewer_model=str(tmp_path / "m.fbx"))
+    with pytest.raises(ValueError, match="unknown built-in object"):
+        MjpegSink(port=0, viewer_model="builtin:teapot")
+
+
+@pytest.mark.gl
+def test_replay_reproduces_the_recorded_estimates(tmp_path, gl, capsys):
+    """run --record --estimates on the default session, then replay the recording: the estimates of the
+    JSONL file, the session's sidecar and the replay agree exactly (timestamps on the host aside)."""
+    from illuminet.cli import main
+    from illuminet.commands.demo import DEFAULT_SESSION
+
+    src = f"replay://{DEFAULT_SESSION}?timing=asap"
+    rc = main(["--log-level", "warning", "--set", "output.record_fsync=false", "run", src, "--max-frames", "6",
+               "--record", str(tmp_path / "rec"), "--estimates", str(tmp_path / "live.jsonl")])
+    assert rc == 0, capsys.readouterr()
+    rc = main(["--log-level", "warning", "replay", str(tmp_path / "rec"), "--timing", "asap",
+               "--estimates", str(tmp_path / "replay.jsonl")])
+    assert rc == 0, capsys.readouterr()
+
+    def load(path):
+        out = [json.loads(x) for x in path.read_text().splitlines()]
+        return [dict(d, timestampNs=d["timestampNs"]["device"]) for d in out]
+
+    live, again = load(tmp_path / "live.jsonl"), load(tmp_path / "replay.jsonl")
+    sidecar = SessionReader(tmp_path / "rec").estimates()
+    assert len(live) == 6 and [d["frameId"] for d in live] == list(range(6))
+    assert again == live
+    assert [dict(sidecar[i], timestampNs=sidecar[i]["timestampNs"]["device"]) for i in range(6)] == live
+    capsys.readouterr()
+    assert main(["replay", str(tmp_path / "rec"), "--check"]) == 0
+    assert "lighting estimates: 6 of 6 frames (estimates.jsonl)" in capsys.readouterr().out
