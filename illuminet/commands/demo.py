@@ -365,14 +365,20 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
         return 1
     print(f"demo: source {url}")
     rc = 0
+    from illuminet.progress import StatusLine
+
+    status = StatusLine()  # a live line on a terminal; nothing when piped
     try:
-        run_loop(source, stages, sinks, strict=cfg.logging.strict, max_frames=frames, stats=stats)
+        run_loop(source, stages, sinks, strict=cfg.logging.strict, max_frames=frames, stats=stats,
+                 on_stats=status.update, stats_interval_s=0.5)
     except (SourceError, SinkError, OSError) as e:
+        status.close()
         if cfg.logging.strict:
             raise
         print(f"illuminet demo: {e}", file=sys.stderr)
         rc = 1
     finally:
+        status.close()
         print(stats.format_stats())
         for st in stages:
             s = st.stats()

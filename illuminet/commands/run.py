@@ -4,7 +4,9 @@ All three run the streaming loop (:func:`illuminet.runtime.stream.loop.run_loop`
 and the stages: ``run`` and ``replay`` process frames through the configured pipeline
 (:func:`illuminet.pipeline.build_stages`), ``record`` only records the input. Command-line flags
 override the configuration file (they are applied as ``--set`` overrides, so they are validated the
-same way). At the end the per-step timing table is printed; ``--stats-json`` writes it as JSON.
+same way). On a terminal a live status line shows frames, fps, drops and failures
+(:class:`illuminet.progress.StatusLine`; nothing when piped). At the end the per-step timing table
+is printed; ``--stats-json`` writes it as JSON.
 
 Exit codes: 0 done (also after Ctrl-C / SIGTERM, outputs finalised), 1 the source or an output failed,
 2 configuration error.
@@ -18,6 +20,7 @@ import sys
 from pathlib import Path
 from urllib.parse import quote
 
+from illuminet.progress import StatusLine
 from illuminet.runtime.config import Config, ConfigError, apply_overrides
 from illuminet.runtime.stream.loop import LoopStats, run_loop
 from illuminet.runtime.stream.session import SessionError, SessionReader
@@ -149,17 +152,22 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
         print(f"illuminet: source {url!r} is not available in this build ({e})", file=sys.stderr)
         return 1
     rc = 0
+    status = StatusLine()  # a live line on a terminal; nothing when piped
     try:
-        run_loop(source, stages, sinks, strict=cfg.logging.strict, max_frames=cfg.source.max_frames, stats=stats)
+        run_loop(source, stages, sinks, strict=cfg.logging.strict, max_frames=cfg.source.max_frames, stats=stats,
+                 on_stats=status.update, stats_interval_s=0.5)
     except (SourceError, SinkError, SessionError) as e:  # these messages say it all; no traceback
+        status.close()
         print(f"illuminet: {e}", file=sys.stderr)
         rc = 1
     except OSError as e:
+        status.close()
         if cfg.logging.strict:  # strict: the traceback, as for any failure
             raise
         print(f"illuminet: {e}", file=sys.stderr)
         rc = 1
     finally:
+        status.close()
         if stats.frames or stats.end_reason:
             print(stats.format_stats())
         if cfg.logging.stats_json:
