@@ -15,7 +15,7 @@ import pytest
 
 from illuminet.runtime.frame import Frame, Intrinsics
 from illuminet.runtime.scene import LIGHT, LightEstimate
-from illuminet.runtime.sh import SH_A_HAT, sh9
+from illuminet.runtime.sh import sh9
 from illuminet.runtime.stream.estimate_json import (
     estimate_dict, estimate_from_dict, frame_estimate, load_schema, to_line,
 )
