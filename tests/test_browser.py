@@ -28,15 +28,20 @@ pytestmark = pytest.mark.browser
 class _Feeder:
     """Writes frames carrying a fixed-shape lighting estimate into the sink, like the loop does.
 
-    ``direction`` (unit vector towards the light, anchor frame) may be changed while it runs.
+    ``direction`` (unit vector towards the light, anchor frame) may be changed while it runs;
+    ``T_cam_obj`` is the anchor pose the estimates carry; ``grey`` makes the camera picture uniform.
     """
 
-    def __init__(self, sink: MjpegSink, direction=(-1.0, 0.6, 0.2), period: float = 0.03):
+    def __init__(self, sink: MjpegSink, direction=(-1.0, 0.6, 0.2), period: float = 0.03,
+                 T_cam_obj=None, grey: int | None = None):
         self.sink, self.period = sink, period
         self.direction = np.asarray(direction, float)
+        self.T = np.eye(4) if T_cam_obj is None else np.asarray(T_cam_obj, float)
         self.stop = threading.Event()
         self.t = threading.Thread(target=self._run, daemon=True)
         self.frame = frames(1, w=320, h=240)[0]
+        if grey is not None:
+            self.frame = self.frame.replace(color=np.full_like(self.frame.color, grey))
 
     def _run(self):
         i = 0
@@ -45,7 +50,7 @@ class _Feeder:
         while not self.stop.is_set():
             d = self.direction / np.linalg.norm(self.direction)
             est = LightEstimate(sh9=sh, primary_dir=d, primary_rgb=np.array([3.0, 2.9, 2.7]), exposure_scale=1.0,
-                                T_cam_obj=np.eye(4), method="test")
+                                T_cam_obj=self.T, method="test")
             f = self.frame.replace(seq=i, t_device_ns=(i + 1) * 33_000_000)
             self.sink.write(f.with_result(LIGHT, est))
             i += 1
@@ -107,6 +112,34 @@ def test_viewer_rendering_follows_the_light_from_left_to_right(page):
     assert a > 1.2 and b < 1 / 1.2, (a, b)
     assert np.abs(left_lit - right_lit).mean() > 3.0
     assert state["errors"] == [] and page.problems == []
+
+
+def test_viewer_over_the_camera_picture_draws_the_model_where_the_anchor_projects(page):
+    """?background=1: the camera stream behind, the model drawn from the camera's pose and intrinsics."""
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, -1.0])  # object +Y up = camera -Y; the camera looks at the object
+    T[:3, 3] = [0.15, 0.12, 1.2]  # the anchor: right of and below the image centre, 1.2 m away
+    with MjpegSink(port=0) as sink, _Feeder(sink, direction=(0.0, 1.0, 0.3), T_cam_obj=T, grey=40) as feeder:
+        page.goto(f"http://127.0.0.1:{sink.port}/viewer?background=1&ui=0")
+        page.wait_for_function("window.illuminetViewer && illuminetViewer.modelLoaded && illuminetViewer.estimates >= 3"
+                               " && document.querySelector('#stage img').naturalWidth === 320", timeout=20000)
+        n = page.evaluate("illuminetViewer.rendered")
+        page.wait_for_function(f"illuminetViewer.rendered > {n + 2}")
+        img = _shot(page)
+        K = feeder.frame.intrinsics
+    # the page is the picture's size (320x240 viewport, same aspect): pixels map 1:1
+    def project(p):
+        x = T[:3, :3] @ p + T[:3, 3]
+        return K.fx * x[0] / x[2] + K.cx, K.fy * x[1] / x[2] + K.cy
+    u, v = project(np.array([0.0, 0.12, 0.0]))  # the vase's middle (0.26 m tall)
+    assert img[int(v), int(u)] > 100  # the lit white vase over the dark grey picture
+    bright = img > 100
+    ys, xs = np.nonzero(bright)
+    assert abs(np.median(xs) - u) < 12 and abs(np.median(ys) - v) < 25
+    u0, v0 = project(np.zeros(3))
+    assert ys.max() <= v0 + 4  # it stands on the anchor: nothing of it below its base
+    assert 35 < img[5:40, 5:40].mean() < 45  # elsewhere: the camera picture (grey 40), shown through
+    assert page.problems == []
 
 
 def test_viewer_receives_the_pipelines_estimates(page, tmp_path):

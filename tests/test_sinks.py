@@ -231,3 +231,17 @@ def test_mjpeg_status_page_shows_the_loop_snapshot(tmp_path):
     start = head.index(b"\xff\xd8")
     jpg = cv2.imdecode(np.frombuffer(head[start:head.index(b"\xff\xd9", start) + 2], np.uint8), cv2.IMREAD_COLOR)
     assert jpg.shape == (H, W, 3)
+
+
+def test_build_sinks_estimates_and_viewer_model(tmp_path):
+    from illuminet.runtime.stream.mjpeg import MjpegSink
+    from illuminet.runtime.stream.sinks import EstimateSink
+
+    cfg = apply_overrides(defaults(), [("output", "estimates", str(tmp_path / "e.jsonl")), ("output", "mjpeg", True),
+                                       ("output", "port", 0)])
+    est, mj = build_sinks(cfg)
+    assert isinstance(est, EstimateSink) and est.path == str(tmp_path / "e.jsonl")
+    assert isinstance(mj, MjpegSink) and mj.viewer_model == "builtin:vase"  # the [model] bundle's object
+    bad = apply_overrides(cfg, [("output", "viewer_model", str(tmp_path / "nope.glb"))])
+    with pytest.raises(ConfigError, match=r"\[output\] viewer_model = .*nope.glb.*no such file"):
+        build_sinks(bad)
