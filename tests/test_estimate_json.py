@@ -344,3 +344,10 @@ def test_replay_reproduces_the_recorded_estimates(tmp_path, gl, capsys):
     capsys.readouterr()
     assert main(["replay", str(tmp_path / "rec"), "--check"]) == 0
     assert "lighting estimates: 6 of 6 frames (estimates.jsonl)" in capsys.readouterr().out
+
+
+def test_record_refuses_estimates_it_cannot_make(tmp_path, capsys):
+    from illuminet.cli import main
+
+    assert main(["record", "synthetic://indoor", str(tmp_path / "r"), "--estimates", str(tmp_path / "e.jsonl")]) == 2
+    assert "use `illuminet run SOURCE --record OUT --estimates FILE`" in capsys.readouterr().err
