@@ -78,10 +78,12 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         print(f"illuminet: configuration error: {e}", file=sys.stderr)
         return 2
-    logging.basicConfig(
-        level=getattr(logging, cfg.logging.level.upper()),
-        format="%(asctime)s %(levelname).1s %(name)s: %(message)s",
-    )
+    level = getattr(logging, cfg.logging.level.upper())
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname).1s %(name)s: %(message)s")
+    if level > logging.DEBUG:
+        # JAX probes for a TPU on every machine and logs "Unable to initialize backend 'tpu': ...
+        # libtpu.so" at INFO: it says only that JAX runs on the CPU, as this project's JAX does
+        logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)
     try:
         return int(args.func(args, cfg) or 0)
     except ConfigError as e:

@@ -11,8 +11,8 @@ from collections.abc import Callable
 from typing import Any
 
 from illuminet.runtime.config import Config, ConfigError
+from illuminet.runtime.stream.sinks import EstimateSink, PngSequenceSink, SessionRecorderSink, VideoSink
 from illuminet.runtime.stage import Sink, Stage
-from illuminet.runtime.stream.sinks import PngSequenceSink, SessionRecorderSink, VideoSink
 
 
 def build_stages(cfg: Config, *, render: bool = True) -> list[Stage]:
@@ -70,7 +70,10 @@ def build_sinks(
         ``output.png_dir`` -> :class:`~illuminet.runtime.stream.sinks.PngSequenceSink`,
         ``output.record`` -> :class:`~illuminet.runtime.stream.sinks.SessionRecorderSink`
         (``record_color``, ``record_jpeg_quality``, ``record_fsync``),
-        ``output.mjpeg`` -> ``illuminet.runtime.stream.mjpeg.MjpegSink`` on ``listen``:``port``.
+        ``output.estimates`` -> :class:`~illuminet.runtime.stream.sinks.EstimateSink` (JSONL),
+        ``output.mjpeg`` -> ``illuminet.runtime.stream.mjpeg.MjpegSink`` on ``listen``:``port``
+        (its ``/viewer`` draws ``output.viewer_model``, default the ``[model] bundle``'s built-in
+        object, else ``builtin:vase``).
     stats : callable, optional
         Returns live loop figures (``LoopStats.snapshot``) for the MJPEG status page.
     source_url : str, optional
@@ -95,10 +98,18 @@ def build_sinks(
         sinks.append(VideoSink(out.video, fps=out.fps))
     if out.png_dir:
         sinks.append(PngSequenceSink(out.png_dir))
+    if out.estimates:
+        sinks.append(EstimateSink(out.estimates))
     if out.mjpeg:
         from illuminet.runtime.stream.mjpeg import MjpegSink
 
-        sinks.append(MjpegSink(out.listen, out.port, stats=stats))
+        bundle = str(cfg.model.bundle)
+        model = out.viewer_model or (bundle if bundle.startswith("builtin:") else "builtin:vase")
+        try:
+            sinks.append(MjpegSink(out.listen, out.port, stats=stats, viewer_model=model,
+                                   object_scale=cfg.render.object_scale))
+        except ValueError as e:  # the viewer model: a one-line message naming the key
+            raise ConfigError(str(e)) from None
     return sinks
 
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import time
 from pathlib import Path
 
@@ -124,12 +125,37 @@ def build_onnx(result: dict, a_plane: np.ndarray, a_obj: np.ndarray, normals: np
     return model, g.fc_nodes
 
 
+class _OrtQuantisationChatter(logging.Filter):
+    """Drops onnxruntime.quantization's own warnings/infos, which it logs on the *root* logger: a
+    "Please consider to run pre-processing before quantization" hint and a line per tensor without
+    quantisation parameters. Errors still pass."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        where = record.pathname.replace("\\", "/")
+        return record.levelno >= logging.ERROR or "onnxruntime/quantization" not in where
+
+
 def quantize_int8(fp32_path: Path, int8_path: Path, fc_nodes: list[str]) -> None:
-    """Dynamic int8 quantisation of the FC MatMuls only (weights int8, activations uint8 at run time)."""
+    """Dynamic int8 quantisation of the FC MatMuls only (weights int8, activations uint8 at run time).
+
+    onnxruntime's hints are silenced and said once here instead: its pre-processing (shape inference
+    and graph optimisation) matters for static quantisation of convolutional graphs; this graph is
+    already a plain MatMul/Add chain with static shapes, and only those MatMuls' weights are quantised,
+    with activation scales computed at run time ("quantization parameters not specified" is expected).
+    """
     from onnxruntime.quantization import QuantType, quantize_dynamic
 
-    quantize_dynamic(str(fp32_path), str(int8_path), weight_type=QuantType.QInt8,
-                     nodes_to_quantize=list(fc_nodes), per_channel=False)
+    root = logging.getLogger()
+    quiet = _OrtQuantisationChatter()
+    root.addFilter(quiet)
+    try:
+        quantize_dynamic(str(fp32_path), str(int8_path), weight_type=QuantType.QInt8,
+                         nodes_to_quantize=list(fc_nodes), per_channel=False)
+    finally:
+        root.removeFilter(quiet)
+    logging.getLogger(__name__).info(
+        "int8: dynamic quantisation of %d FC MatMul(s) (weights int8, activation scales at run time); "
+        "onnxruntime's pre-processing hint does not apply to this graph (see quantize_int8)", len(fc_nodes))
 
 
 def sha256(path: Path) -> str:

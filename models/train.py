@@ -107,27 +107,38 @@ def make_config(preset: str = "default", **overrides) -> TrainConfig:
 # --------------------------------------------------------------------------- small utilities
 
 class Progress:
-    """A text progress bar on stderr that also works in logs (updates at most ~2 times a second)."""
+    """Progress of a long loop on stderr, drawn by tqdm (rate, ETA, the caller's loss figures).
+
+    A callable ``bar(done, total=None, extra="")`` so the loops (and ``datagen`` / ``eval``, which
+    take any such callable) stay independent of tqdm. Quiet when stderr is not a terminal (tqdm's
+    ``disable=None``): logs get the per-epoch lines of :meth:`Trainer.log` instead of carriage returns.
+    Without tqdm installed (``pip install tqdm``; in the ``train`` and ``test`` extras) nothing is drawn.
+    """
 
     def __init__(self, label: str, total: int, enabled: bool = True):
-        self.label, self.total, self.enabled = label, max(total, 1), enabled
-        self.t0 = time.time()
-        self._last = 0.0
+        self.label, self.total = label, max(total, 1)
+        self._bar = None
+        if enabled:
+            try:
+                from tqdm import tqdm
+            except ImportError:
+                tqdm = None
+            if tqdm is not None:
+                self._bar = tqdm(total=self.total, desc=label, unit="step", mininterval=0.5, dynamic_ncols=True,
+                                 disable=None, file=sys.stderr)
 
     def __call__(self, done: int, total: int | None = None, extra: str = "") -> None:
-        if not self.enabled:
+        bar = self._bar
+        if bar is None:
             return
-        total = total or self.total
-        now = time.time()
-        if done < total and now - self._last < 0.5:
-            return
-        self._last = now
-        frac = done / total
-        bar = "#" * int(frac * 24)
-        eta = (now - self.t0) / max(frac, 1e-9) * (1 - frac)
-        end = "\n" if done >= total else "\r"
-        sys.stderr.write(f"{self.label:12s} [{bar:24s}] {done}/{total} {extra} eta {eta:5.0f}s   {end}")
-        sys.stderr.flush()
+        if total and total != bar.total:
+            bar.total = total
+        if extra:
+            bar.set_postfix_str(extra, refresh=False)
+        bar.update(done - bar.n)  # absolute -> increment; tqdm redraws at most every 0.5 s
+        if done >= bar.total:
+            bar.close()
+            self._bar = None
 
 
 def save_tree(path: Path, tree, meta: dict | None = None) -> None:

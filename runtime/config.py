@@ -138,6 +138,8 @@ SCHEMA: dict[str, dict[str, Field]] = {
                            choices=("raw", "png", "jpeg")),
         "record_jpeg_quality": _f(int, 95, "JPEG quality 1..100 when record_color = 'jpeg'"),
         "record_fsync": _f(bool, True, "fsync every recorded frame (survives power loss; kill -9 is safe either way)"),
+        "estimates": _f(str, "", "write each frame's lighting estimate as a JSON line here ('' = off, '-' = stdout; docs/estimate.md)"),
+        "viewer_model": _f(str, "", "model the MJPEG server's /viewer page draws: a .glb/.gltf/.obj/.ply/.stl file or builtin:NAME ('' = the [model] bundle's object)"),
     },
     "imu": {
         "url": _f(str, "", "serial IMU: serial://PORT?baud=N, or any serial.serial_for_url URL "

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
 from pathlib import Path
 
@@ -56,3 +57,57 @@ def gl(gl_ctx):
     yield gl_ctx
     err = gl_ctx.error
     assert err == "GL_NO_ERROR", f"test left a GL error: {err}"
+
+
+# ---- browser tests (marker ``browser``): Playwright driving Debian's Chromium ------------------------
+# Playwright's own browser download does not work everywhere (no network, no glibc match); the system
+# Chromium does (apt-get install chromium). ILLUMINET_CHROMIUM names another executable.
+CHROMIUM = os.environ.get("ILLUMINET_CHROMIUM", "/usr/bin/chromium")
+#: WebGL without a GPU: Chromium's software rasteriser (SwiftShader), which it only uses when asked
+CHROMIUM_ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--mute-audio"]
+
+
+def browser_unavailable() -> str | None:
+    """Why the browser tests cannot run here, or None when Playwright and Chromium are present."""
+    if importlib.util.find_spec("playwright") is None:
+        return "Playwright is not installed (pip install playwright)"
+    if not os.access(CHROMIUM, os.X_OK):
+        return f"no Chromium at {CHROMIUM} (apt-get install chromium, or set ILLUMINET_CHROMIUM)"
+    return None
+
+
+def pytest_report_header(config):
+    why = browser_unavailable()
+    return f"browser tests: {'run with ' + CHROMIUM if why is None else 'SKIPPED: ' + why}"
+
+
+@pytest.fixture(scope="session")
+def chromium():
+    """One headless Chromium for the session (launching costs ~1 s); skips with the reason when absent."""
+    why = browser_unavailable()
+    if why is not None:
+        pytest.skip(f"browser tests skipped: {why}")
+    from playwright.sync_api import sync_playwright
+
+    pw = sync_playwright().start()
+    try:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+    except Exception:
+        pw.stop()
+        raise
+    yield browser
+    browser.close()
+    pw.stop()
+
+
+@pytest.fixture
+def page(chromium):
+    """A fresh page (320x240) that records console errors and uncaught exceptions in ``page.problems``."""
+    ctx = chromium.new_context(viewport={"width": 320, "height": 240})
+    pg = ctx.new_page()
+    problems: list[str] = []
+    pg.on("console", lambda m: problems.append(f"console.{m.type}: {m.text}") if m.type == "error" else None)
+    pg.on("pageerror", lambda e: problems.append(f"pageerror: {e}"))
+    pg.problems = problems
+    yield pg
+    ctx.close()

@@ -36,6 +36,10 @@ def test_demo_writes_video_still_and_reports(tmp_path, capsys):
         n += 1
     cap.release()
     assert n == 4
+    av = pytest.importorskip("av", reason="PyAV writes the demo's H.264 MP4")
+    with av.open(str(out)) as c:  # H.264 in yuv420p: what browsers play (tests/test_browser.py plays one)
+        cc = c.streams.video[0].codec_context
+        assert (cc.name, cc.pix_fmt) == ("h264", "yuv420p")
     # what it reports: per-stage timing, the shading that drove the object, peak memory
     for stage in ("stage:planes", "stage:plane_light", "stage:shading", "stage:render"):
         assert stage in text
@@ -61,6 +65,23 @@ def test_demo_composites_the_object_into_the_picture(tmp_path, capsys):
     diff = np.abs(out.astype(int) - raw.astype(int)).max(axis=-1)
     changed = diff > 8
     assert 200 < changed.sum() < 0.3 * changed.size, changed.sum()
+
+
+def test_demo_frames_and_live_config():
+    from illuminet.cli import build_parser
+    from illuminet.commands.demo import demo_config, demo_frames
+    from illuminet.runtime.config import defaults
+
+    args = build_parser().parse_args(["demo"])
+    assert demo_frames(args) == 90 and demo_config(args, defaults()).source.timing == "asap"
+    args = build_parser().parse_args(["demo", "--mjpeg", "--port", "0", "--estimates", "e.jsonl",
+                                      "--viewer-model", "builtin:bowl"])
+    cfg = demo_config(args, defaults())
+    # serving: real time, until Ctrl-C
+    assert demo_frames(args) == 0 and cfg.source.timing == "recorded" and cfg.source.max_frames == 0
+    assert cfg.output.mjpeg and cfg.output.port == 0 and cfg.output.estimates == "e.jsonl"
+    assert cfg.output.viewer_model == "builtin:bowl"
+    assert demo_frames(build_parser().parse_args(["demo", "--mjpeg", "--frames", "5"])) == 5
 
 
 def test_demo_rejects_bad_arguments(tmp_path, capsys):

@@ -7,7 +7,7 @@ import json
 from illuminet import cli
 from illuminet.commands.doctor import MISSING, NONE, OK, Check, exit_code, run_checks
 
-NAMES = ["OpenGL (EGL)", "onnxruntime", "OpenCV", "DepthAI (OAK)", "V4L2 cameras", "serial ports"]
+NAMES = ["OpenGL (EGL)", "onnxruntime", "OpenCV", "PyAV (H.264 video)", "DepthAI (OAK)", "V4L2 cameras", "serial ports"]
 
 
 def test_report_lists_every_check_with_status(capsys):
@@ -33,7 +33,8 @@ def test_json_output(capsys):
     data = json.loads(capsys.readouterr().out)
     assert [d["name"] for d in data] == NAMES
     assert all(d["status"] in (OK, MISSING, NONE) for d in data)
-    dai = data[3]
+    dai = data[4]
+    assert data[3]["status"] in (OK, MISSING)
     assert dai["status"] in (OK, NONE) and dai["detail"].startswith("3.")  # DepthAI v3
     if dai["status"] == NONE:
         assert "udev" in dai["fix"]
@@ -47,7 +48,7 @@ def test_configured_imu_port_that_cannot_open_is_reported(capsys):
 
 
 def test_loop_imu_url_opens():
-    serial_check = run_checks("loop://")[5]
+    serial_check = run_checks("loop://")[6]
     assert "(opens)" in serial_check.detail
 
 

@@ -52,6 +52,12 @@ def test_built_wheel_imports_every_package(tmp_path):
     for p in packages:
         assert p.replace(".", "/") + "/__init__.py" in names, f"{p} is not in the wheel"
     assert any(n.startswith("illuminet/models/bundles/") for n in names), "the shipped bundles are not in the wheel"
+    # the browser pages work offline: pages, three.js (module build + addons + licence) and the schema ship
+    stream = "illuminet/runtime/stream/"
+    for f in ("light_estimate.schema.json", "static/index.html", "static/viewer.html", "static/viewer.js",
+              "static/three/three.module.js", "static/three/three.core.js", "static/three/LICENSE",
+              "static/three/addons/loaders/GLTFLoader.js", "static/three/addons/utils/BufferGeometryUtils.js"):
+        assert stream + f in names, f"{f} is not in the wheel (pyproject package-data)"
     zipfile.ZipFile(whl).extractall(tmp_path / "site")
     code = "import importlib,sys; [importlib.import_module(p) for p in sys.argv[1:]]; import illuminet.cli"
     r = subprocess.run([sys.executable, "-c", code, *packages], capture_output=True, text=True, timeout=120,

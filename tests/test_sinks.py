@@ -21,6 +21,7 @@ from illuminet.runtime.stream.sinks import (
     SinkError,
     VideoSink,
     output_picture,
+    pyav_available,
 )
 
 from ._sessions import H, W, frames, same_frame
@@ -55,12 +56,42 @@ def test_video_file_is_playable_with_all_frames(tmp_path, ext):
     with sink:
         for f in fs:
             sink.write(f)
-    assert sink.codec in ("mp4v", "avc1", "MJPG", "XVID")
+    # .mp4: H.264 through PyAV when it is installed (the project's dependency), else OpenCV's mp4v
+    assert sink.codec in (("h264",) if ext == ".mp4" and pyav_available() else ("mp4v", "avc1", "MJPG", "XVID"))
     n, first = _count_video(tmp_path / f"out{ext}")
     assert n == 12
     # lossy, but the picture is the frame's (RGB written as BGR correctly: mean colour per channel close)
     assert np.allclose(first[..., ::-1].reshape(-1, 3).mean(0), fs[0].color.reshape(-1, 3).mean(0), atol=6)
     assert not list(tmp_path.glob(".*probe*")), "the open() probe file is removed"
+
+
+def test_mp4_is_h264_yuv420p_through_pyav_with_odd_sizes_padded(tmp_path):
+    av = pytest.importorskip("av", reason="PyAV (pip install av) writes the H.264 MP4")
+    fs = frames(7, w=161, h=121)
+    sink = VideoSink(tmp_path / "o.mp4", fps=25)
+    with sink:
+        for f in fs:
+            sink.write(f)
+    assert sink.backend == "pyav" and sink.stats() == {"frames": 7, "codec": "h264", "backend": "pyav"}
+    with av.open(str(tmp_path / "o.mp4")) as c:
+        s = c.streams.video[0]
+        assert s.codec_context.name == "h264" and s.codec_context.pix_fmt == "yuv420p"
+        assert (s.width, s.height) == (162, 122) and s.average_rate == 25
+        decoded = [fr.to_ndarray(format="rgb24") for fr in c.decode(s)]
+    assert len(decoded) == 7
+    # the picture survives (lossy): mean colour per channel close to the frame's, incl. the repeated edge
+    assert np.allclose(decoded[3][:121, :161].reshape(-1, 3).mean(0), fs[3].color.reshape(-1, 3).mean(0), atol=6)
+    assert not list(tmp_path.glob(".*probe*"))
+
+
+def test_video_backend_choice(tmp_path):
+    assert VideoSink(tmp_path / "a.avi").backend == "opencv"  # MJPG in an AVI: OpenCV
+    assert VideoSink(tmp_path / "a.mp4", codecs=("mp4v",)).backend == "opencv"  # FourCCs are OpenCV's
+    assert VideoSink(tmp_path / "a.mp4", backend="opencv").backend == "opencv"
+    with pytest.raises(SinkError, match="PyAV backend writes H.264 into"):
+        VideoSink(tmp_path / "a.avi", backend="pyav")
+    with pytest.raises(SinkError, match="backend must be auto, pyav or opencv"):
+        VideoSink(tmp_path / "a.mp4", backend="ffmpeg")
 
 
 def test_video_codec_fallback(tmp_path):
@@ -206,3 +237,17 @@ def test_mjpeg_status_page_shows_the_loop_snapshot(tmp_path):
     start = head.index(b"\xff\xd8")
     jpg = cv2.imdecode(np.frombuffer(head[start:head.index(b"\xff\xd9", start) + 2], np.uint8), cv2.IMREAD_COLOR)
     assert jpg.shape == (H, W, 3)
+
+
+def test_build_sinks_estimates_and_viewer_model(tmp_path):
+    from illuminet.runtime.stream.mjpeg import MjpegSink
+    from illuminet.runtime.stream.sinks import EstimateSink
+
+    cfg = apply_overrides(defaults(), [("output", "estimates", str(tmp_path / "e.jsonl")), ("output", "mjpeg", True),
+                                       ("output", "port", 0)])
+    est, mj = build_sinks(cfg)
+    assert isinstance(est, EstimateSink) and est.path == str(tmp_path / "e.jsonl")
+    assert isinstance(mj, MjpegSink) and mj.viewer_model == "builtin:vase"  # the [model] bundle's object
+    bad = apply_overrides(cfg, [("output", "viewer_model", str(tmp_path / "nope.glb"))])
+    with pytest.raises(ConfigError, match=r"\[output\] viewer_model = .*nope.glb.*no such file"):
+        build_sinks(bad)

@@ -76,7 +76,8 @@ def register(sub) -> None:
                     "still, per-stage timing and peak memory. Says which shading (learned model or baseline) "
                     "it used.",
     )
-    p.add_argument("--frames", type=int, default=90, metavar="N", help="frames to process (default 90)")
+    p.add_argument("--frames", type=int, default=None, metavar="N",
+                   help="frames to process (default 90; with --mjpeg: until Ctrl-C)")
     p.add_argument("--out", default="out/demo.mp4", metavar="PATH",
                    help="video file to write (.mp4, .avi, .mkv; default out/demo.mp4)")
     p.add_argument("--no-video", action="store_true", help="write no video file")
@@ -94,6 +95,10 @@ def register(sub) -> None:
                    help=f"seed of --make-default-session (default {DEFAULT_SESSION_SEED}, the shipped session)")
     p.add_argument("--stats-json", metavar="PATH", help="write the per-step timing statistics as JSON")
     p.add_argument("--strict", action="store_true", help="stop at the first failing frame with a traceback")
+    from illuminet.commands.run import add_live_output_flags
+
+    add_live_output_flags(p.add_argument_group(
+        "live outputs (with --mjpeg the session plays in real time, looped, until Ctrl-C unless --frames)"))
     p.set_defaults(func=cmd_demo)
 
 
@@ -282,10 +287,23 @@ def describe_shading(methods: collections.Counter, cfg: Config) -> str:
     return f"{what} on {n} frames" + (f" (also: {others})" if others else "") + f"; [model] bundle = {cfg.model.bundle}"
 
 
+def demo_frames(args: argparse.Namespace) -> int:
+    """Frames the demo processes: --frames, else 90, else (serving --mjpeg) 0 = until Ctrl-C."""
+    if args.frames is not None:
+        return int(args.frames)
+    return 0 if getattr(args, "mjpeg", None) else 90
+
+
 def demo_config(args: argparse.Namespace, cfg: Config) -> Config:
-    """The configuration the demo runs with: outputs from the flags, replay as fast as possible."""
+    """The configuration the demo runs with: outputs from the flags, replay as fast as possible
+    (in real time while serving ``--mjpeg``: a viewer wants the scene's pace, not a blur)."""
+    live = bool(getattr(args, "mjpeg", None))
     over = [("output", "video", "" if args.no_video else args.out),
-            ("source", "timing", "asap"), ("source", "max_frames", int(args.frames))]
+            ("source", "timing", "recorded" if live else "asap"), ("source", "max_frames", demo_frames(args))]
+    for flag, key in (("estimates", "estimates"), ("mjpeg", "mjpeg"), ("listen", "listen"), ("port", "port"),
+                      ("viewer_model", "viewer_model")):
+        if getattr(args, flag, None) is not None:
+            over.append(("output", key, getattr(args, flag)))
     if args.png_dir:
         over.append(("output", "png_dir", args.png_dir))
     if args.strict:
@@ -307,12 +325,13 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
         print(f"illuminet demo: --seed {args.seed} only applies with --make-default-session DIR "
               f"(the demo replays the shipped session, seed {DEFAULT_SESSION_SEED})", file=sys.stderr)
         return 2
-    if args.frames < 1:
+    if args.frames is not None and args.frames < 1:
         print(f"illuminet demo: --frames must be at least 1, got {args.frames}", file=sys.stderr)
         return 2
+    frames = demo_frames(args)
     cfg = demo_config(args, cfg)
-    url = _source_url(args)
-    probe = StillSink(_still_path(args), index=args.frames // 2)
+    url = _source_url(args, frames)
+    probe = StillSink(_still_path(args), index=(frames or 90) // 2)
     stats = LoopStats()
     try:
         if cfg.output.video:
@@ -326,14 +345,20 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
         return 1
     print(f"demo: source {url}")
     rc = 0
+    from illuminet.progress import StatusLine
+
+    status = StatusLine()  # a live line on a terminal; nothing when piped
     try:
-        run_loop(source, stages, sinks, strict=cfg.logging.strict, max_frames=args.frames, stats=stats)
+        run_loop(source, stages, sinks, strict=cfg.logging.strict, max_frames=frames, stats=stats,
+                 on_stats=status.update, stats_interval_s=0.5)
     except (SourceError, SinkError, OSError) as e:
+        status.close()
         if cfg.logging.strict:
             raise
         print(f"illuminet demo: {e}", file=sys.stderr)
         rc = 1
     finally:
+        status.close()
         _print_report(stats, stages, probe, cfg, rc)
     if stats.end_reason.startswith("source error"):
         rc = 1
@@ -354,7 +379,7 @@ def _make_session(args: argparse.Namespace) -> int:
     return 0
 
 
-def _source_url(args: argparse.Namespace) -> str:
+def _source_url(args: argparse.Namespace, frames: int | None) -> str:
     """--source, else the shipped default session, else the synthetic camera."""
     if args.source:
         return args.source
@@ -363,7 +388,7 @@ def _source_url(args: argparse.Namespace) -> str:
     # an install without the package data: the synthetic camera still gives a demo
     print(f"demo: the default session {DEFAULT_SESSION} is missing; using the synthetic camera "
           f"(slow: it renders every frame)")
-    return SYNTHETIC_SOURCE.format(frames=args.frames)
+    return SYNTHETIC_SOURCE.format(frames=frames or 100000)
 
 
 def _still_path(args: argparse.Namespace) -> str:

@@ -5,6 +5,7 @@ Checks, each reported as OK / MISSING / NONE (nothing found, optional) with the 
 * OpenGL through EGL (moderngl standalone context): renderer, version, vendor   -- essential
 * onnxruntime: version and execution providers                                  -- essential
 * OpenCV: version, ximgproc (WLS stereo filter), findPlanes, FFmpeg and V4L2 video backends
+* PyAV: H.264 (libx264) for MP4 files browsers play (else videos fall back to OpenCV's mp4v)
 * DepthAI: version and the OAK devices it sees (``illuminet.hw.oakd.list_devices``)
 * V4L2 video devices (``illuminet.hw.v4l2.list_devices``)
 * serial ports (``illuminet.hw.serial_imu.list_ports``) and the configured ``[imu] url``
@@ -102,6 +103,21 @@ def check_opencv() -> Check:
     return Check("OpenCV", OK, detail)
 
 
+def check_pyav() -> Check:
+    """PyAV's FFmpeg with an H.264 encoder: MP4 files that browsers play (``VideoSink``)."""
+    try:
+        av = importlib.import_module("av")
+    except ImportError as e:
+        return Check("PyAV (H.264 video)", MISSING, f"not importable: {e}; .mp4 files are written as MPEG-4 part 2 "
+                     "by OpenCV (plays in VLC, not in browsers)", "pip install av")
+    try:
+        av.codec.Codec("libx264", "w")
+    except Exception as e:  # av.codec.codec.UnknownCodecError and friends
+        return Check("PyAV (H.264 video)", MISSING, f"{av.__version__}; no libx264 encoder ({e})",
+                     "pip install --force-reinstall av (the PyPI wheels include libx264)")
+    return Check("PyAV (H.264 video)", OK, f"{av.__version__}; libx264 (MP4 as H.264, yuv420p)")
+
+
 def check_depthai() -> Check:
     try:
         oakd = importlib.import_module("illuminet.hw.oakd")
@@ -165,6 +181,7 @@ def run_checks(imu_url: str = "") -> list[Check]:
         ("OpenGL (EGL)", check_gl),
         ("onnxruntime", check_onnxruntime),
         ("OpenCV", check_opencv),
+        ("PyAV (H.264 video)", check_pyav),
         ("DepthAI (OAK)", check_depthai),
         ("V4L2 cameras", check_v4l2),
         ("serial ports", lambda: check_serial(imu_url)),

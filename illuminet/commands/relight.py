@@ -6,8 +6,12 @@ Example::
         --bundle builtin:vase --out result.npz
 
 ``--depth`` is a 16-bit PNG in millimetres (0 = invalid) or a float ``.npy`` in metres, aligned to the
-colour image. ``--intrinsics`` is ``fx,fy,cx,cy`` or a JSON file with those keys (plus optional
-width/height). The npz format is documented in docs/models.md ("relight npz").
+colour image: the same field of view, at the colour's or another resolution (a stereo camera's
+640x400 for 1280x800 colour is resized nearest-neighbour to the colour size). ``--intrinsics`` is
+``fx,fy,cx,cy`` or a JSON file with those keys (plus optional width/height; scaled to the colour
+size when they differ). The npz format is documented in docs/models.md ("relight npz").
+``--preview PNG`` also writes the lit object composited into the colour image (the runtime's
+renderer: shading, cast shadow, occlusion; needs OpenGL via EGL).
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ def register(sub) -> None:
     p.add_argument("--exposure", metavar="US,ISO", default=None,
                    help="exposure time (microseconds) and ISO, when known (absolute units)")
     p.add_argument("--out", required=True, metavar="NPZ", help="output file")
+    p.add_argument("--preview", metavar="PNG", help="also write the lit object composited into the colour image")
     p.set_defaults(func=run)
 
 
@@ -67,9 +72,9 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
             raise ValueError(f"--depth {depth_path}: expected a single-channel 16-bit PNG in millimetres, "
                              f"got {d.dtype} with shape {d.shape}")
         depth = depth_from_mm(d)
-    if depth.shape != color.shape[:2]:
-        raise ValueError(f"--depth {depth_path}: size {depth.shape[::-1]} differs from the colour image "
-                         f"{color.shape[1::-1]}; depth must be aligned to colour")
+    from illuminet.api import align_depth
+
+    depth = align_depth(depth, color.shape, what=f"--depth {depth_path}")  # another resolution: nearest
     h, w = depth.shape
     if Path(intr).is_file():
         try:
@@ -106,4 +111,21 @@ def run(args: argparse.Namespace, cfg) -> int:
     print(f"wrote {args.out}: {len(res.vertices)} vertices, method {res.method}, "
           f"{res.plane_observed:.0%} of the plane grid observed, mean radiance "
           f"{np.round(res.radiance.mean(0), 4).tolist()}")
+    if args.preview:
+        import cv2
+
+        from illuminet.api import render_preview
+        from illuminet.runtime.render.gl import GLError
+
+        try:
+            pic = render_preview(color, depth, K, res, cfg)
+        except GLError as e:
+            print(f"illuminet relight: --preview needs OpenGL via EGL: {e} (illuminet doctor says what is "
+                  f"missing); the npz was written", file=sys.stderr)
+            return 1
+        if not cv2.imwrite(args.preview, np.ascontiguousarray(pic[:, :, ::-1])):
+            print(f"illuminet relight: --preview {args.preview}: cannot write it (folder missing? extension?)",
+                  file=sys.stderr)
+            return 1
+        print(f"wrote {args.preview}: the lit object composited into the {pic.shape[1]}x{pic.shape[0]} image")
     return 0

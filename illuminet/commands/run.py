@@ -4,7 +4,9 @@ All three run the streaming loop (:func:`illuminet.runtime.stream.loop.run_loop`
 and the stages: ``run`` and ``replay`` process frames through the configured pipeline
 (:func:`illuminet.pipeline.build_stages`), ``record`` only records the input. Command-line flags
 override the configuration file (they are applied as ``--set`` overrides, so they are validated the
-same way). At the end the per-step timing table is printed; ``--stats-json`` writes it as JSON.
+same way). On a terminal a live status line shows frames, fps, drops and failures
+(:class:`illuminet.progress.StatusLine`; nothing when piped). At the end the per-step timing table
+is printed; ``--stats-json`` writes it as JSON.
 
 Exit codes: 0 done (also after Ctrl-C / SIGTERM, outputs finalised), 1 the source or an output failed,
 2 configuration error.
@@ -18,6 +20,7 @@ import sys
 from pathlib import Path
 from urllib.parse import quote
 
+from illuminet.progress import StatusLine
 from illuminet.runtime.config import Config, ConfigError, apply_overrides
 from illuminet.runtime.stream.loop import LoopStats, run_loop
 from illuminet.runtime.stream.session import SessionError, SessionReader
@@ -36,17 +39,28 @@ def _add_source_flags(p: argparse.ArgumentParser) -> None:
                    help="stop after N frames, 0 = no limit ([source] max_frames)")
 
 
+def add_live_output_flags(g) -> None:
+    """--estimates, --mjpeg, --listen, --port, --viewer-model (shared with ``illuminet demo``)."""
+    g.add_argument("--estimates", metavar="FILE",
+                   help="write each frame's lighting estimate as a JSON line to FILE ('-' = stdout; docs/estimate.md)")
+    g.add_argument("--mjpeg", action=argparse.BooleanOptionalAction, default=None,
+                   help="serve the output over HTTP: the stream at /, a lit 3D viewer at /viewer, the "
+                        "estimate at /estimates (Server-Sent Events) and /estimate.json")
+    g.add_argument("--listen", metavar="ADDR", help="MJPEG bind address (default 127.0.0.1; 0.0.0.0 = local network)")
+    g.add_argument("--port", type=int, help="MJPEG port ([output] port)")
+    g.add_argument("--viewer-model", metavar="PATH",
+                   help="model /viewer draws: .glb/.gltf/.obj/.ply/.stl or builtin:NAME ([output] viewer_model)")
+
+
 def _add_output_flags(p: argparse.ArgumentParser, *, record: bool = True) -> None:
     g = p.add_argument_group("outputs (override [output])")
     g.add_argument("--video", metavar="PATH", help="write the output to a video file (.mp4, .avi, .mkv)")
     g.add_argument("--fps", type=float, help="frame rate written into the video file ([output] fps)")
     g.add_argument("--png-dir", metavar="DIR", help="write a PNG per output frame into DIR")
     if record:
-        g.add_argument("--record", metavar="DIR", help="also record the input frames as a session in DIR")
-    g.add_argument("--mjpeg", action=argparse.BooleanOptionalAction, default=None,
-                   help="serve the output as MJPEG over HTTP with a status page at /")
-    g.add_argument("--listen", metavar="ADDR", help="MJPEG bind address (default 127.0.0.1; 0.0.0.0 = local network)")
-    g.add_argument("--port", type=int, help="MJPEG port ([output] port)")
+        g.add_argument("--record", metavar="DIR", help="also record the input frames (and their lighting "
+                                                       "estimates, estimates.jsonl) as a session in DIR")
+    add_live_output_flags(g)
     g = p.add_argument_group("run control (override [logging])")
     g.add_argument("--strict", action="store_true", default=None,
                    help="stop at the first failing frame with a traceback instead of counting it")
@@ -106,6 +120,8 @@ _FLAG_KEYS = {
     "mjpeg": ("output", "mjpeg"),
     "listen": ("output", "listen"),
     "port": ("output", "port"),
+    "estimates": ("output", "estimates"),
+    "viewer_model": ("output", "viewer_model"),
     "strict": ("logging", "strict"),
     "stats_json": ("logging", "stats_json"),
     "color": ("output", "record_color"),
@@ -137,17 +153,22 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
         print(f"illuminet: source {url!r} needs a Python package that is not installed ({e})", file=sys.stderr)
         return 1
     rc = 0
+    status = StatusLine()  # a live line on a terminal; nothing when piped
     try:
-        run_loop(source, stages, sinks, strict=cfg.logging.strict, max_frames=cfg.source.max_frames, stats=stats)
+        run_loop(source, stages, sinks, strict=cfg.logging.strict, max_frames=cfg.source.max_frames, stats=stats,
+                 on_stats=status.update, stats_interval_s=0.5)
     except (SourceError, SinkError, SessionError) as e:  # these messages say it all; no traceback
+        status.close()
         print(f"illuminet: {e}", file=sys.stderr)
         rc = 1
     except OSError as e:
+        status.close()
         if cfg.logging.strict:  # strict: the traceback, as for any failure
             raise
         print(f"illuminet: {e}", file=sys.stderr)
         rc = 1
     finally:
+        status.close()
         if stats.frames or stats.end_reason:
             print(stats.format_stats())
         if cfg.logging.stats_json:
@@ -187,6 +208,9 @@ def cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
               f"{reader.color_encoding}, depth {_depth_summary(reader)}, "
               f"{len(reader)} intact frames, {'finalised' if reader.finalized else 'NOT finalised'}, "
               f"source {m.get('source') or '?'}")
+        est = reader.estimates()
+        if est:
+            print(f"  lighting estimates: {len(est)} of {len(reader)} frames (estimates.jsonl)")
         for p in problems:
             print(f"  problem: {p}")
         print("OK" if not problems else f"{len(problems)} problem(s)")
@@ -199,6 +223,11 @@ def cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def cmd_record(args: argparse.Namespace, cfg: Config) -> int:
+    if args.estimates:
+        print("illuminet record: --estimates needs the lighting stages, which record does not run; use "
+              "`illuminet run SOURCE --record OUT --estimates FILE` (the session then keeps them too)",
+              file=sys.stderr)
+        return 2
     args.record = args.out
     cfg = config_with_flags(args, cfg)
     return _execute(cfg, args.source_url, with_stages=False)

@@ -1,10 +1,26 @@
-"""MJPEG over HTTP: a sink that serves the composited stream and a small live status page.
+"""MJPEG over HTTP: a sink that serves the composited stream, the lighting estimate and browser pages.
 
 This module owns the HTTP preview server. Routes::
 
-    GET /             HTML page: the stream plus live figures (fps, drops, stage times)
-    GET /stream.mjpg  multipart/x-mixed-replace MJPEG stream (browsers, VLC, ffplay, headsets)
-    GET /stats.json   the figures the page polls: the sink's own counters + ``stats()`` if given
+    GET /                     the live picture full-window (object-fit: contain) with a toggleable
+                              overlay: fps, drops, stage times, the current light (direction, colour)
+    GET /viewer               three.js page: a glTF model lit live by the estimate (LightProbe from the
+                              SH, a shadow-casting DirectionalLight from the primary light)
+    GET /stream.mjpg          multipart/x-mixed-replace MJPEG stream (browsers, VLC, ffplay, headsets);
+                              ?source=camera: the camera picture without the object
+    GET /estimates            the lighting estimate as Server-Sent Events, one JSON object per event
+    GET /estimate.json        the latest estimate (``null`` before the first one)
+    GET /stats.json           the sink's counters, ``stats()`` if given, and the latest estimate
+    GET /model.glb            the viewer's model (``viewer_model``)
+    GET /light_estimate.schema.json   the JSON Schema of one estimate
+    GET /static/...           the pages' scripts and three.js (package data, works offline)
+
+The estimate's JSON (``docs/estimate.md``) is made by
+:func:`~illuminet.runtime.stream.estimate_json.estimate_dict`. Server-Sent Events rather than a
+WebSocket: the estimate flows one way, SSE is plain HTTP (no extra dependency here, ``EventSource``
+in every browser, reconnects by itself, passes proxies), and a JSON line per event is what any
+engine's HTTP client can read. The estimate endpoints send ``Access-Control-Allow-Origin: *`` so a
+page served elsewhere (another engine's web app) can read them.
 
 How a frame travels, and why the loop never waits for a client::
 
@@ -18,9 +34,13 @@ How a frame travels, and why the loop never waits for a client::
 * JPEG encoding happens at most once per frame whatever the number of clients, not at all while
   nobody watches, and at most ``max_fps`` times a second (default 30: a viewer's display rate).
   It runs in its own thread (``cv2.imencode`` releases the GIL), so the loop only pays for storing
-  a reference.
+  a reference. The camera picture (``?source=camera``) has its own slot and encoder, idle unless
+  someone watches it.
 * Each client thread sends the latest encoded frame it has not sent yet. A slow client simply skips
   frames: it never holds the encoder or the loop back.
+* The estimate works the same way: the loop stores a reference to the frame's ``LightEstimate``;
+  it is converted to JSON at most once per frame, only when a client asks, and each event client
+  sends the newest one at most ``max_fps`` times a second.
 * The server binds 127.0.0.1 by default. ``listen="0.0.0.0"`` serves the local network (a headset);
   there is no authentication, so only do that on a network you trust.
 """
@@ -36,68 +56,22 @@ from collections.abc import Callable
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
+from urllib.parse import parse_qs
 
 import cv2
 import numpy as np
 
 from illuminet.runtime.frame import Frame
-from illuminet.runtime.scene import COMPOSITE
-from illuminet.runtime.stage import Sink
+from illuminet.runtime.scene import COMPOSITE, LIGHT
+from illuminet.runtime.stage import LogOnce, Sink
+from illuminet.runtime.stream import viewer
+from illuminet.runtime.stream.estimate_json import SCHEMA_PATH, estimate_dict, to_line
 
 log = logging.getLogger(__name__)
 
 BOUNDARY = "illuminetframe"
-
-_PAGE = """<!doctype html>
-<html lang="en"><head><meta charset="utf-8">
-<meta name="viewport" content="width=device-width, initial-scale=1">
-<title>IllumiNet-edge</title>
-<style>
- body { font-family: system-ui, sans-serif; background: #111; color: #ddd; margin: 0; }
- main { display: flex; flex-wrap: wrap; gap: 1em; padding: 1em; }
- img { max-width: 100%; height: auto; background: #000; }
- table { border-collapse: collapse; font-variant-numeric: tabular-nums; }
- td, th { padding: 0.15em 0.6em; text-align: right; border-bottom: 1px solid #333; }
- td:first-child, th:first-child { text-align: left; }
- #err { color: #f88; }
-</style></head>
-<body><main>
-<div><img id="stream" src="/stream.mjpg" alt="live stream"></div>
-<div>
- <h3>Live</h3>
- <table id="summary"></table>
- <h3>Stage times (median, ms)</h3>
- <table id="stages"></table>
- <p id="err"></p>
-</div>
-</main>
-<script>
-function row(k, v) { return "<tr><td>" + k + "</td><td>" + v + "</td></tr>"; }
-function fmt(v) { return (typeof v === "number") ? (Number.isInteger(v) ? v : v.toFixed(2)) : JSON.stringify(v); }
-async function poll() {
-  try {
-    const r = await fetch("/stats.json", {cache: "no-store"});
-    const s = await r.json();
-    const loop = s.loop || {};
-    let h = row("output fps", fmt(s.sink.fps));
-    for (const k of ["fps_recent", "fps", "frames", "dropped", "failed_frames", "sink_failures"]) {
-      if (k in loop) h += row(k, fmt(loop[k]));
-    }
-    h += row("clients", s.sink.clients) + row("frames encoded", s.sink.encoded);
-    for (const [k, v] of Object.entries(loop.source || {})) h += row("source " + k, fmt(v));
-    document.getElementById("summary").innerHTML = h;
-    let t = "";
-    for (const [k, v] of Object.entries(loop.stages_ms || {})) t += row(k, fmt(v));
-    document.getElementById("stages").innerHTML = t;
-    document.getElementById("err").textContent = loop.error || "";
-  } catch (e) {
-    document.getElementById("err").textContent = "stats unavailable: " + e;
-  }
-}
-poll(); setInterval(poll, 1000);
-</script>
-</body></html>
-"""
+#: an idle event stream sends a comment this often, so dead clients are noticed and proxies keep it open
+SSE_KEEPALIVE_S = 10.0
 
 
 class _Hub:
@@ -205,8 +179,72 @@ class _Hub:
         self.closed_event.set()
 
 
-def _make_handler(sink: MjpegSink):
-    hub = sink._hub
+class _EstimateBox:
+    """The newest lighting estimate for the HTTP clients (see the module docstring).
+
+    The loop stores a reference (``offer``: O(1), no JSON); :meth:`latest` converts it once per
+    frame, on the first request, and caches the result for the other clients.
+    """
+
+    def __init__(self) -> None:
+        self.cond = threading.Condition()
+        self.seq = 0  # frames offered with an estimate
+        self.closed = False
+        self.listeners = 0
+        self.sent = 0
+        self._pending: tuple | None = None
+        self._cached: tuple[int, dict, bytes] | None = None
+        self._log = LogOnce(log, "MJPEG estimates")
+
+    def offer(self, frame: Frame) -> None:
+        est = frame.results.get(LIGHT.name)
+        if est is None:
+            return
+        with self.cond:
+            self._pending = (est, frame.seq, frame.t_device_ns, frame.t_host_ns, frame.intrinsics)
+            self.seq += 1
+            if self.listeners:
+                self.cond.notify_all()
+
+    def latest(self) -> tuple[int, dict | None, bytes | None]:
+        """(sequence number, estimate dict, its JSON line as bytes); (0, None, None) before the first."""
+        with self.cond:
+            seq, pending, cached = self.seq, self._pending, self._cached
+        if pending is None:
+            return 0, None, None
+        if cached is not None and cached[0] == seq:
+            return cached
+        est, fseq, t_dev, t_host, intr = pending
+        try:
+            d = estimate_dict(est, seq=fseq, t_device_ns=t_dev, t_host_ns=t_host, intrinsics=intr)
+        except ValueError as e:  # a non-finite estimate: the clients keep the previous one
+            self._log("non-finite", f"frame {fseq}: {e}; the clients keep the previous estimate")
+            return cached if cached is not None else (0, None, None)
+        out = (seq, d, to_line(d).encode())
+        with self.cond:
+            if self._cached is None or self._cached[0] < seq:
+                self._cached = out
+        return out
+
+    def wait_newer(self, after: int, timeout: float) -> bool:
+        """Wait up to ``timeout`` for an estimate newer than ``after``; True when there is one."""
+        with self.cond:
+            if self.seq == after and not self.closed:
+                self.cond.wait(timeout)
+            return self.seq != after and not self.closed
+
+    def add_listener(self, delta: int) -> None:
+        with self.cond:
+            self.listeners += delta
+
+    def close(self) -> None:
+        with self.cond:
+            self.closed = True
+            self.cond.notify_all()
+
+
+def _make_handler(sink: "MjpegSink"):
+    box = sink._estimates
 
     class Handler(BaseHTTPRequestHandler):
         server_version = "IllumiNet-MJPEG/1"
@@ -216,28 +254,111 @@ def _make_handler(sink: MjpegSink):
         def log_message(self, fmt: str, *args: Any) -> None:  # route to logging, not stderr
             log.debug("MJPEG %s: " + fmt, self.address_string(), *args)
 
-        def _send_bytes(self, body: bytes, ctype: str, status: HTTPStatus = HTTPStatus.OK) -> None:
+        def _send_bytes(self, body: bytes, ctype: str, status: HTTPStatus = HTTPStatus.OK,
+                        cors: bool = False, cache: str = "no-store") -> None:
             self.send_response(status)
             self.send_header("Content-Type", ctype)
             self.send_header("Content-Length", str(len(body)))
-            self.send_header("Cache-Control", "no-store")
+            self.send_header("Cache-Control", cache)
+            if cors:
+                self.send_header("Access-Control-Allow-Origin", "*")
             self.end_headers()
             self.wfile.write(body)
 
+        def _static(self, rel: str) -> None:
+            f = viewer.static_file(rel)
+            if f is None:
+                self._not_found()
+                return
+            # three.js does not change while the server runs; the pages themselves are small
+            cache = "max-age=3600" if rel.startswith("three/") else "no-cache"
+            self._send_bytes(f[0], f[1], cache=cache)
+
+        def _not_found(self) -> None:
+            self._send_bytes(b"not found; try / (stream), /viewer, /stream.mjpg, /estimates, /estimate.json "
+                             b"or /stats.json\n", "text/plain; charset=utf-8", HTTPStatus.NOT_FOUND)
+
         def do_GET(self) -> None:  # noqa: N802 (http.server naming)
-            path = self.path.split("?", 1)[0]
+            path, _, query = self.path.partition("?")
             if path in ("/", "/index.html"):
-                self._send_bytes(_PAGE.encode(), "text/html; charset=utf-8")
+                self._static("index.html")
+            elif path in ("/viewer", "/viewer.html"):
+                self._static("viewer.html")
+            elif path.startswith("/static/"):
+                self._static(path[len("/static/"):])
             elif path == "/stats.json":
                 body = json.dumps(sink.status(), default=str).encode()
-                self._send_bytes(body, "application/json")
+                self._send_bytes(body, "application/json", cors=True)
+            elif path == "/estimate.json":
+                _, _, line = box.latest()
+                self._send_bytes(line if line is not None else b"null", "application/json", cors=True)
+            elif path == "/estimates":
+                self._events()
             elif path == "/stream.mjpg":
-                self._stream()
+                src = parse_qs(query).get("source", ["composite"])[0]
+                if src not in ("composite", "camera"):
+                    self._send_bytes(f"unknown source {src!r}; expected composite or camera\n".encode(),
+                                     "text/plain; charset=utf-8", HTTPStatus.BAD_REQUEST)
+                    return
+                self._stream(sink._hub if src == "composite" else sink._camera_hub)
+            elif path == "/model.glb":
+                try:
+                    body = sink.model_bytes()
+                except Exception as e:  # a broken model file must not take the server down
+                    log.error("viewer model %s: %s", sink.viewer_model, e)
+                    self._send_bytes(f"viewer model {sink.viewer_model}: {e}\n".encode(), "text/plain; charset=utf-8",
+                                     HTTPStatus.INTERNAL_SERVER_ERROR)
+                    return
+                self._send_bytes(body, "model/gltf-binary", cache="no-cache")
+            elif path == "/light_estimate.schema.json":
+                self._send_bytes(SCHEMA_PATH.read_bytes(), "application/schema+json", cors=True, cache="no-cache")
             else:
-                self._send_bytes(b"not found; try / or /stream.mjpg or /stats.json\n",
-                                 "text/plain; charset=utf-8", HTTPStatus.NOT_FOUND)
+                self._not_found()
 
-        def _stream(self) -> None:
+        def _events(self) -> None:
+            """Server-Sent Events: ``id: <frameId>`` + ``data: <estimate JSON>`` per event, newest only."""
+            self.close_connection = True
+            self.send_response(HTTPStatus.OK)
+            self.send_header("Content-Type", "text/event-stream; charset=utf-8")
+            self.send_header("Cache-Control", "no-store")
+            self.send_header("Connection", "close")
+            self.send_header("Access-Control-Allow-Origin", "*")
+            self.end_headers()
+            self.connection.settimeout(sink.client_timeout_s)
+            box.add_listener(+1)
+            seq = 0
+            next_send = 0.0
+            last_write = time.monotonic()
+            try:
+                self.wfile.write(b"retry: 1000\n\n")  # EventSource reconnects after 1 s if dropped
+                self.wfile.flush()
+                while True:
+                    if not box.wait_newer(seq, timeout=0.5):
+                        if box.closed or sink._server is None:
+                            return
+                        if time.monotonic() - last_write > SSE_KEEPALIVE_S:
+                            self.wfile.write(b": keep-alive\n\n")
+                            self.wfile.flush()
+                            last_write = time.monotonic()
+                        continue
+                    wait = next_send - time.monotonic()
+                    if wait > 0:  # the rate cap: the newest estimate at the next slot, the rest skipped
+                        time.sleep(wait)
+                    seq, d, line = box.latest()
+                    if line is None:
+                        continue
+                    self.wfile.write(b"id: %d\ndata: %s\n\n" % (d["frameId"], line))
+                    self.wfile.flush()
+                    last_write = time.monotonic()
+                    next_send = last_write + sink._hub.min_interval
+                    with box.cond:
+                        box.sent += 1
+            except (BrokenPipeError, ConnectionResetError, TimeoutError, OSError):
+                return  # the client went away (or stalled)
+            finally:
+                box.add_listener(-1)
+
+        def _stream(self, hub: "_Hub") -> None:
             self.close_connection = True
             self.send_response(HTTPStatus.OK)
             self.send_header("Content-Type", f"multipart/x-mixed-replace; boundary={BOUNDARY}")
@@ -271,7 +392,8 @@ def _make_handler(sink: MjpegSink):
 
 
 class MjpegSink(Sink):
-    """Serve the stream as MJPEG over HTTP with a live status page (see the module docstring).
+    """Serve the stream as MJPEG over HTTP, the lighting estimate as JSON / Server-Sent Events, and the
+    browser pages (see the module docstring).
 
     Parameters
     ----------
@@ -286,10 +408,16 @@ class MjpegSink(Sink):
     quality : int
         JPEG quality 1..100.
     max_fps : float
-        Most frames per second encoded for the clients (0 = every frame the loop writes). The
-        stream shows the newest frame at each slot; frames between slots are skipped, not queued.
+        Most frames per second encoded for the clients, and most estimate events per second sent to
+        each event client (0 = every frame the loop writes). The newest frame at each slot is sent;
+        frames between slots are skipped, not queued.
     client_timeout_s : float
         A client that accepts no data for this long is disconnected.
+    viewer_model : str
+        The model ``/viewer`` draws (``/model.glb``): ``builtin:NAME`` or a mesh file
+        (:func:`illuminet.runtime.stream.viewer.model_glb`); checked here, made on first request.
+    object_scale : float
+        ``[render] object_scale``, applied to converted viewer models.
 
     Attributes
     ----------
@@ -303,7 +431,8 @@ class MjpegSink(Sink):
 
     def __init__(self, listen: str = "127.0.0.1", port: int = 8080,
                  stats: Callable[[], dict[str, Any]] | None = None, quality: int = 80,
-                 client_timeout_s: float = 10.0, max_fps: float = 30.0):
+                 client_timeout_s: float = 10.0, max_fps: float = 30.0, viewer_model: str = "builtin:vase",
+                 object_scale: float = 1.0):
         if not (1 <= int(quality) <= 100):
             raise ValueError(f"MjpegSink quality must be within 1..100, got {quality!r}")
         if not (0 <= int(port) <= 65535):
@@ -314,9 +443,16 @@ class MjpegSink(Sink):
         self.client_timeout_s = float(client_timeout_s)
         if max_fps < 0:
             raise ValueError(f"MjpegSink max_fps must be >= 0 (0 = no cap), got {max_fps!r}")
+        viewer.check_model_spec(viewer_model)  # a wrong --viewer-model is reported before anything starts
+        self.viewer_model = str(viewer_model)
+        self.object_scale = float(object_scale)
         self._quality = int(quality)
         self.max_fps = float(max_fps)
         self._hub = _Hub(self._quality, self.max_fps)
+        self._camera_hub = _Hub(self._quality, self.max_fps)
+        self._estimates = _EstimateBox()
+        self._model: bytes | None = None
+        self._model_lock = threading.Lock()
         self._server: ThreadingHTTPServer | None = None
         self._threads: list[threading.Thread] = []
 
@@ -325,11 +461,20 @@ class MjpegSink(Sink):
         host = "127.0.0.1" if self.listen in ("0.0.0.0", "") else self.listen
         return f"http://{host}:{self.port}/"
 
+    def model_bytes(self) -> bytes:
+        """The viewer's model as GLB (made once, on the first request)."""
+        with self._model_lock:
+            if self._model is None:
+                self._model = viewer.model_glb(self.viewer_model, self.object_scale)
+            return self._model
+
     def open(self) -> None:
         """Bind the port and start the server and encoder threads."""
         if self._server is not None:
             return
         self._hub = _Hub(self._quality, self.max_fps)
+        self._camera_hub = _Hub(self._quality, self.max_fps)
+        self._estimates = _EstimateBox()
         try:
             server = ThreadingHTTPServer((self.listen, self.port), _make_handler(self))
         except OSError as e:
@@ -344,17 +489,20 @@ class MjpegSink(Sink):
             threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.2},
                              name="illuminet-mjpeg-http", daemon=True),
             threading.Thread(target=self._hub.encoder, name="illuminet-mjpeg-encoder", daemon=True),
+            threading.Thread(target=self._camera_hub.encoder, name="illuminet-mjpeg-encoder-camera", daemon=True),
         ]
         for t in self._threads:
             t.start()
         if self.listen in ("0.0.0.0", "", "::"):
             log.info("MJPEG server on all interfaces, port %d: open http://<this machine's address>:%d/ "
-                     "on the headset (locally %s)", self.port, self.port, self.url)
+                     "on the headset (locally %s; viewer %sviewer)", self.port, self.port, self.url, self.url)
         else:
-            log.info("MJPEG stream at %sstream.mjpg (status page %s)", self.url, self.url)
+            log.info("MJPEG stream at %sstream.mjpg (page %s, lit viewer %sviewer, estimates %sestimates)",
+                     self.url, self.url, self.url, self.url)
 
     def write(self, frame: Frame) -> None:
-        """Offer ``frame.results["composite"]`` (or the camera colour) to the clients; O(1)."""
+        """Offer ``frame.results["composite"]`` (or the camera colour), the camera colour and the
+        frame's lighting estimate to the clients; O(1) (references only)."""
         if self._server is None:
             raise RuntimeError("MjpegSink.write() before open()")
         img = frame.results.get(COMPOSITE.name, frame.color)
@@ -364,12 +512,20 @@ class MjpegSink(Sink):
                 f"{getattr(img, 'shape', type(img))} {getattr(img, 'dtype', '')}"
             )
         self._hub.offer(img)
+        self._camera_hub.offer(frame.color)
+        self._estimates.offer(frame)
+
+    def latest_estimate(self) -> dict[str, Any] | None:
+        """The newest frame's estimate as its JSON object (what ``/estimate.json`` returns), or None."""
+        return self._estimates.latest()[1]
 
     def status(self) -> dict[str, Any]:
-        """What ``/stats.json`` returns: ``{"sink": {...}, "loop": stats() or {}}``."""
-        hub = self._hub
+        """What ``/stats.json`` returns: ``{"sink": {...}, "loop": stats() or {}, "estimate": {...} or None}``."""
+        hub, box = self._hub, self._estimates
         with hub.cond:
             sink = {"frames": hub.offered, "encoded": hub.encoded, "sent": hub.sent, "clients": hub.clients}
+        with box.cond:
+            sink["estimate_clients"], sink["estimates_sent"] = box.listeners, box.sent
         sink["fps"] = round(hub.fps(), 2)
         loop: dict[str, Any] = {}
         if self.stats_fn is not None:
@@ -377,16 +533,20 @@ class MjpegSink(Sink):
                 loop = dict(self.stats_fn())
             except Exception as e:  # the page must keep working while the loop misbehaves
                 loop = {"error": f"stats() failed: {type(e).__name__}: {e}"}
-        return {"sink": sink, "loop": loop}
+        estimate = self.latest_estimate()
+        return {"sink": sink, "loop": loop, "estimate": estimate}
 
     def stats(self) -> dict[str, Any]:
         hub = self._hub
-        return {"clients": hub.clients, "encoded": hub.encoded, "sent": hub.sent, "port": self.port}
+        return {"clients": hub.clients, "encoded": hub.encoded, "sent": hub.sent, "port": self.port,
+                "estimates_sent": self._estimates.sent}
 
     def close(self) -> None:
         """Stop serving: clients are disconnected, threads end, the port is released. Idempotent."""
         server, self._server = self._server, None
         self._hub.close()
+        self._camera_hub.close()
+        self._estimates.close()
         if server is not None:
             server.shutdown()
             server.server_close()

@@ -11,6 +11,9 @@ is in ``docs/runtime.md``; in short a session is a folder::
         000000.color.rgb   colour, RGB: raw bytes (default, lossless) | .color.png (lossless) | .color.jpg
         000000.depth.png   depth, 16-bit PNG, millimetres, 0 = invalid (always lossless)
         ...
+      estimates.jsonl    optional sidecar: the lighting estimate the recording run computed for a
+                         frame, one line ``{"i": N, "estimate": {...}}`` after that frame's index line
+                         (docs/estimate.md); readers without it, or older readers, ignore it
 
 Version 2 is version 1 plus one optional manifest key, ``depth.scale`` (an integer k >= 1): the
 depth images are stored at ``width/k x height/k`` -- the resolution a stereo camera such as the
@@ -63,6 +66,9 @@ FORMAT_VERSION_DEPTH_SCALE = 2
 SUPPORTED_VERSIONS = (1, 2)
 MANIFEST = "manifest.json"
 INDEX = "frames.jsonl"
+#: the optional sidecar of per-frame lighting estimates (no format version change: readers that do
+#: not know it never open it, and a session without it is complete)
+ESTIMATES = "estimates.jsonl"
 FRAMES_DIR = "frames"
 #: colour encodings: raw (uncompressed RGB bytes, lossless, default), PNG (lossless), JPEG (lossy, small)
 COLOR_ENCODINGS = ("png", "jpeg", "raw")
@@ -264,6 +270,7 @@ class SessionWriter:
         self.count = 0
         self._manifest: dict[str, Any] | None = None
         self._index_fd: int | None = None
+        self._estimates_fd: int | None = None
         self._last_t: int | None = None
         self._closed = False
         if (self.path / MANIFEST).exists() or (self.path / INDEX).exists():
@@ -409,11 +416,34 @@ class SessionWriter:
         self._last_t = int(frame.t_device_ns)
         return i
 
+    def append_estimate(self, i: int, estimate: Mapping[str, Any]) -> None:
+        """Append frame ``i``'s lighting estimate (a JSON object) to the ``estimates.jsonl`` sidecar.
+
+        Call after :meth:`commit` of frame ``i``: the sidecar only names committed frames. One line,
+        one ``write`` on an O_APPEND fd (fsynced like the index), so a kill leaves at most a torn
+        last line, which the reader skips.
+        """
+        if self._closed:
+            raise SessionError(f"{self.path}: session writer is closed")
+        if not 0 <= int(i) < self.count:
+            raise SessionError(f"{self.path}: estimate for frame {i}, but only frames 0..{self.count - 1} "
+                               f"are committed")
+        if self._estimates_fd is None:
+            self._estimates_fd = os.open(self.path / ESTIMATES, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+        line = (json.dumps({"i": int(i), "estimate": estimate}, separators=(",", ":"), allow_nan=False)
+                + "\n").encode("utf-8")
+        os.write(self._estimates_fd, line)
+        if self.fsync:
+            _datasync(self._estimates_fd)
+
     def close(self) -> None:
         """Finalise: rewrite the manifest with the frame count and ``finalized: true``. Idempotent."""
         if self._closed:
             return
         self._closed = True
+        if self._estimates_fd is not None:
+            os.close(self._estimates_fd)
+            self._estimates_fd = None
         if self._index_fd is not None:
             os.close(self._index_fd)
             self._index_fd = None
@@ -759,6 +789,37 @@ class SessionReader:
     def __iter__(self) -> Iterator[Frame]:
         for k in range(len(self.entries)):
             yield self.read(k)
+
+    def estimates(self) -> dict[int, dict[str, Any]]:
+        """The recorded lighting estimates (``estimates.jsonl`` sidecar), by session frame index ``i``.
+
+        Empty when the session has no sidecar (recorded without the light stage, by ``illuminet
+        record``, or by an older version). Malformed or torn lines and lines naming no intact frame
+        are skipped with a warning: the sidecar never makes a session unreadable.
+        """
+        path = self.path / ESTIMATES
+        if not path.is_file():
+            return {}
+        intact = {e.i for e in self.entries}
+        out: dict[int, dict[str, Any]] = {}
+        bad = 0
+        for raw in path.read_bytes().split(b"\n"):
+            if not raw.strip():
+                continue
+            try:
+                d = json.loads(raw.decode("utf-8"))
+                i, est = d["i"], d["estimate"]
+            except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError):
+                bad += 1
+                continue
+            if isinstance(i, int) and not isinstance(i, bool) and i in intact and isinstance(est, dict):
+                out[i] = est
+            else:
+                bad += 1
+        if bad:
+            log.warning("session %s: %d line(s) of %s skipped (torn, malformed, or for no intact frame)",
+                        self.path, bad, ESTIMATES)
+        return out
 
     def check(self) -> list[str]:
         """Decode every frame too (slow): all problems, including undecodable images, one line each."""

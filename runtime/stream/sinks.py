@@ -1,9 +1,14 @@
-"""Output sinks: video file, PNG sequence, session recorder, null. (The MJPEG server is in mjpeg.py.)
+"""Output sinks: video file, PNG sequence, lighting estimates, session recorder, null. (The MJPEG
+server is in mjpeg.py.)
 
 This module owns writing finished frames to files. Picture sinks write
 ``frame.results.get("composite", frame.color)`` -- the renderer's output when there is one, else the
-camera picture -- converting RGB to OpenCV's BGR. The session recorder writes the *input* frame
-(colour, depth, metadata; never the results) in the format of :mod:`illuminet.runtime.stream.session`.
+camera picture. Videos go through PyAV (H.264, yuv420p: plays in browsers) when it is installed,
+else OpenCV's FFmpeg backend. The estimates sink writes each frame's lighting estimate as one JSON
+line (:mod:`illuminet.runtime.stream.estimate_json`). The session recorder writes the *input* frame
+(colour, depth, metadata; never the pictures) in the format of
+:mod:`illuminet.runtime.stream.session`, plus the frame's lighting estimate in the optional
+``estimates.jsonl`` sidecar.
 """
 
 from __future__ import annotations
@@ -59,7 +64,7 @@ class NullSink(Sink):
 
 #: container extension -> FourCC codes tried in order (first that OpenCV's FFmpeg backend opens wins).
 #: mp4v (MPEG-4 part 2) is in every FFmpeg build OpenCV ships; avc1 (H.264) needs an encoder that pip
-#: wheels usually lack, so it is the fallback, not the first choice.
+#: wheels usually lack, so it is the fallback, not the first choice. (Used when PyAV is missing.)
 VIDEO_CODECS: dict[str, tuple[str, ...]] = {
     ".mp4": ("mp4v", "avc1"),
     ".m4v": ("mp4v", "avc1"),
@@ -67,10 +72,97 @@ VIDEO_CODECS: dict[str, tuple[str, ...]] = {
     ".avi": ("MJPG", "XVID", "mp4v"),
     ".mkv": ("mp4v", "MJPG", "avc1"),
 }
+#: containers written as H.264 / yuv420p through PyAV when it is installed: what browsers (Chromium's
+#: <video>), phones and every player decode; OpenCV's mp4v (MPEG-4 part 2) does not play in browsers
+PYAV_CONTAINERS = (".mp4", ".m4v", ".mov", ".mkv")
+#: libx264 settings: "ultrafast" costs ~11 ms of CPU per 1280x800 frame on the 2-core build machine
+#: (superfast ~16 ms, veryfast ~29 ms) and runs on a writer thread (PyAV releases the GIL while
+#: encoding); crf 20 is visually lossless for a preview
+H264_PRESET, H264_CRF = "ultrafast", 20
+
+
+def pyav_available() -> bool:
+    """True when PyAV (``pip install av``: FFmpeg with libx264 in its wheel) can be imported."""
+    import importlib.util
+
+    return importlib.util.find_spec("av") is not None
+
+
+class _PyAvWriter:
+    """H.264 (libx264, yuv420p) into an MP4/MOV/MKV container through PyAV, on its own thread.
+
+    ``write`` only queues the picture (a bounded queue: a slow disk holds the loop back rather than
+    losing frames of the file); the thread converts RGB to yuv420p and encodes. An error in the
+    thread is raised by the next ``write`` or by ``close``.
+    """
+
+    def __init__(self, path: Path, size: tuple[int, int], fps: float):
+        import av
+        from fractions import Fraction
+
+        # +faststart: the index (moov) goes first, so a browser plays the file while it downloads
+        opts = {"movflags": "+faststart"} if path.suffix.lower() != ".mkv" else {}
+        self._container = av.open(str(path), mode="w", options=opts)
+        try:
+            self._stream = self._container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
+            self._stream.width, self._stream.height = size
+            self._stream.pix_fmt = "yuv420p"
+            self._stream.options = {"crf": str(H264_CRF), "preset": H264_PRESET}
+        except Exception:
+            self._container.close()
+            raise
+        self._queue: queue.Queue = queue.Queue(maxsize=4)
+        self._error: BaseException | None = None
+        self._n = 0
+        self._thread = threading.Thread(target=self._run, name="illuminet-video-encode", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        import av
+
+        while True:
+            img = self._queue.get()
+            if img is None:
+                return
+            if self._error is not None:
+                continue  # drain: the loop learns of the error on its next write
+            try:
+                f = av.VideoFrame.from_ndarray(img, format="rgb24")
+                f.pts = self._n
+                self._n += 1
+                for packet in self._stream.encode(f):
+                    self._container.mux(packet)
+            except Exception as e:  # reported in the loop thread
+                self._error = e
+
+    def write(self, rgb: np.ndarray) -> None:
+        if self._error is not None:
+            raise self._error
+        self._queue.put(rgb)
+
+    def release(self) -> None:
+        self._queue.put(None)
+        self._thread.join()
+        try:
+            if self._error is None:
+                for packet in self._stream.encode(None):  # flush the encoder's delayed frames
+                    self._container.mux(packet)
+        finally:
+            self._container.close()  # writes the index: the file is playable after this
+        if self._error is not None:
+            raise self._error
+
+
+def _even(img: np.ndarray) -> np.ndarray:
+    """yuv420p needs even width and height: repeat the last row/column when odd."""
+    h, w = img.shape[:2]
+    if h % 2 == 0 and w % 2 == 0:
+        return img
+    return np.pad(img, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
 
 
 class VideoSink(Sink):
-    """Write the output pictures to a video file with OpenCV's FFmpeg backend.
+    """Write the output pictures to a video file: H.264 through PyAV, else OpenCV's FFmpeg backend.
 
     Parameters
     ----------
@@ -79,36 +171,56 @@ class VideoSink(Sink):
     fps : float
         Frame rate written into the file.
     codecs : sequence of str, optional
-        FourCC codes to try in order; default from :data:`VIDEO_CODECS` by extension.
+        OpenCV FourCC codes to try in order (selects the OpenCV backend); default from
+        :data:`VIDEO_CODECS` by extension.
+    backend : {"auto", "pyav", "opencv"}
+        ``auto``: PyAV's H.264 (yuv420p, plays in browsers) for :data:`PYAV_CONTAINERS` when PyAV is
+        installed and no ``codecs`` are given, else OpenCV.
 
     Notes
     -----
     :meth:`open` checks at once that a writer can be created (a tiny probe file), so a missing codec or
     an unwritable folder is reported before the stream starts, not on the first frame. The real writer
-    is created on the first frame, whose size every later frame must have.
+    is created on the first frame, whose size every later frame must have. H.264 in yuv420p needs even
+    sizes: an odd last row or column is repeated.
     """
 
     name = "video"
 
-    def __init__(self, path: str | os.PathLike, fps: float = 30.0, codecs: tuple[str, ...] | None = None):
+    def __init__(self, path: str | os.PathLike, fps: float = 30.0, codecs: tuple[str, ...] | None = None,
+                 backend: str = "auto"):
         self.path = Path(path)
         ext = self.path.suffix.lower()
-        if codecs is None:
-            if ext not in VIDEO_CODECS:
-                raise SinkError(
-                    f"video {self.path}: unknown extension {ext!r}; expected one of {', '.join(VIDEO_CODECS)}"
-                )
-            codecs = VIDEO_CODECS[ext]
+        if ext not in VIDEO_CODECS and codecs is None:
+            raise SinkError(
+                f"video {self.path}: unknown extension {ext!r}; expected one of {', '.join(VIDEO_CODECS)}"
+            )
+        if backend not in ("auto", "pyav", "opencv"):
+            raise SinkError(f"video {self.path}: backend must be auto, pyav or opencv, got {backend!r}")
         if not fps > 0:
             raise SinkError(f"video {self.path}: fps must be > 0, got {fps!r}")
+        if backend == "pyav" and (ext not in PYAV_CONTAINERS or codecs is not None):
+            raise SinkError(f"video {self.path}: the PyAV backend writes H.264 into {', '.join(PYAV_CONTAINERS)} "
+                            f"(without OpenCV FourCC codes)")
+        if backend == "pyav" and not pyav_available():
+            raise SinkError(f"video {self.path}: PyAV is not installed; pip install av (or use backend 'opencv')")
+        if backend == "auto":
+            backend = "pyav" if codecs is None and ext in PYAV_CONTAINERS and pyav_available() else "opencv"
+        self.backend = backend
         self.fps = float(fps)
-        self.codecs = tuple(codecs)
+        self.codecs = tuple(codecs) if codecs is not None else VIDEO_CODECS.get(ext, ())
         self.codec: str | None = None
-        self._writer: cv2.VideoWriter | None = None
+        self._writer = None
         self._size: tuple[int, int] | None = None
         self.frames = 0
 
-    def _create(self, path: Path, size: tuple[int, int]) -> tuple[cv2.VideoWriter, str]:
+    def _create(self, path: Path, size: tuple[int, int]):
+        if self.backend == "pyav":
+            try:
+                return _PyAvWriter(path, size, self.fps), "h264"
+            except Exception as e:  # PyAV/FFmpeg raise their own types (av.error.*)
+                raise SinkError(f"video {self.path}: PyAV could not open an H.264 writer at {size[0]}x{size[1]}: "
+                                f"{e}; check that the folder is writable, or write .avi (OpenCV MJPG)") from None
         tried = []
         for cc in self.codecs:
             w = cv2.VideoWriter(str(path), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*cc), self.fps, size)
@@ -137,23 +249,36 @@ class VideoSink(Sink):
         img = output_picture(frame)
         size = (img.shape[1], img.shape[0])
         if self._writer is None:
-            self._writer, self.codec = self._create(self.path, size)
+            even = (size[0] + size[0] % 2, size[1] + size[1] % 2) if self.backend == "pyav" else size
+            self._writer, self.codec = self._create(self.path, even)
             self._size = size
-            log.info("video %s: %dx%d at %.3g fps, codec %s", self.path, size[0], size[1], self.fps, self.codec)
+            log.info("video %s: %dx%d at %.3g fps, codec %s (%s)", self.path, size[0], size[1], self.fps,
+                     self.codec, "PyAV" if self.backend == "pyav" else "OpenCV")
         elif size != self._size:
             # VideoWriter would silently drop a frame of another size; say so instead
             raise SinkError(f"video {self.path}: frame {frame.seq} is {size[0]}x{size[1]}, the video is "
                             f"{self._size[0]}x{self._size[1]}")
-        self._writer.write(cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        if self.backend == "pyav":
+            try:
+                self._writer.write(_even(img))
+            except SinkError:
+                raise
+            except Exception as e:
+                raise SinkError(f"video {self.path}: encoding failed: {type(e).__name__}: {e}") from e
+        else:
+            self._writer.write(cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
         self.frames += 1
 
     def close(self) -> None:
         if self._writer is not None:
-            self._writer.release()  # writes the container index (moov atom): the file is playable after this
-            self._writer = None
+            w, self._writer = self._writer, None
+            try:
+                w.release()  # writes the container index (moov atom): the file is playable after this
+            except Exception as e:
+                raise SinkError(f"video {self.path}: finishing the file failed: {type(e).__name__}: {e}") from e
 
     def stats(self) -> dict:
-        return {"frames": self.frames, "codec": self.codec}
+        return {"frames": self.frames, "codec": self.codec, "backend": self.backend}
 
 
 class PngSequenceSink(Sink):
@@ -194,8 +319,71 @@ class PngSequenceSink(Sink):
         return {"frames": self.frames}
 
 
+class EstimateSink(Sink):
+    """Write each frame's lighting estimate as one JSON line (JSONL) to a file (``--estimates FILE``).
+
+    One object per frame that has an estimate (``results["light"]``; frames before the anchor is
+    placed have none and write nothing), in the format of
+    :func:`~illuminet.runtime.stream.estimate_json.estimate_dict` (``docs/estimate.md``). Lines are
+    flushed as they are written, so ``tail -f FILE`` follows a live run.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file; ``-`` writes to standard output. An existing file is replaced.
+    """
+
+    name = "estimates"
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = str(path)
+        self._fh = None
+        self.frames = 0
+        self.written = 0
+
+    def open(self) -> None:
+        if self.path == "-":
+            import sys
+
+            self._fh = sys.stdout
+            return
+        p = Path(self.path)
+        if not p.parent.is_dir():
+            raise SinkError(f"estimates {p}: folder {p.parent} does not exist")
+        try:
+            self._fh = open(p, "w", encoding="utf-8")
+        except OSError as e:
+            raise SinkError(f"estimates {p}: cannot write: {e.strerror or e}") from None
+
+    def write(self, frame: Frame) -> None:
+        from illuminet.runtime.stream.estimate_json import frame_estimate, to_line
+
+        if self._fh is None:
+            raise RuntimeError("EstimateSink.write() before open()")
+        self.frames += 1
+        d = frame_estimate(frame)
+        if d is None:
+            return
+        self._fh.write(to_line(d) + "\n")
+        self._fh.flush()
+        self.written += 1
+
+    def close(self) -> None:
+        fh, self._fh = self._fh, None
+        if fh is not None and self.path != "-":
+            fh.close()
+
+    def stats(self) -> dict:
+        return {"frames": self.frames, "estimates": self.written}
+
+
 class SessionRecorderSink(Sink):
     """Record the input frames (colour, depth, metadata) as a session, off the loop thread.
+
+    When a frame carries a lighting estimate (``results["light"]``) it is appended to the session's
+    optional ``estimates.jsonl`` sidecar after the frame itself is committed
+    (:meth:`~illuminet.runtime.stream.session.SessionWriter.append_estimate`), so a replay can be
+    compared with what the live run estimated.
 
     Images are compressed on a small encoder pool (OpenCV's encoders release the GIL, so this uses the
     second core) and committed in order by one writer thread (files, fsync, index line). The queue is
@@ -251,11 +439,14 @@ class SessionRecorderSink(Sink):
 
     def _run(self) -> None:
         while True:
-            fut = self._queue.get()
-            if fut is None:
+            item = self._queue.get()
+            if item is None:
                 return
+            fut, estimate = item
             try:
-                self._writer.commit(fut.result())  # in submission order: the index stays in frame order
+                i = self._writer.commit(fut.result())  # in submission order: the index stays in frame order
+                if estimate is not None:
+                    self._writer.append_estimate(i, estimate)
             except BaseException as e:  # reported on the next write() in the loop thread
                 self._error = e
 
@@ -263,10 +454,14 @@ class SessionRecorderSink(Sink):
         if self._error is not None:
             err, self._error = self._error, None
             raise SinkError(f"session recorder {self.path}: {err}") from err
-        # only the input is recorded: drop results so the queue does not keep render buffers alive
+        estimate = None
         if frame.results:
+            from illuminet.runtime.stream.estimate_json import frame_estimate
+
+            estimate = frame_estimate(frame)  # a small dict: the sidecar line
+            # only the input is recorded: drop results so the queue does not keep render buffers alive
             frame = frame.replace(results=MappingProxyType({}))
-        self._queue.put(self._pool.submit(self._writer.encode, frame))
+        self._queue.put((self._pool.submit(self._writer.encode, frame), estimate))
 
     @property
     def frames(self) -> int:

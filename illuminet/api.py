@@ -1,0 +1,336 @@
+"""The Python API: ``illuminet.open`` (a stream of processed frames) and ``illuminet.relight`` (one image).
+
+What this module owns: the entry points a Python program uses instead of the command line. They are
+reached lazily as ``illuminet.open`` / ``illuminet.relight`` / ``illuminet.render_preview``
+(``illuminet/__init__.py``), so ``import illuminet`` stays fast and imports no numpy, OpenCV or GL.
+
+Example (README, "Use from Python")::
+
+    import illuminet
+
+    with illuminet.open("synthetic://lamp?frames=30", max_frames=30) as stream:
+        for result in stream:
+            est = result.estimate                    # LightEstimate (anchor frame) or None
+            if est is not None:
+                print(result.frame.seq, result.estimate_json()["primaryLightDirection"])
+            picture = result.composite               # HxWx3 uint8 RGB with the object, or None
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from dataclasses import dataclass
+from typing import Any, Iterator
+
+import numpy as np
+
+from illuminet.runtime.config import SCHEMA, Config, ConfigError, apply_overrides, defaults, load
+from illuminet.runtime.frame import Exposure, Frame, Intrinsics
+from illuminet.runtime.scene import ANCHOR, COMPOSITE, LIGHT, SHADING
+
+
+# --------------------------------------------------------------------------------------------------
+# configuration
+
+
+def _config(config: Config | str | os.PathLike | None, overrides: dict[str, Any]) -> Config:
+    """Built-in defaults (``None``), a config.toml path or a Config, plus keyword overrides.
+
+    An override key is ``section__key`` (``light__rate_hz=5``), ``"section.key"`` (through ``**{...}``),
+    or a bare key that names exactly one key of the schema (``max_frames=30``).
+    """
+    cfg = defaults() if config is None else config if isinstance(config, Config) else load(config)
+    items = []
+    for name, value in overrides.items():
+        if "__" in name or "." in name:
+            section, _, key = name.replace("__", ".", 1).partition(".")
+        else:
+            owners = [sec for sec, keys in SCHEMA.items() if name in keys]
+            if len(owners) != 1:
+                where = (f"it is in sections {', '.join(owners)}; write section__{name}=..." if owners else
+                         "no section has it; see config.toml")
+                raise ConfigError(f"illuminet.open(): override {name}={value!r}: {where}")
+            section, key = owners[0], name
+        items.append((section, key, value))
+    return apply_overrides(cfg, items)
+
+
+# --------------------------------------------------------------------------------------------------
+# illuminet.open
+
+
+@dataclass(frozen=True)
+class Result:
+    """One processed frame.
+
+    Attributes
+    ----------
+    frame : Frame
+        The frame with every stage's results (``frame.results``).
+    """
+
+    frame: Frame
+
+    @property
+    def estimate(self):
+        """The room's lighting (:class:`~illuminet.runtime.scene.LightEstimate`), or None before an anchor."""
+        return self.frame.results.get(LIGHT.name)
+
+    @property
+    def composite(self) -> np.ndarray | None:
+        """The picture with the object drawn in (HxWx3 uint8 RGB), or None (no renderer, or no object)."""
+        return self.frame.results.get(COMPOSITE.name)
+
+    @property
+    def shading(self):
+        """The object's per-vertex irradiance (:class:`~illuminet.runtime.scene.ObjectShading`), or None."""
+        return self.frame.results.get(SHADING.name)
+
+    @property
+    def anchor(self):
+        """Where the object stands (:class:`~illuminet.runtime.scene.Anchor`), or None."""
+        return self.frame.results.get(ANCHOR.name)
+
+    def estimate_json(self) -> dict[str, Any] | None:
+        """The estimate as the JSON object of docs/estimate.md (three.js / WebXR shape), or None."""
+        from illuminet.runtime.stream.estimate_json import frame_estimate
+
+        return frame_estimate(self.frame)
+
+
+class Stream:
+    """An iterator of :class:`Result` over a source, through the configured pipeline (and sinks).
+
+    Made by :func:`open`. Frames are pulled: each ``next()`` reads one frame from the source and runs
+    the stages on it, in the calling thread (a live camera's own queue keeps only the newest frames
+    while the program is busy). A stage that fails on a frame follows the pipeline's policy (the
+    frame keeps that stage's last good result; counted in :attr:`failures`); ``strict=True`` raises.
+    The outputs of ``[output]`` (``output__video=...``, ``output__mjpeg=True``, ``--estimates``'s
+    ``output__estimates=...``) get every frame, as with ``illuminet run``.
+    """
+
+    def __init__(self, url: str, cfg: Config, *, render: bool = True, strict: bool | None = None):
+        self.url, self.cfg, self.render = url, cfg, render
+        self.strict = cfg.logging.strict if strict is None else bool(strict)
+        self.frames = 0
+        self.failures: dict[str, int] = {}
+        self._stack: contextlib.ExitStack | None = None
+        self._source = self._chain = None
+        self._sinks: list = []
+        self._done = False
+
+    def open(self) -> "Stream":
+        """Open the source, the stages and the sinks (done by ``with`` or the first ``next``)."""
+        if self._stack is not None:
+            return self
+        from illuminet.hw import open_source
+        from illuminet.pipeline import build_sinks, build_stages
+        from illuminet.runtime.stage import StageChain
+
+        stack = contextlib.ExitStack()
+        try:
+            source = open_source(self.url, self.cfg)
+            stages = build_stages(self.cfg, render=self.render)
+            sinks = build_sinks(self.cfg, source_url=self.url)
+            chain = StageChain(stages, strict=self.strict, source=source)  # checks the wiring first
+            stack.enter_context(source)
+            for st in stages:
+                stack.enter_context(st)
+            for sk in sinks:
+                stack.enter_context(sk)
+        except BaseException:
+            stack.close()
+            raise
+        self._stack, self._source, self._chain, self._sinks = stack, source, chain, sinks
+        return self
+
+    def __enter__(self) -> "Stream":
+        return self.open()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __iter__(self) -> Iterator[Result]:
+        return self
+
+    def __next__(self) -> Result:
+        if self._done:
+            raise StopIteration
+        self.open()
+        limit = self.cfg.source.max_frames
+        frame = None if limit and self.frames >= limit else self._source.read()
+        if frame is None:
+            self._done = True
+            self.close()
+            raise StopIteration
+        frame, events = self._chain.run(frame)
+        for ev in events:
+            self.failures[ev.key] = self.failures.get(ev.key, 0) + 1
+        for sk in self._sinks:
+            sk.write(frame)
+        self.frames += 1
+        return Result(frame)
+
+    def close(self) -> None:
+        """Close sinks, stages and source (outputs are finalised). Idempotent."""
+        stack, self._stack = self._stack, None
+        self._done = True
+        if stack is not None:
+            stack.close()
+
+    @property
+    def stages(self) -> list:
+        """The stages (opened), e.g. for their ``stats()``."""
+        return list(self._chain.stages) if self._chain is not None else []
+
+
+def open(url: str, /, config: Config | str | os.PathLike | None = None, *, render: bool = True,  # noqa: A001
+         strict: bool | None = None, **overrides: Any) -> Stream:
+    """Process frames from ``url`` through the pipeline; a context-managed iterator of :class:`Result`.
+
+    Parameters
+    ----------
+    url : str
+        A source URL, as for ``illuminet run``: ``oakd://``, ``v4l2:///dev/video0?stereo=sbs``,
+        ``replay://SESSION``, ``synthetic://lamp``...
+    config : Config, path or None
+        The configuration: None = built-in defaults (not ./config.toml), a config.toml path, or a
+        :class:`~illuminet.runtime.config.Config`.
+    render : bool
+        Draw the object (``result.composite``; needs OpenGL via EGL). False: lighting only, faster.
+    strict : bool, optional
+        Raise on the first failing stage (default ``[logging] strict``).
+    **overrides
+        Configuration keys: ``section__key=value`` (``light__rate_hz=5``), a bare key that is unique
+        in the schema (``max_frames=30``, ``timing="asap"``), or ``**{"section.key": value}``.
+
+    Returns
+    -------
+    Stream
+        Use ``with illuminet.open(...) as stream: for result in stream: ...``.
+
+    Raises
+    ------
+    ConfigError
+        An unknown or ambiguous override, or a bad value (the message names it).
+    """
+    return Stream(url, _config(config, overrides), render=render, strict=strict)
+
+
+# --------------------------------------------------------------------------------------------------
+# illuminet.relight
+
+
+def _intrinsics(intrinsics: Any, width: int, height: int) -> Intrinsics:
+    """Intrinsics, a 3x3 K, or (fx, fy, cx, cy) for the colour image (scaled when made for another size)."""
+    if isinstance(intrinsics, Intrinsics):
+        K = intrinsics
+    else:
+        a = np.asarray(intrinsics, np.float64)
+        if a.shape == (3, 3):
+            K = Intrinsics(a[0, 0], a[1, 1], a[0, 2], a[1, 2], width, height)
+        elif a.shape == (4,):
+            K = Intrinsics(*(float(x) for x in a), width, height)
+        else:
+            raise ValueError(f"intrinsics: expected an Intrinsics, a 3x3 camera matrix or (fx, fy, cx, cy), "
+                             f"got an array of shape {a.shape}")
+    return K if (K.width, K.height) == (width, height) else K.scaled(width, height)
+
+
+def align_depth(depth: np.ndarray, color_shape: tuple[int, ...], what: str = "depth") -> np.ndarray:
+    """Depth (metres, float32, or uint16 millimetres) at the colour image's size.
+
+    Depth aligned to the colour camera but computed at another resolution (a stereo camera's 640x400
+    for 1280x800 colour) is resized **nearest neighbour**: no depth is invented across an edge and
+    0 (invalid) stays 0. The two must have the same aspect ratio (the same field of view); anything
+    else is not aligned and is refused.
+    """
+    import cv2
+
+    d = np.asarray(depth)
+    if d.ndim != 2:
+        raise ValueError(f"{what}: expected a single-channel image, got shape {d.shape}")
+    if d.dtype == np.uint16:
+        d = d.astype(np.float32) * np.float32(1e-3)
+    d = d.astype(np.float32, copy=False)
+    h, w = color_shape[:2]
+    dh, dw = d.shape
+    if (dh, dw) == (h, w):
+        return d
+    if abs(dw / dh - w / h) > 0.01 * (w / h):
+        raise ValueError(f"{what}: size {dw}x{dh} has another aspect ratio than the colour image {w}x{h}; "
+                         f"depth must be aligned to colour (same field of view, possibly another resolution)")
+    return cv2.resize(d, (w, h), interpolation=cv2.INTER_NEAREST)
+
+
+def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Any, anchor_px: tuple[float, float],
+            bundle: str | None = None, *, config: Config | str | os.PathLike | None = None,
+            exposure: Exposure | None = None, precision: str | None = None, **overrides: Any):
+    """Place the bundle's object at ``anchor_px`` in one RGB-D image and predict its radiance.
+
+    Parameters
+    ----------
+    color : (H, W, 3) uint8 RGB
+    depth : (h, w) float metres or uint16 millimetres (0 = invalid), aligned to colour; another
+        resolution of the same field of view is resized nearest-neighbour (:func:`align_depth`)
+    intrinsics : Intrinsics, 3x3 K or (fx, fy, cx, cy) of the colour image
+    anchor_px : (x, y) colour pixel where the object stands
+    bundle : object bundle (default ``[model] bundle``, e.g. ``builtin:vase``)
+    config, **overrides : as for :func:`open`
+    exposure : Exposure, optional (absolute units when known)
+    precision : ``"int8"`` or ``"fp32"`` ONNX chain (default ``[model] precision``)
+
+    Returns
+    -------
+    RelightResult
+        Arrays: ``vertices``, ``normals`` (camera frame), ``faces``, ``radiance`` (linear RGB of a
+        white diffuse surface in the image's linear units), ``irradiance``, ``T_cam_obj``, ... (see
+        :class:`illuminet.runtime.relight.RelightResult`; ``illuminet relight``'s npz holds the same).
+        :func:`render_preview` draws it into the image.
+    """
+    from illuminet.runtime.relight import relight as _relight
+
+    color = np.ascontiguousarray(color)
+    if color.ndim != 3 or color.shape[2] != 3 or color.dtype != np.uint8:
+        raise ValueError(f"color: expected an HxWx3 uint8 RGB image, got {color.shape} {color.dtype}")
+    d = align_depth(depth, color.shape)
+    h, w = color.shape[:2]
+    K = _intrinsics(intrinsics, w, h)
+    return _relight(color, d, K, tuple(anchor_px), _config(config, overrides), bundle=bundle, exposure=exposure,
+                    precision=precision)
+
+
+def render_preview(color: np.ndarray, depth: np.ndarray | None, intrinsics: Any, result,
+                   config: Config | str | os.PathLike | None = None, **overrides: Any) -> np.ndarray:
+    """The relit object composited into the colour image (HxWx3 uint8 RGB), by the runtime's renderer.
+
+    ``result`` is what :func:`relight` returned; the same bundle's render mesh is drawn with its
+    predicted shading, cast shadow and occlusion by the real depth (as ``illuminet run`` draws it).
+    Needs OpenGL via EGL (``illuminet doctor`` says whether it works).
+    """
+    from illuminet.runtime.render.shadow import dominant_light
+    from illuminet.runtime.render.stage import RenderStage
+    from illuminet.runtime.scene import ObjectShading
+
+    color = np.ascontiguousarray(color)
+    h, w = color.shape[:2]
+    d = None if depth is None else align_depth(depth, color.shape)
+    K = _intrinsics(intrinsics, w, h)
+    cfg = _config(config, overrides)
+    if str(result.bundle):  # the bundle folder relight loaded: the same object and carry
+        cfg = apply_overrides(cfg, [("model", "bundle", str(result.bundle))])
+    R = np.asarray(result.T_cam_obj)[:3, :3]
+    shading = ObjectShading(irradiance=np.asarray(result.proxy_irradiance, np.float32), method=result.method,
+                            dominant_dir=R.T @ np.asarray(result.dominant_dir, np.float64),
+                            dominant_share=float(result.dominant_share))
+    stage = RenderStage(cfg)
+    stage.open()
+    try:
+        irr = stage.render_irradiance(shading)
+        light, share = dominant_light(shading, stage.comp.mesh.normals, irr)
+        return stage.comp.draw(color, d, K.K, np.asarray(result.T_cam_obj, np.float64), irr,
+                               float(result.exposure_scale), light, share)
+    finally:
+        stage.close()
+

@@ -1,0 +1,353 @@
+"""The lighting estimate as JSON: conventions (three.js / WebXR), the schema, the JSONL sink, the
+session sidecar and the MJPEG server's estimate endpoints (a real HTTP client)."""
+
+from __future__ import annotations
+
+import http.client
+import json
+import threading
+import time
+
+import cv2
+import jsonschema
+import numpy as np
+import pytest
+
+from illuminet.runtime.frame import Frame, Intrinsics
+from illuminet.runtime.scene import LIGHT, LightEstimate
+from illuminet.runtime.sh import sh9
+from illuminet.runtime.stream.estimate_json import (
+    estimate_dict, estimate_from_dict, frame_estimate, load_schema, to_line,
+)
+from illuminet.runtime.stream.mjpeg import MjpegSink
+from illuminet.runtime.stream.session import ESTIMATES, SessionReader, SessionWriter
+from illuminet.runtime.stream.sinks import EstimateSink, SessionRecorderSink
+
+from ._sessions import frames
+
+INTR = Intrinsics(500.0, 500.0, 319.5, 199.5, 640, 400)
+SCHEMA = load_schema()
+
+
+def _estimate(direction=(0.6, 0.8, 0.0), primary=(2.0, 1.5, 1.0), k=0.05, pos=None) -> LightEstimate:
+    rng = np.random.default_rng(3)
+    sh = rng.normal(0, 0.3, (9, 3))
+    sh[0] = [3.0, 2.5, 2.0]
+    T = np.eye(4)
+    T[:3, 3] = [0.1, 0.4, 2.0]
+    return LightEstimate(
+        sh9=sh, primary_dir=None if direction is None else np.array(direction) / np.linalg.norm(direction),
+        primary_rgb=np.array(primary), primary_pos=None if pos is None else np.array(pos),
+        confidence={"ambient": 0.8, "direction": 0.7, "intensity": 0.5, "colour": 0.9, "position": 0.0},
+        observed={"planes": np.int64(2), "plane_labels": ["floor", "wall"], "shadow": None,
+                  "env_coverage": np.float32(0.4), "emitters": 1, "cues": ["near_light"]},
+        exposure_scale=k, method="scene", T_cam_obj=T)
+
+
+def _three_irradiance(coeffs27: list[float], n: np.ndarray) -> np.ndarray:
+    """three.js's ``shGetIrradianceAt`` (lights_pars_begin.glsl.js, r187), transcribed: the irradiance a
+    LightProbe with these coefficients gives a surface with normal n."""
+    c = np.asarray(coeffs27).reshape(9, 3)
+    x, y, z = n
+    return (c[0] * 0.886227 + c[1] * 2.0 * 0.511664 * y + c[2] * 2.0 * 0.511664 * z + c[3] * 2.0 * 0.511664 * x
+            + c[4] * 2.0 * 0.429043 * x * y + c[5] * 2.0 * 0.429043 * y * z + c[6] * (0.743125 * z * z - 0.247708)
+            + c[7] * 2.0 * 0.429043 * x * z + c[8] * 0.429043 * (x * x - y * y))
+
+
+def test_sh_is_threejs_lightprobe_radiance_in_camera_linear_units():
+    est = _estimate()
+    d = estimate_dict(est, seq=7, t_device_ns=1_500_000_000, t_host_ns=99, intrinsics=INTR)
+    jsonschema.validate(d, SCHEMA)
+    assert len(d["sphericalHarmonicsCoefficients"]) == 27
+    # a three.js LightProbe fed these 27 floats gives the estimate's own irradiance x exposure_scale
+    for n in np.random.default_rng(0).normal(size=(20, 3)):
+        n /= np.linalg.norm(n)
+        ours = (sh9(n[None]) @ est.sh9)[0] * est.exposure_scale
+        assert np.allclose(_three_irradiance(d["sphericalHarmonicsCoefficients"], n), ours, rtol=1e-4, atol=1e-6)
+    p = d["primaryLightDirection"]
+    assert p["w"] == 0 and np.allclose([p["x"], p["y"], p["z"]], [0.6, 0.8, 0.0], atol=1e-6)
+    i = d["primaryLightIntensity"]
+    assert i["w"] == 1 and np.allclose([i["x"], i["y"], i["z"]], np.array([2.0, 1.5, 1.0]) * 0.05)
+    assert d["hasPrimaryLight"] is True and d["primaryLightPosition"] is None
+    assert d["frameId"] == 7 and d["timestamp"] == 1.5 and d["timestampNs"] == {"device": 1_500_000_000, "host": 99}
+    assert d["camera"] == {"fx": 500.0, "fy": 500.0, "cx": 319.5, "cy": 199.5, "width": 640, "height": 400}
+    assert d["coordinateFrame"]["up"] == [0.0, 1.0, 0.0] and d["coordinateFrame"]["T_cam_obj"][3] == 0.1
+    assert d["observed"]["planes"] == 2 and d["observed"]["env_coverage"] == pytest.approx(0.4)
+    # ARCore-like colour correction: the mean light's colour with green = 1, a = its luminance / pi
+    mean_px = (est.sh9[0] * 0.282095 * 0.05 + np.array([2.0, 1.5, 1.0]) * 0.05 / 4) / np.pi
+    cc = d["colorCorrection"]
+    assert np.allclose([cc["r"], cc["g"], cc["b"]], mean_px / mean_px[1], rtol=1e-5)
+    assert cc["a"] == d["ambientIntensity"] == pytest.approx(mean_px @ [0.2126, 0.7152, 0.0722], rel=1e-5)
+
+
+def test_no_primary_light_near_light_position_and_round_trip():
+    d = estimate_dict(_estimate(direction=None), seq=1, t_device_ns=0)
+    jsonschema.validate(d, SCHEMA)
+    assert d["hasPrimaryLight"] is False and d["primaryLightIntensity"]["x"] == 0.0
+    assert d["primaryLightDirection"] == {"x": 0.0, "y": 1.0, "z": 0.0, "w": 0.0}
+    assert d["camera"] is None and d["timestampNs"]["host"] is None
+    est = _estimate(pos=(0.3, 0.9, -0.2))
+    d = estimate_dict(est, seq=2, t_device_ns=5)
+    jsonschema.validate(d, SCHEMA)
+    assert d["primaryLightPosition"] == {"x": 0.3, "y": 0.9, "z": -0.2, "w": 1.0}
+    back = estimate_from_dict(json.loads(to_line(d)))
+    assert np.allclose(back.sh9, est.sh9, rtol=1e-5, atol=1e-6)
+    assert np.allclose(back.primary_rgb, est.primary_rgb, rtol=1e-5)
+    assert np.allclose(back.T_cam_obj, est.T_cam_obj) and back.method == "scene"
+
+
+def test_schema_rejects_what_it_should():
+    d = estimate_dict(_estimate(), seq=1, t_device_ns=0)
+    for bad in ({"sphericalHarmonicsCoefficients": [0.0] * 26}, {"primaryLightDirection": {"x": 0, "y": 1, "z": 0, "w": 1}},
+                {"confidence": dict(d["confidence"], ambient=1.5)}, {"extra": 1}):
+        with pytest.raises(jsonschema.ValidationError):
+            jsonschema.validate(dict(d, **bad), SCHEMA)
+    nan = _estimate()
+    nan.sh9[0, 0] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        estimate_dict(nan, seq=1, t_device_ns=0)
+
+
+def _with_light(f: Frame, est: LightEstimate | None = None) -> Frame:
+    return f.with_result(LIGHT, est if est is not None else _estimate())
+
+
+def test_jsonl_sink_writes_one_valid_line_per_frame_with_an_estimate(tmp_path):
+    fs = frames(5)
+    path = tmp_path / "est.jsonl"
+    with EstimateSink(path) as sink:
+        for k, f in enumerate(fs):
+            sink.write(_with_light(f) if k != 2 else f)  # frame 2: no estimate (no anchor yet)
+        assert sink.stats() == {"frames": 5, "estimates": 4}
+    lines = path.read_text().splitlines()
+    assert [json.loads(x)["frameId"] for x in lines] == [0, 1, 3, 4]
+    for x in lines:
+        jsonschema.validate(json.loads(x), SCHEMA)
+    from illuminet.runtime.stream.sinks import SinkError
+
+    with pytest.raises(SinkError, match="does not exist"):
+        EstimateSink(tmp_path / "no" / "x.jsonl").open()
+
+
+def test_recorder_writes_the_estimates_sidecar_and_the_reader_tolerates_its_absence(tmp_path):
+    fs = frames(6)
+    with SessionRecorderSink(tmp_path / "s", fsync=False) as sink:
+        for k, f in enumerate(fs):
+            sink.write(_with_light(f, _estimate(k=0.01 * (k + 1))) if k % 2 else f)
+    r = SessionReader(tmp_path / "s", strict=True)
+    assert r.manifest["version"] == 1  # the sidecar changes no format version: old readers still read it
+    est = r.estimates()
+    assert sorted(est) == [1, 3, 5]
+    assert est[3]["frameId"] == 3 and est[3]["exposureScale"] == pytest.approx(0.04)
+    jsonschema.validate(est[5], SCHEMA)
+    # a torn last line (a kill while writing it) and junk are skipped, the rest stays
+    with open(tmp_path / "s" / ESTIMATES, "ab") as fh:
+        fh.write(b'{"i": 0, "estimate": {"fram')
+    assert sorted(SessionReader(tmp_path / "s").estimates()) == [1, 3, 5]
+    # a session recorded without estimates: an empty mapping, no problem reported
+    with SessionWriter(tmp_path / "plain", fsync=False) as w:
+        w.append(fs[0])
+    r = SessionReader(tmp_path / "plain", strict=True)
+    assert r.estimates() == {} and r.problems == []
+
+
+def _get(port: int, path: str) -> tuple[int, dict, bytes]:
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=5)
+    conn.request("GET", path)
+    r = conn.getresponse()
+    body = r.read()
+    conn.close()
+    return r.status, {k.lower(): v for k, v in r.getheaders()}, body
+
+
+def _sse_events(port: int, n: int, timeout: float = 5.0) -> list[tuple[int, dict]]:
+    """Read ``n`` events from /estimates with a plain HTTP client: (id, parsed data) each."""
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=timeout)
+    conn.request("GET", "/estimates")
+    r = conn.getresponse()
+    assert r.status == 200 and r.getheader("Content-Type").startswith("text/event-stream")
+    assert r.getheader("Access-Control-Allow-Origin") == "*"
+    out, ev = [], {}
+    try:
+        while len(out) < n:
+            line = r.fp.readline()
+            assert line, "event stream ended early"
+            line = line.decode().rstrip("\n")
+            if not line:
+                if "data" in ev:
+                    out.append((int(ev["id"]), json.loads(ev["data"])))
+                ev = {}
+                continue
+            if line.startswith(":"):
+                continue
+            k, _, v = line.partition(": ")
+            ev[k] = v
+    finally:
+        conn.close()
+    return out
+
+
+def test_mjpeg_server_serves_the_estimate_as_json_and_server_sent_events():
+    fs = frames(200)
+    with MjpegSink(port=0, max_fps=0) as sink:
+        status, _, body = _get(sink.port, "/estimate.json")
+        assert status == 200 and json.loads(body) is None  # before the first estimate
+        stop = threading.Event()
+
+        def feed():
+            for f in fs:
+                if stop.is_set():
+                    return
+                sink.write(_with_light(f))
+                time.sleep(0.005)
+
+        t = threading.Thread(target=feed, daemon=True)
+        t.start()
+        try:
+            events = _sse_events(sink.port, 5)
+            ids = [i for i, _ in events]
+            assert ids == sorted(ids) and len(set(ids)) == 5  # newest first-come, never repeated
+            for i, d in events:
+                assert d["frameId"] == i
+                jsonschema.validate(d, SCHEMA)
+            status, head, body = _get(sink.port, "/estimate.json")
+            assert status == 200 and head["access-control-allow-origin"] == "*"
+            latest = json.loads(body)
+            assert latest["frameId"] >= ids[-1]
+            s = json.loads(_get(sink.port, "/stats.json")[2])
+            assert s["estimate"]["schema"] == "illuminet-light-estimate" and s["sink"]["estimates_sent"] >= 5
+            status, head, body = _get(sink.port, "/light_estimate.schema.json")
+            assert status == 200 and json.loads(body) == SCHEMA
+        finally:
+            stop.set()
+            t.join(5)
+
+
+def test_sse_rate_cap_skips_to_the_newest():
+    fs = frames(400)
+    with MjpegSink(port=0, max_fps=10) as sink:
+        stop = threading.Event()
+
+        def feed():
+            for f in fs:
+                if stop.is_set():
+                    return
+                sink.write(_with_light(f))
+                time.sleep(0.002)
+
+        t = threading.Thread(target=feed, daemon=True)
+        t.start()
+        try:
+            t0 = time.perf_counter()
+            events = _sse_events(sink.port, 5)
+            dt = time.perf_counter() - t0
+        finally:
+            stop.set()
+            t.join(5)
+    ids = [i for i, _ in events]
+    assert dt >= 0.35  # 5 events at <= 10 per second
+    assert min(np.diff(ids)) >= 2  # frames between the slots were skipped, not queued
+
+
+def test_frame_estimate_is_none_without_a_light_result():
+    f = frames(1)[0]
+    assert frame_estimate(f) is None
+    assert frame_estimate(_with_light(f))["frameId"] == f.seq
+
+
+def test_pages_static_files_and_model_are_served_and_traversal_is_refused():
+    with MjpegSink(port=0, viewer_model="builtin:bowl") as sink:
+        status, head, body = _get(sink.port, "/viewer")
+        assert status == 200 and head["content-type"].startswith("text/html")
+        assert b'"three": "/static/three/three.module.js"' in body and b"/static/viewer.js" in body
+        for rel in ("viewer.js", "three/three.module.js", "three/three.core.js", "three/addons/loaders/GLTFLoader.js",
+                    "three/addons/controls/OrbitControls.js", "three/LICENSE", "three/VERSION"):
+            status, head, body = _get(sink.port, "/static/" + rel)
+            assert status == 200 and len(body) > 100, rel
+            if rel.endswith(".js"):
+                assert head["content-type"].startswith("text/javascript"), rel
+        for bad in ("/static/../mjpeg.py", "/static/three/../../viewer.py", "/static/%2e%2e/mjpeg.py",
+                    "/static/.hidden", "/static//etc/passwd"):
+            assert _get(sink.port, bad)[0] == 404, bad
+        status, head, body = _get(sink.port, "/model.glb")
+        assert status == 200 and head["content-type"] == "model/gltf-binary" and body[:4] == b"glTF"
+        import io
+
+        import trimesh
+
+        scene = trimesh.load(io.BytesIO(body), file_type="glb")
+        lo, hi = scene.bounds
+        assert abs(lo[1]) < 1e-6 and 0.05 < hi[1] < 0.5  # standing on y = 0, +Y up, metres
+        # smooth normals are in the file (without them glTF viewers shade flat)
+        n = int.from_bytes(body[12:16], "little")
+        gltf = json.loads(body[20:20 + n])
+        assert "NORMAL" in gltf["meshes"][0]["primitives"][0]["attributes"]
+
+
+def test_camera_stream_is_the_picture_without_the_object():
+    f = frames(1, w=160, h=120)[0]
+    comp = np.zeros_like(f.color)
+    comp[..., 2] = 255
+    with MjpegSink(port=0) as sink:
+        sink.write(f.with_result("composite", comp))
+        out = {}
+        for src in ("composite", "camera"):
+            conn = http.client.HTTPConnection("127.0.0.1", sink.port, timeout=5)
+            conn.request("GET", "/stream.mjpg" + ("?source=camera" if src == "camera" else ""))
+            r = conn.getresponse()
+            assert r.status == 200
+            data = b""
+            while data.count(b"\xff\xd9") < 1:
+                data += r.fp.read1(65536)
+            jpg = data[data.index(b"\xff\xd8"):data.index(b"\xff\xd9") + 2]
+            out[src] = cv2.imdecode(np.frombuffer(jpg, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
+            conn.close()
+        assert _get(sink.port, "/stream.mjpg?source=nope")[0] == 400
+    assert out["composite"][..., 2].mean() > 240
+    assert np.abs(out["camera"].astype(int) - f.color.astype(int)).mean() < 8
+
+
+def test_bad_viewer_model_is_refused_before_the_server_starts(tmp_path):
+    with pytest.raises(ValueError, match="no such file"):
+        MjpegSink(port=0, viewer_model=str(tmp_path / "nope.glb"))
+    (tmp_path / "m.fbx").write_bytes(b"x")
+    with pytest.raises(ValueError, match="unknown mesh format '.fbx'"):
+        MjpegSink(port=0, viewer_model=str(tmp_path / "m.fbx"))
+    with pytest.raises(ValueError, match="unknown built-in object"):
+        MjpegSink(port=0, viewer_model="builtin:teapot")
+
+
+@pytest.mark.gl
+def test_replay_reproduces_the_recorded_estimates(tmp_path, gl, capsys):
+    """run --record --estimates on the default session, then replay the recording: the estimates of the
+    JSONL file, the session's sidecar and the replay agree exactly (timestamps on the host aside)."""
+    from illuminet.cli import main
+    from illuminet.commands.demo import DEFAULT_SESSION
+
+    src = f"replay://{DEFAULT_SESSION}?timing=asap"
+    rc = main(["--log-level", "warning", "--set", "output.record_fsync=false", "run", src, "--max-frames", "6",
+               "--record", str(tmp_path / "rec"), "--estimates", str(tmp_path / "live.jsonl")])
+    assert rc == 0, capsys.readouterr()
+    rc = main(["--log-level", "warning", "replay", str(tmp_path / "rec"), "--timing", "asap",
+               "--estimates", str(tmp_path / "replay.jsonl")])
+    assert rc == 0, capsys.readouterr()
+
+    def load(path):
+        out = [json.loads(x) for x in path.read_text().splitlines()]
+        return [dict(d, timestampNs=d["timestampNs"]["device"]) for d in out]
+
+    live, again = load(tmp_path / "live.jsonl"), load(tmp_path / "replay.jsonl")
+    sidecar = SessionReader(tmp_path / "rec").estimates()
+    assert len(live) == 6 and [d["frameId"] for d in live] == list(range(6))
+    assert again == live
+    assert [dict(sidecar[i], timestampNs=sidecar[i]["timestampNs"]["device"]) for i in range(6)] == live
+    capsys.readouterr()
+    assert main(["replay", str(tmp_path / "rec"), "--check"]) == 0
+    assert "lighting estimates: 6 of 6 frames (estimates.jsonl)" in capsys.readouterr().out
+
+
+def test_record_refuses_estimates_it_cannot_make(tmp_path, capsys):
+    from illuminet.cli import main
+
+    assert main(["record", "synthetic://indoor", str(tmp_path / "r"), "--estimates", str(tmp_path / "e.jsonl")]) == 2
+    assert "use `illuminet run SOURCE --record OUT --estimates FILE`" in capsys.readouterr().err
