@@ -136,9 +136,11 @@ class BoardSpec:
 
     def describe(self) -> str:
         """One line for messages: squares, sizes, dictionary, layout."""
-        return (f"ChArUco {self.squares_x}x{self.squares_y} squares of {self.square_mm:g} mm, markers "
-                f"{self.marker_mm:g} mm, {self.dictionary}{' (legacy layout)' if self.legacy else ''}"
-                f"{f', aspect {self.aspect:g}' if self.aspect != 1.0 else ''}")
+        return (
+            f"ChArUco {self.squares_x}x{self.squares_y} squares of {self.square_mm:g} mm, markers "
+            f"{self.marker_mm:g} mm, {self.dictionary}{' (legacy layout)' if self.legacy else ''}"
+            f"{f', aspect {self.aspect:g}' if self.aspect != 1.0 else ''}"
+        )
 
 
 def _dict_size(name: str) -> int | None:
@@ -184,8 +186,9 @@ def write_png(path: str | Path, img: np.ndarray, dpi: float) -> Path:
     return path
 
 
-def write_pdf(path: str | Path, img: np.ndarray, size_mm: tuple[float, float], page: str = "a4",
-              caption: str = "") -> Path:
+def write_pdf(
+    path: str | Path, img: np.ndarray, size_mm: tuple[float, float], page: str = "a4", caption: str = ""
+) -> Path:
     """Write a one-page PDF with ``img`` (uint8 grey) placed centred at exactly ``size_mm``.
 
     Parameters
@@ -221,17 +224,23 @@ def write_pdf(path: str | Path, img: np.ndarray, size_mm: tuple[float, float], p
     img_data = zlib.compress(np.ascontiguousarray(img).tobytes(), 9)
     text = caption.encode("ascii", "replace").replace(b"\\", b"\\\\").replace(b"(", b"\\(").replace(b")", b"\\)")
     content = (
-        f"q {iw:.4f} 0 0 {ih:.4f} {x0:.4f} {y0:.4f} cm /Im0 Do Q\n"
-        f"BT /F1 9 Tf {x0:.4f} {y0 - 14:.4f} Td ("
-    ).encode() + text + b") Tj ET\n"
+        (f"q {iw:.4f} 0 0 {ih:.4f} {x0:.4f} {y0:.4f} cm /Im0 Do Q\nBT /F1 9 Tf {x0:.4f} {y0 - 14:.4f} Td (").encode()
+        + text
+        + b") Tj ET\n"
+    )
     objs = [
         b"<< /Type /Catalog /Pages 2 0 R >>",
         b"<< /Type /Pages /Kids [3 0 R] /Count 1 >>",
-        (f"<< /Type /Page /Parent 2 0 R /MediaBox [0 0 {W:.4f} {H:.4f}] "
-         f"/Resources << /XObject << /Im0 4 0 R >> /Font << /F1 6 0 R >> >> /Contents 5 0 R >>").encode(),
-        (f"<< /Type /XObject /Subtype /Image /Width {w} /Height {h} /ColorSpace /DeviceGray "
-         f"/BitsPerComponent 8 /Filter /FlateDecode /Interpolate false /Length {len(img_data)} >>\nstream\n").encode()
-        + img_data + b"\nendstream",
+        (
+            f"<< /Type /Page /Parent 2 0 R /MediaBox [0 0 {W:.4f} {H:.4f}] "
+            f"/Resources << /XObject << /Im0 4 0 R >> /Font << /F1 6 0 R >> >> /Contents 5 0 R >>"
+        ).encode(),
+        (
+            f"<< /Type /XObject /Subtype /Image /Width {w} /Height {h} /ColorSpace /DeviceGray "
+            f"/BitsPerComponent 8 /Filter /FlateDecode /Interpolate false /Length {len(img_data)} >>\nstream\n"
+        ).encode()
+        + img_data
+        + b"\nendstream",
         f"<< /Length {len(content)} >>\nstream\n".encode() + content + b"endstream",
         b"<< /Type /Font /Subtype /Type1 /BaseFont /Helvetica >>",
     ]

@@ -97,8 +97,13 @@ class CameraCalib:
         fisheye coefficients are not OpenCV pinhole ones, so they are left out: undistort first)."""
         dist = tuple(float(x) for x in self.dist) if self.model == "pinhole" else ()
         return Intrinsics(
-            fx=float(self.K[0, 0]), fy=float(self.K[1, 1]), cx=float(self.K[0, 2]), cy=float(self.K[1, 2]),
-            width=int(self.width), height=int(self.height), dist=dist,
+            fx=float(self.K[0, 0]),
+            fy=float(self.K[1, 1]),
+            cx=float(self.K[0, 2]),
+            cy=float(self.K[1, 2]),
+            width=int(self.width),
+            height=int(self.height),
+            dist=dist,
         )
 
     def scaled_to(self, width: int, height: int) -> CameraCalib:
@@ -116,8 +121,11 @@ class CameraCalib:
     def to_dict(self) -> dict:
         """The ``cameras.NAME`` object of the file format."""
         d = {
-            "width": int(self.width), "height": int(self.height), "model": self.model,
-            "K": np.asarray(self.K, float).tolist(), "dist": np.asarray(self.dist, float).ravel().tolist(),
+            "width": int(self.width),
+            "height": int(self.height),
+            "model": self.model,
+            "K": np.asarray(self.K, float).tolist(),
+            "dist": np.asarray(self.dist, float).ravel().tolist(),
         }
         if self.rms_px is not None:
             d["rms_px"] = float(self.rms_px)
@@ -157,8 +165,10 @@ class StereoCalib:
     def to_dict(self) -> dict:
         """The ``stereo`` object of the file format."""
         d: dict[str, Any] = {
-            "left": self.left, "right": self.right,
-            "R": np.asarray(self.R, float).tolist(), "T": np.asarray(self.T, float).ravel().tolist(),
+            "left": self.left,
+            "right": self.right,
+            "R": np.asarray(self.R, float).tolist(),
+            "T": np.asarray(self.T, float).ravel().tolist(),
             "baseline_m": self.baseline_m,
         }
         if self.rms_px is not None:
@@ -227,9 +237,7 @@ class Calibration:
         try:
             return self.cameras[name]
         except KeyError:
-            raise CalibrationError(
-                f"{self._where()}: no camera {name!r}; cameras are {sorted(self.cameras)}"
-            ) from None
+            raise CalibrationError(f"{self._where()}: no camera {name!r}; cameras are {sorted(self.cameras)}") from None
 
     def require_stereo(self) -> StereoCalib:
         """The stereo pair, or a clear error when the file has none."""
@@ -384,9 +392,7 @@ def calibration_from_dict(d: Mapping[str, Any], where: str = "<calibration>", pa
         raise CalibrationError(f"{where}: format: expected {FORMAT_NAME!r}, got {fmt!r}{hint}")
     ver = d.get("version")
     if ver != FORMAT_VERSION:
-        raise CalibrationError(
-            f"{where}: version: this build reads version {FORMAT_VERSION}, file has {ver!r}"
-        )
+        raise CalibrationError(f"{where}: version: this build reads version {FORMAT_VERSION}, file has {ver!r}")
     cams_raw = _get(where, d, "cameras", "", (dict,))
     if not cams_raw:
         raise CalibrationError(f"{where}: cameras: expected at least one camera, got none")
@@ -399,7 +405,8 @@ def calibration_from_dict(d: Mapping[str, Any], where: str = "<calibration>", pa
         R = _matrix(where, "stereo.R", _get(where, s, "R", "stereo.", (list,)), (3, 3))
         if abs(np.linalg.det(R) - 1.0) > 1e-3 or np.abs(R @ R.T - np.eye(3)).max() > 1e-3:
             raise CalibrationError(
-                f"{where}: stereo.R: expected a rotation matrix (orthonormal, det +1), got {R.tolist()}")
+                f"{where}: stereo.R: expected a rotation matrix (orthonormal, det +1), got {R.tolist()}"
+            )
         T = _matrix(where, "stereo.T", _get(where, s, "T", "stereo.", (list,)), (3,))
         if np.linalg.norm(T) <= 0:
             raise CalibrationError(f"{where}: stereo.T: expected a non-zero translation in metres, got {T.tolist()}")
@@ -411,18 +418,24 @@ def calibration_from_dict(d: Mapping[str, Any], where: str = "<calibration>", pa
         if s.get("rectification"):
             shapes = {"R1": (3, 3), "R2": (3, 3), "P1": (3, 4), "P2": (3, 4), "Q": (4, 4)}
             r = s["rectification"]
-            rect = {k: _matrix(where, f"stereo.rectification.{k}",
-                               _get(where, r, k, "stereo.rectification.", (list,)), sh)
-                    for k, sh in shapes.items()}
+            rect = {
+                k: _matrix(where, f"stereo.rectification.{k}", _get(where, r, k, "stereo.rectification.", (list,)), sh)
+                for k, sh in shapes.items()
+            }
         rms = s.get("rms_px")
-        stereo = StereoCalib(left=left, right=right, R=R, T=T, rms_px=None if rms is None else float(rms),
-                             rectification=rect)
+        stereo = StereoCalib(
+            left=left, right=right, R=R, T=T, rms_px=None if rms is None else float(rms), rectification=rect
+        )
     lut = None
     if d.get("photometric"):
         lut = _get(where, d["photometric"], "response_lut", "photometric.", (str,))
     return Calibration(
-        cameras=cams, stereo=stereo, color_camera=str(d.get("color_camera") or ""), response_lut=lut,
-        meta=dict(d.get("meta") or {}), path=path,
+        cameras=cams,
+        stereo=stereo,
+        color_camera=str(d.get("color_camera") or ""),
+        response_lut=lut,
+        meta=dict(d.get("meta") or {}),
+        path=path,
     )
 
 

@@ -93,18 +93,22 @@ class ViewSelector:
             return Verdict(False, f"board not found ({len(det)} corners)" if len(det) else "no board")
         x0, y0 = np.floor(det.corners.min(axis=0)).astype(int)
         x1, y1 = np.ceil(det.corners.max(axis=0)).astype(int)
-        roi = gray[max(0, y0):y1 + 1, max(0, x0):x1 + 1]
+        roi = gray[max(0, y0) : y1 + 1, max(0, x0) : x1 + 1]
         sharp = float(cv2.Laplacian(roi, cv2.CV_32F).var()) if roi.size else 0.0
         if sharp < self.min_sharpness:
             return Verdict(False, f"blurred (sharpness {sharp:.0f} < {self.min_sharpness:.0f}): hold still")
         d = self.descriptor(det)
         if d is None:
             return Verdict(False, "degenerate view")
-        nov = min((float(np.mean(np.linalg.norm((d - k).reshape(4, 2), axis=1))) for k in self.descriptors),
-                  default=1.0)
+        nov = min(
+            (float(np.mean(np.linalg.norm((d - k).reshape(4, 2), axis=1))) for k in self.descriptors), default=1.0
+        )
         if nov < self.min_novelty:
-            return Verdict(False, f"too similar to a kept view (change {nov:.2f} < {self.min_novelty:.2f}): "
-                                  "move or tilt the board", nov)
+            return Verdict(
+                False,
+                f"too similar to a kept view (change {nov:.2f} < {self.min_novelty:.2f}): move or tilt the board",
+                nov,
+            )
         self.descriptors.append(d)
         gx = np.clip((det.corners[:, 0] / self.image_size[0] * self.grid[0]).astype(int), 0, self.grid[0] - 1)
         gy = np.clip((det.corners[:, 1] / self.image_size[1] * self.grid[1]).astype(int), 0, self.grid[1] - 1)
@@ -153,14 +157,22 @@ def _split(color_rgb: np.ndarray, split: str) -> list[np.ndarray]:
         return [bgr]
     if split == "sbs":
         w = bgr.shape[1] // 2
-        return [bgr[:, :w], bgr[:, w:2 * w]]
+        return [bgr[:, :w], bgr[:, w : 2 * w]]
     raise CalibrationError(f"split: expected 'none' or 'sbs' (side-by-side stereo), got {split!r}")
 
 
-def capture_views(source: Source, out_dir: str | Path, spec: BoardSpec, *, views: int = 25,
-                  target_coverage: float = 0.8, max_frames: int = 3000, split: str = "none",
-                  min_novelty: float = 0.08, on_frame: Callable[[int, Verdict, ViewSelector], None] | None = None
-                  ) -> CaptureResult:
+def capture_views(
+    source: Source,
+    out_dir: str | Path,
+    spec: BoardSpec,
+    *,
+    views: int = 25,
+    target_coverage: float = 0.8,
+    max_frames: int = 3000,
+    split: str = "none",
+    min_novelty: float = 0.08,
+    on_frame: Callable[[int, Verdict, ViewSelector], None] | None = None,
+) -> CaptureResult:
     """Read frames from an opened ``source`` and save diverse board views into ``out_dir``.
 
     Stops when ``views`` views are kept and coverage reaches ``target_coverage``, when

@@ -72,14 +72,18 @@ class BoardDetector:
         self._aruco = cv2.aruco.ArucoDetector(spec.cv_dictionary(), params)
         self._charuco = cv2.aruco.CharucoDetector(self.board)
         self._board_ids = set(int(i) for i in np.asarray(self.board.getIds()).ravel())
-        self._marker_obj = {int(i): np.asarray(o, np.float32)[:, :2]
-                            for i, o in zip(np.asarray(self.board.getIds()).ravel(), self.board.getObjPoints())}
+        self._marker_obj = {
+            int(i): np.asarray(o, np.float32)[:, :2]
+            for i, o in zip(np.asarray(self.board.getIds()).ravel(), self.board.getObjPoints())
+        }
 
     def detect(self, image: np.ndarray, path: str = "") -> Detection:
         """Detect the board in one image (BGR, RGB or grey uint8). Zero corners when not found."""
         if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim not in (2, 3):
-            raise CalibrationError(f"{path or 'image'}: expected a uint8 image, got "
-                                   f"{getattr(image, 'shape', type(image))} {getattr(image, 'dtype', '')}")
+            raise CalibrationError(
+                f"{path or 'image'}: expected a uint8 image, got "
+                f"{getattr(image, 'shape', type(image))} {getattr(image, 'dtype', '')}"
+            )
         gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         size = (gray.shape[1], gray.shape[0])
         mcorners, mids, _ = self._aruco.detectMarkers(gray)
@@ -100,8 +104,9 @@ class BoardDetector:
         cc, ci, _, _ = self._charuco.detectBoard(gray, markerCorners=mcorners, markerIds=mids.reshape(-1, 1))
         if ci is None or len(ci) == 0:
             return Detection(size, np.zeros((0, 2), np.float32), np.zeros(0, np.int32), len(mids), path, notes)
-        return Detection(size, np.asarray(cc, np.float32).reshape(-1, 2), np.asarray(ci, np.int32).ravel(),
-                         len(mids), path, notes)
+        return Detection(
+            size, np.asarray(cc, np.float32).reshape(-1, 2), np.asarray(ci, np.int32).ravel(), len(mids), path, notes
+        )
 
     def _resolve_duplicates(self, corners, ids):
         counts = Counter(int(i) for i in ids)
@@ -168,8 +173,9 @@ def suggest_dictionary(gray: np.ndarray) -> str | None:
     for name in dictionary_names():
         if not name.endswith("_1000") and name not in ("DICT_ARUCO_ORIGINAL", "DICT_ARUCO_MIP_36h12"):
             continue  # _50/_100/_250 are prefixes of _1000: one per family is enough (AprilTag skipped: slow)
-        det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)),
-                                      cv2.aruco.DetectorParameters())
+        det = cv2.aruco.ArucoDetector(
+            cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)), cv2.aruco.DetectorParameters()
+        )
         _, ids, _ = det.detectMarkers(gray)
         n = 0 if ids is None else len(ids)
         if n > best_n:
@@ -177,8 +183,9 @@ def suggest_dictionary(gray: np.ndarray) -> str | None:
     return f"{best} ({best_n} markers)" if best else None
 
 
-def detect_files(paths: Sequence[str | Path], spec: BoardSpec, min_corners: int = 6,
-                 require_all: bool = False) -> list[Detection]:
+def detect_files(
+    paths: Sequence[str | Path], spec: BoardSpec, min_corners: int = 6, require_all: bool = False
+) -> list[Detection]:
     """Detect the board in image files; returns the usable detections (>= ``min_corners`` corners).
 
     Raises
@@ -223,7 +230,9 @@ def detect_files(paths: Sequence[str | Path], spec: BoardSpec, min_corners: int 
                 hint = "; no ArUco markers at all (blurred, over-exposed, or not a ChArUco board?)"
         raise CalibrationError(
             f"board not found in any of {len(files)} image(s) ({spec.describe()}): "
-            + ", ".join(failed[:5]) + (" ..." if len(failed) > 5 else "") + hint
+            + ", ".join(failed[:5])
+            + (" ..." if len(failed) > 5 else "")
+            + hint
         )
     if failed:
         msg = f"board not found (fewer than {min_corners} corners) in {len(failed)} image(s): " + ", ".join(failed)

@@ -51,8 +51,13 @@ def _xyz(where: str, key: str, d: Any) -> np.ndarray:
     return np.array([float(d["x"]), float(d["y"]), float(d["z"])])
 
 
-def parse_depthai(data: dict, where: str = "<depthai json>", left_socket: int | None = None,
-                  right_socket: int | None = None, path: Path | None = None) -> Calibration:
+def parse_depthai(
+    data: dict,
+    where: str = "<depthai json>",
+    left_socket: int | None = None,
+    right_socket: int | None = None,
+    path: Path | None = None,
+) -> Calibration:
     """Convert a parsed DepthAI calibration dict; see :func:`import_depthai`."""
     if not isinstance(data, dict) or "cameraData" not in data:
         raise CalibrationError(f"{where}: missing key 'cameraData': not a DepthAI calibration export")
@@ -84,9 +89,7 @@ def parse_depthai(data: dict, where: str = "<depthai json>", left_socket: int | 
     if left_socket is not None and right_socket is not None and left_socket in sockets and right_socket in sockets:
         pose = _chain(links, int(left_socket), int(right_socket))
         if pose is None:
-            raise CalibrationError(
-                f"{where}: no extrinsics chain links socket {left_socket} to socket {right_socket}"
-            )
+            raise CalibrationError(f"{where}: no extrinsics chain links socket {left_socket} to socket {right_socket}")
         R, T = pose
         stereo = StereoCalib(socket_name(left_socket), socket_name(right_socket), R, T)
         meta["depthai_stereo_rectification"] = {
@@ -109,9 +112,7 @@ def _parse_camera(where: str, key: str, entry) -> tuple[int, CameraCalib, tuple[
             raise CalibrationError(f"{where}: {key}: missing key {k!r}")
     ctype = int(c.get("cameraType", 0))
     if ctype not in CAMERA_TYPES:
-        raise CalibrationError(
-            f"{where}: {key}.cameraType: expected 0 (perspective) or 1 (fisheye), got {ctype}"
-        )
+        raise CalibrationError(f"{where}: {key}.cameraType: expected 0 (perspective) or 1 (fisheye), got {ctype}")
     model = CAMERA_TYPES[ctype]
     w, h = int(c["width"]), int(c["height"])
     if w <= 0 or h <= 0:
@@ -133,7 +134,8 @@ def _parse_camera(where: str, key: str, entry) -> tuple[int, CameraCalib, tuple[
         R = _mat(where, f"{key}.extrinsics.rotationMatrix", ex.get("rotationMatrix"), (3, 3))
         if abs(np.linalg.det(R) - 1.0) > 1e-3:
             raise CalibrationError(
-                f"{where}: {key}.extrinsics.rotationMatrix: not a rotation (det {np.linalg.det(R):.4f})")
+                f"{where}: {key}.extrinsics.rotationMatrix: not a rotation (det {np.linalg.det(R):.4f})"
+            )
         T = _xyz(where, f"{key}.extrinsics.translation", ex.get("translation")) / 100.0  # cm -> m
         link = (to, R, T)
     return sock, CameraCalib(w, h, K, D, model), link

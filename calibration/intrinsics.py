@@ -66,9 +66,11 @@ class IntrinsicsResult:
     def summary(self) -> str:
         """One line: model, size, K, distortion, RMS, fixed groups, standard deviations."""
         K = self.camera.K
-        s = (f"{self.camera.model} {self.camera.width}x{self.camera.height}: fx={K[0, 0]:.2f} fy={K[1, 1]:.2f} "
-             f"cx={K[0, 2]:.2f} cy={K[1, 2]:.2f} dist={np.round(self.camera.dist, 5).tolist()} "
-             f"rms={self.rms_px:.3f} px over {len(self.paths)} views")
+        s = (
+            f"{self.camera.model} {self.camera.width}x{self.camera.height}: fx={K[0, 0]:.2f} fy={K[1, 1]:.2f} "
+            f"cx={K[0, 2]:.2f} cy={K[1, 2]:.2f} dist={np.round(self.camera.dist, 5).tolist()} "
+            f"rms={self.rms_px:.3f} px over {len(self.paths)} views"
+        )
         if self.fixed:
             s += f" (fixed: {', '.join(self.fixed)})"
         if self.std:
@@ -99,10 +101,17 @@ def usable_views(dets: Sequence[Detection], spec: BoardSpec, min_corners: int) -
     return out
 
 
-def calibrate_intrinsics(dets: Sequence[Detection], spec: BoardSpec, model: str = "pinhole", *,
-                         dist_model: str = "standard", guess: CameraCalib | None = None,
-                         fix: Sequence[str] = (), min_views: int | None = None,
-                         min_corners: int | None = None) -> IntrinsicsResult:
+def calibrate_intrinsics(
+    dets: Sequence[Detection],
+    spec: BoardSpec,
+    model: str = "pinhole",
+    *,
+    dist_model: str = "standard",
+    guess: CameraCalib | None = None,
+    fix: Sequence[str] = (),
+    min_views: int | None = None,
+    min_corners: int | None = None,
+) -> IntrinsicsResult:
     """Calibrate one camera's intrinsics from board detections.
 
     Parameters
@@ -196,14 +205,26 @@ def _pinhole(views, obj, img, size, guess, fix, dist_model) -> IntrinsicsResult:
     if "tangential" in fix:
         flags |= cv2.CALIB_FIX_TANGENT_DIST if guess is not None else cv2.CALIB_ZERO_TANGENT_DIST
     if "distortion" in fix or n_dist == 0:
-        flags |= (cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_K4 | cv2.CALIB_FIX_K5
-                  | cv2.CALIB_FIX_K6 | cv2.CALIB_FIX_TANGENT_DIST)
+        flags |= (
+            cv2.CALIB_FIX_K1
+            | cv2.CALIB_FIX_K2
+            | cv2.CALIB_FIX_K3
+            | cv2.CALIB_FIX_K4
+            | cv2.CALIB_FIX_K5
+            | cv2.CALIB_FIX_K6
+            | cv2.CALIB_FIX_TANGENT_DIST
+        )
         if n_dist == 0:
             D0[:] = 0.0
     try:
         rms, K, D, rvecs, tvecs, std_in, _, per_view = cv2.calibrateCameraExtended(
-            [o.astype(np.float32) for o in obj], [i.astype(np.float32) for i in img], size, K0, D0,
-            flags=flags, criteria=_CRITERIA,
+            [o.astype(np.float32) for o in obj],
+            [i.astype(np.float32) for i in img],
+            size,
+            K0,
+            D0,
+            flags=flags,
+            criteria=_CRITERIA,
         )
     except cv2.error as e:
         raise CalibrationError(f"pinhole calibration failed ({len(views)} views): {e.err or e}") from None
@@ -214,8 +235,16 @@ def _pinhole(views, obj, img, size, guess, fix, dist_model) -> IntrinsicsResult:
     std = {k: float(v) for k, v in zip(("fx", "fy", "cx", "cy"), std_in[:4])}
     cam = CameraCalib(size[0], size[1], np.asarray(K, float), D, "pinhole", float(rms))
     _check_sane(cam, rms)
-    return IntrinsicsResult(cam, float(rms), [float(v) for v in np.asarray(per_view).ravel()],
-                            [d.path for d in views], list(rvecs), list(tvecs), fix, std)
+    return IntrinsicsResult(
+        cam,
+        float(rms),
+        [float(v) for v in np.asarray(per_view).ravel()],
+        [d.path for d in views],
+        list(rvecs),
+        list(tvecs),
+        fix,
+        std,
+    )
 
 
 def _fisheye(views, obj, img, size, guess, fix) -> IntrinsicsResult:
@@ -296,8 +325,16 @@ def _fisheye_fixed_distortion(views, obj, img, size, guess, fix) -> IntrinsicsRe
             if poses[k] is None:
                 ok, rv, tv = cv2.fisheye.solvePnP(oo, ii, K, D, criteria=_CRITERIA)
             else:
-                ok, rv, tv = cv2.fisheye.solvePnP(oo, ii, K, D, rvec=poses[k][0].copy(), tvec=poses[k][1].copy(),
-                                                  useExtrinsicGuess=True, criteria=_CRITERIA)
+                ok, rv, tv = cv2.fisheye.solvePnP(
+                    oo,
+                    ii,
+                    K,
+                    D,
+                    rvec=poses[k][0].copy(),
+                    tvec=poses[k][1].copy(),
+                    useExtrinsicGuess=True,
+                    criteria=_CRITERIA,
+                )
             proj, _ = cv2.fisheye.projectPoints(oo, rv, tv, K, D)
             res.append((proj - ii).ravel())
             out_poses.append((rv, tv))
@@ -334,9 +371,9 @@ def _fisheye_fixed_distortion(views, obj, img, size, guess, fix) -> IntrinsicsRe
     per_view, start = [], 0
     for oo in o:
         n = 2 * len(oo)
-        per_view.append(float(np.sqrt(np.mean(r[start:start + n] ** 2) * 2)))
+        per_view.append(float(np.sqrt(np.mean(r[start : start + n] ** 2) * 2)))
         start += n
-    rms = float(np.sqrt(np.mean(r ** 2) * 2))
+    rms = float(np.sqrt(np.mean(r**2) * 2))
     cam = CameraCalib(size[0], size[1], K, D.ravel(), "fisheye", rms)
     _check_sane(cam, rms)
     return IntrinsicsResult(cam, rms, per_view, [d.path for d in views], [q[0] for q in ps], [q[1] for q in ps], fix)
@@ -347,8 +384,11 @@ def _check_sane(cam: CameraCalib, rms: float) -> None:
     if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or not np.isfinite(rms):
         raise CalibrationError(f"calibration diverged (K={K.tolist()}, rms={rms}); use more and more varied views")
     if rms > 2.0:
-        log.warning("reprojection RMS %.2f px is high: wrong board size/legacy flag, motion blur, or a lens "
-                    "model that does not fit (try --model fisheye or --dist rational)", rms)
+        log.warning(
+            "reprojection RMS %.2f px is high: wrong board size/legacy flag, motion blur, or a lens "
+            "model that does not fit (try --model fisheye or --dist rational)",
+            rms,
+        )
 
 
 @dataclass
@@ -402,7 +442,7 @@ def evaluate_intrinsics(dets: Sequence[Detection], spec: BoardSpec, cam: CameraC
     for d in dets:
         rv, tv, rms = board_pose(d, spec, cam)
         errs.append(rms)
-        sq += rms ** 2 * len(d)
+        sq += rms**2 * len(d)
         n += len(d)
         rvecs.append(rv)
         tvecs.append(tv)

@@ -57,8 +57,9 @@ def undo_white_balance(linear: np.ndarray, wb_gains: Sequence[float] | None) -> 
     return (np.asarray(linear, np.float32) / g).astype(np.float32)
 
 
-def normalize_exposure(linear: np.ndarray, exposure: Exposure, reference: Exposure = REFERENCE,
-                       undo_wb: bool = True) -> tuple[np.ndarray, bool]:
+def normalize_exposure(
+    linear: np.ndarray, exposure: Exposure, reference: Exposure = REFERENCE, undo_wb: bool = True
+) -> tuple[np.ndarray, bool]:
     """Linear RGB of a frame -> linear RGB as if taken at ``reference`` exposure (and without AWB).
 
     Returns
@@ -114,7 +115,7 @@ def exposure_times_from_names(paths: Sequence[Path], times_json: Path | None = N
         except (OSError, json.JSONDecodeError) as e:
             raise CalibrationError(f"{times_json}: cannot read exposure table: {e}") from None
         if not isinstance(raw, dict):
-            raise CalibrationError(f"{times_json}: expected an object {{\"file name\": seconds}}")
+            raise CalibrationError(f'{times_json}: expected an object {{"file name": seconds}}')
         table = {str(k): float(v) for k, v in raw.items()}
     out = []
     for p in paths:
@@ -125,14 +126,15 @@ def exposure_times_from_names(paths: Sequence[Path], times_json: Path | None = N
         if t is None or not t > 0:
             raise CalibrationError(
                 f"{p}: exposure time unknown: name it like img_10ms.png, img_2500us.png, img_0.01s.png or "
-                f"img_1-100.png, or list it in exposures.json ({{\"{p.name}\": 0.01}})"
+                f'img_1-100.png, or list it in exposures.json ({{"{p.name}": 0.01}})'
             )
         out.append(float(t))
     return out
 
 
-def calibrate_response(images: Sequence[np.ndarray], times_s: Sequence[float], samples: int = 120,
-                       smoothness: float = 10.0) -> np.ndarray:
+def calibrate_response(
+    images: Sequence[np.ndarray], times_s: Sequence[float], samples: int = 120, smoothness: float = 10.0
+) -> np.ndarray:
     """Camera response from a static exposure bracket (Debevec-Malik), as a (256, 3) RGB LUT.
 
     Parameters

@@ -50,9 +50,11 @@ class StereoResult:
         """One line: baseline, T, rotation angle, RMS, number of pairs."""
         T = np.asarray(self.stereo.T).ravel()
         ang = float(np.degrees(np.linalg.norm(cv2.Rodrigues(np.asarray(self.stereo.R))[0])))
-        return (f"stereo {self.stereo.left}->{self.stereo.right}: baseline {self.stereo.baseline_m * 1000:.2f} mm, "
-                f"T = [{T[0]:.5f}, {T[1]:.5f}, {T[2]:.5f}] m, rotation {ang:.3f} deg, rms {self.rms_px:.3f} px "
-                f"over {len(self.pairs)} pairs")
+        return (
+            f"stereo {self.stereo.left}->{self.stereo.right}: baseline {self.stereo.baseline_m * 1000:.2f} mm, "
+            f"T = [{T[0]:.5f}, {T[1]:.5f}, {T[2]:.5f}] m, rotation {ang:.3f} deg, rms {self.rms_px:.3f} px "
+            f"over {len(self.pairs)} pairs"
+        )
 
 
 def pair_views(left: Sequence[Detection], right: Sequence[Detection]) -> list[tuple[Detection, Detection]]:
@@ -61,6 +63,7 @@ def pair_views(left: Sequence[Detection], right: Sequence[Detection]) -> list[tu
     Files are paired by name once the words ``left``/``right`` (and ``l``/``r`` prefixes such as
     ``left_0001``) are removed; when names do not pair up, by sorted order if the counts match.
     """
+
     def key(d: Detection) -> str:
         n = Path(d.path).stem.lower()
         for w in ("left", "right", "cam_b", "cam_c"):
@@ -105,9 +108,18 @@ def _solve_pinhole(obj, pl, pr, left: CameraCalib, right: CameraCalib):
     """(R, T, rms px, per-pair rms px) from OpenCV's stereo calibration with the intrinsics fixed."""
     try:
         rms, _, _, _, _, R, T, _, _, _, _, per_view = cv2.stereoCalibrateExtended(
-            [o.astype(np.float32) for o in obj], [p.astype(np.float32) for p in pl],
-            [p.astype(np.float32) for p in pr], left.K, left.dist, right.K, right.dist, left.size,
-            np.eye(3), np.zeros((3, 1)), flags=cv2.CALIB_FIX_INTRINSIC, criteria=_CRITERIA,
+            [o.astype(np.float32) for o in obj],
+            [p.astype(np.float32) for p in pl],
+            [p.astype(np.float32) for p in pr],
+            left.K,
+            left.dist,
+            right.K,
+            right.dist,
+            left.size,
+            np.eye(3),
+            np.zeros((3, 1)),
+            flags=cv2.CALIB_FIX_INTRINSIC,
+            criteria=_CRITERIA,
         )
     except cv2.error as e:
         raise CalibrationError(f"stereo calibration failed ({len(obj)} pairs): {e.err or e}") from None
@@ -131,9 +143,18 @@ def _solve_fisheye(obj, pl, pr, left: CameraCalib, right: CameraCalib):
     nr = [cv2.fisheye.undistortPoints(p.reshape(-1, 1, 2), right.K, D2).reshape(-1, 2) * f for p in pr]
     try:
         _, _, _, _, _, R, T, _, _, rvecs, tvecs, _ = cv2.stereoCalibrateExtended(
-            [o.astype(np.float32) for o in obj], [p.astype(np.float32) for p in nl],
-            [p.astype(np.float32) for p in nr], Kv, np.zeros(5), Kv, np.zeros(5), left.size,
-            np.eye(3), np.zeros((3, 1)), flags=cv2.CALIB_FIX_INTRINSIC, criteria=_CRITERIA,
+            [o.astype(np.float32) for o in obj],
+            [p.astype(np.float32) for p in nl],
+            [p.astype(np.float32) for p in nr],
+            Kv,
+            np.zeros(5),
+            Kv,
+            np.zeros(5),
+            left.size,
+            np.eye(3),
+            np.zeros((3, 1)),
+            flags=cv2.CALIB_FIX_INTRINSIC,
+            criteria=_CRITERIA,
         )
     except cv2.error as e:
         raise CalibrationError(f"fisheye stereo calibration failed ({len(obj)} pairs): {e.err or e}") from None
@@ -145,15 +166,22 @@ def _solve_fisheye(obj, pl, pr, left: CameraCalib, right: CameraCalib):
         p1, _ = cv2.fisheye.projectPoints(o.reshape(-1, 1, 3), rv, tv, left.K, D1)
         p2, _ = cv2.fisheye.projectPoints(o.reshape(-1, 1, 3), rv2, tv2, right.K, D2)
         e = np.concatenate([p1.reshape(-1, 2) - a, p2.reshape(-1, 2) - b])
-        per.append(float(np.sqrt(np.mean(np.sum(e ** 2, axis=1)))))
-        sq += float(np.sum(e ** 2))
+        per.append(float(np.sqrt(np.mean(np.sum(e**2, axis=1)))))
+        sq += float(np.sum(e**2))
         n += len(e)
     return R, T, float(np.sqrt(sq / n)), per
 
 
-def calibrate_stereo(left_dets: Sequence[Detection], right_dets: Sequence[Detection], spec: BoardSpec,
-                     left: CameraCalib, right: CameraCalib, names: tuple[str, str] = ("left", "right"),
-                     min_pairs: int = 3, min_common: int = 6) -> StereoResult:
+def calibrate_stereo(
+    left_dets: Sequence[Detection],
+    right_dets: Sequence[Detection],
+    spec: BoardSpec,
+    left: CameraCalib,
+    right: CameraCalib,
+    names: tuple[str, str] = ("left", "right"),
+    min_pairs: int = 3,
+    min_common: int = 6,
+) -> StereoResult:
     """Pose of the right camera in the left one from simultaneous views, intrinsics held fixed.
 
     Parameters
@@ -221,8 +249,14 @@ class Rectification:
         return {"R1": self.R1, "R2": self.R2, "P1": self.P1, "P2": self.P2, "Q": self.Q}
 
 
-def rectify(left: CameraCalib, right: CameraCalib, stereo: StereoCalib, alpha: float = 0.0,
-            fisheye_balance: float = 0.0, fisheye_fov_scale: float = 1.0) -> Rectification:
+def rectify(
+    left: CameraCalib,
+    right: CameraCalib,
+    stereo: StereoCalib,
+    alpha: float = 0.0,
+    fisheye_balance: float = 0.0,
+    fisheye_fov_scale: float = 1.0,
+) -> Rectification:
     """Rectification of a horizontal stereo pair (principal points made equal: ``CALIB_ZERO_DISPARITY``).
 
     Parameters
@@ -262,13 +296,28 @@ def rectify(left: CameraCalib, right: CameraCalib, stereo: StereoCalib, alpha: f
     R = np.asarray(stereo.R, float)
     if left.model == "fisheye":
         R1, R2, P1, P2, Q = cv2.fisheye.stereoRectify(
-            left.K, _fisheye_d(left.dist), right.K, _fisheye_d(right.dist), size, R, T.reshape(3, 1),
-            cv2.CALIB_ZERO_DISPARITY, balance=fisheye_balance, fov_scale=fisheye_fov_scale,
+            left.K,
+            _fisheye_d(left.dist),
+            right.K,
+            _fisheye_d(right.dist),
+            size,
+            R,
+            T.reshape(3, 1),
+            cv2.CALIB_ZERO_DISPARITY,
+            balance=fisheye_balance,
+            fov_scale=fisheye_fov_scale,
         )
     else:
         R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(
-            left.K, left.dist, right.K, right.dist, size, R, T.reshape(3, 1),
-            flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha,
+            left.K,
+            left.dist,
+            right.K,
+            right.dist,
+            size,
+            R,
+            T.reshape(3, 1),
+            flags=cv2.CALIB_ZERO_DISPARITY,
+            alpha=alpha,
         )
     return Rectification(size=size, R1=R1, R2=R2, P1=P1, P2=P2, Q=Q)
 
@@ -278,8 +327,9 @@ def _fisheye_d(dist: np.ndarray) -> np.ndarray:
     return d.reshape(4, 1)
 
 
-def rectify_maps(cam: CameraCalib, R: np.ndarray, P: np.ndarray,
-                 size: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+def rectify_maps(
+    cam: CameraCalib, R: np.ndarray, P: np.ndarray, size: tuple[int, int] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Fixed-point remap tables (``CV_16SC2``) taking ``cam``'s raw image to the rectified one."""
     size = size or cam.size
     if cam.model == "fisheye":
@@ -321,10 +371,22 @@ class HostStereo:
         Passed to :func:`rectify`.
     """
 
-    def __init__(self, calib: Calibration, image_size: tuple[int, int] | None = None, *, scale: float = 0.5,
-                 min_depth_m: float = 0.35, num_disparities: int | None = None, block_size: int = 5,
-                 wls_lambda: float = 8000.0, wls_sigma: float = 1.5, min_confidence: float = 96.0,
-                 max_depth_m: float = 15.0, alpha: float = 0.0, fisheye_balance: float = 0.0):
+    def __init__(
+        self,
+        calib: Calibration,
+        image_size: tuple[int, int] | None = None,
+        *,
+        scale: float = 0.5,
+        min_depth_m: float = 0.35,
+        num_disparities: int | None = None,
+        block_size: int = 5,
+        wls_lambda: float = 8000.0,
+        wls_sigma: float = 1.5,
+        min_confidence: float = 96.0,
+        max_depth_m: float = 15.0,
+        alpha: float = 0.0,
+        fisheye_balance: float = 0.0,
+    ):
         st = calib.require_stereo()
         left, right = calib.camera(st.left), calib.camera(st.right)
         if image_size is not None and tuple(image_size) != left.size:
@@ -363,9 +425,16 @@ class HostStereo:
         self.max_depth_m = float(max_depth_m)
         ch = 1  # grey matching: colour adds cost and little on stereo cameras (often mono sensors)
         self._left_matcher = cv2.StereoSGBM_create(
-            minDisparity=0, numDisparities=num_disparities, blockSize=block_size,
-            P1=8 * ch * block_size ** 2, P2=32 * ch * block_size ** 2, disp12MaxDiff=1,
-            uniquenessRatio=10, speckleWindowSize=0, speckleRange=0, preFilterCap=63,
+            minDisparity=0,
+            numDisparities=num_disparities,
+            blockSize=block_size,
+            P1=8 * ch * block_size**2,
+            P2=32 * ch * block_size**2,
+            disp12MaxDiff=1,
+            uniquenessRatio=10,
+            speckleWindowSize=0,
+            speckleRange=0,
+            preFilterCap=63,
             mode=cv2.StereoSGBM_MODE_SGBM_3WAY,
         )
         self._right_matcher = cv2.ximgproc.createRightMatcher(self._left_matcher)
@@ -373,8 +442,13 @@ class HostStereo:
         self._wls.setLambda(float(wls_lambda))
         self._wls.setSigmaColor(float(wls_sigma))
         self.intrinsics = Intrinsics(
-            fx=float(rect.P1[0, 0]), fy=float(rect.P1[1, 1]), cx=float(rect.P1[0, 2]), cy=float(rect.P1[1, 2]),
-            width=int(w), height=int(h), dist=(),
+            fx=float(rect.P1[0, 0]),
+            fy=float(rect.P1[1, 1]),
+            cx=float(rect.P1[0, 2]),
+            cy=float(rect.P1[1, 2]),
+            width=int(w),
+            height=int(h),
+            dist=(),
         )
         self.last_confidence: np.ndarray | None = None
 
@@ -388,8 +462,10 @@ class HostStereo:
 
     def _check(self, img: np.ndarray, side: str) -> None:
         if not isinstance(img, np.ndarray) or img.dtype != np.uint8 or img.ndim not in (2, 3):
-            raise ValueError(f"HostStereo: {side} image must be a uint8 HxW or HxWx3 array, got "
-                             f"{getattr(img, 'shape', type(img))} {getattr(img, 'dtype', '')}")
+            raise ValueError(
+                f"HostStereo: {side} image must be a uint8 HxW or HxWx3 array, got "
+                f"{getattr(img, 'shape', type(img))} {getattr(img, 'dtype', '')}"
+            )
         if (img.shape[1], img.shape[0]) != self.size:
             raise CalibrationError(
                 f"HostStereo: {side} image is {img.shape[1]}x{img.shape[0]}, but the stereo calibration is "

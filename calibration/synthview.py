@@ -60,8 +60,15 @@ def pixel_rays(cam: CameraCalib) -> np.ndarray:
     return np.concatenate([und, np.ones((h, w, 1))], axis=2)
 
 
-def render(cam: CameraCalib, R: np.ndarray, t: np.ndarray, planes: list[TexturedPlane],
-           supersample: int = 2, background: int = 0, rays: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def render(
+    cam: CameraCalib,
+    R: np.ndarray,
+    t: np.ndarray,
+    planes: list[TexturedPlane],
+    supersample: int = 2,
+    background: int = 0,
+    rays: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Render ``planes`` through ``cam`` at pose ``X_cam = R @ X_world + t``.
 
     Returns
@@ -98,8 +105,9 @@ def render(cam: CameraCalib, R: np.ndarray, t: np.ndarray, planes: list[Textured
         if not hit.any():
             continue
         tex = p.texture.astype(np.float32)
-        samp = cv2.remap(tex, a.astype(np.float32), b.astype(np.float32), cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_REPLICATE)
+        samp = cv2.remap(
+            tex, a.astype(np.float32), b.astype(np.float32), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
         if color and samp.ndim == 2:
             samp = np.repeat(samp[..., None], 3, axis=2)
         img[hit] = samp[hit]
@@ -167,8 +175,15 @@ class StereoScene:
         return depth
 
 
-def stereo_scene(width: int = 640, height: int = 400, fx: float = 400.0, baseline_m: float = 0.075,
-                 seed: int = 0, noise: float = 1.5, fisheye: bool = False) -> StereoScene:
+def stereo_scene(
+    width: int = 640,
+    height: int = 400,
+    fx: float = 400.0,
+    baseline_m: float = 0.075,
+    seed: int = 0,
+    noise: float = 1.5,
+    fisheye: bool = False,
+) -> StereoScene:
     """A room-like scene (back wall at 3 m, floor, a tilted panel at ~1.2 m) seen by a slightly
     imperfect stereo pair (distortion, small rotation, different principal points), like a cheap
     V4L2 stereo camera, with blur and sensor noise added. ``fisheye`` uses ``cv2.fisheye`` lenses."""
@@ -188,12 +203,27 @@ def stereo_scene(width: int = 640, height: int = 400, fx: float = 400.0, baselin
     T = np.array([-baseline_m, 0.0004, 0.001])
     calib = Calibration({"left": left, "right": right}, StereoCalib("left", "right", R, T))
     planes = [
-        TexturedPlane(np.array([-3.0, -2.0, 3.0]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]),
-                      random_texture(800, 1200, seed + 1), 0.005),
-        TexturedPlane(np.array([-0.3, -0.25, 1.2]), np.array([1.0, 0, 0]), np.array([0, 0.8, -0.6]),
-                      random_texture(250, 300, seed + 2), 0.002),
-        TexturedPlane(np.array([-3.0, 0.6, 0.2]), np.array([1.0, 0, 0]), np.array([0, 0, 1.0]),
-                      random_texture(600, 1200, seed + 3), 0.005),
+        TexturedPlane(
+            np.array([-3.0, -2.0, 3.0]),
+            np.array([1.0, 0, 0]),
+            np.array([0, 1.0, 0]),
+            random_texture(800, 1200, seed + 1),
+            0.005,
+        ),
+        TexturedPlane(
+            np.array([-0.3, -0.25, 1.2]),
+            np.array([1.0, 0, 0]),
+            np.array([0, 0.8, -0.6]),
+            random_texture(250, 300, seed + 2),
+            0.002,
+        ),
+        TexturedPlane(
+            np.array([-3.0, 0.6, 0.2]),
+            np.array([1.0, 0, 0]),
+            np.array([0, 0, 1.0]),
+            random_texture(600, 1200, seed + 3),
+            0.005,
+        ),
     ]
     li, _ = render(left, np.eye(3), np.zeros(3), planes)
     ri, _ = render(right, R, T, planes)
@@ -231,8 +261,14 @@ def board_plane(spec: BoardSpec, dpi: float = 200.0, margin_mm: float = 15.0) ->
     return TexturedPlane(np.array([-m * px, -m * px, 0.0]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), tex, px)
 
 
-def board_poses(spec: BoardSpec, n: int, seed: int = 0, distance: tuple[float, float] = (0.35, 0.6),
-                tilt: float = 0.6, shift: tuple[float, float] = (0.12, 0.08)) -> list[tuple[np.ndarray, np.ndarray]]:
+def board_poses(
+    spec: BoardSpec,
+    n: int,
+    seed: int = 0,
+    distance: tuple[float, float] = (0.35, 0.6),
+    tilt: float = 0.6,
+    shift: tuple[float, float] = (0.12, 0.08),
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """``n`` random board poses as camera (R, t) with ``X_cam = R X_board + t``: the board centre at
     ``distance`` metres ahead, shifted sideways, tilted up to ``tilt`` radians about x and y."""
     rng = np.random.default_rng(seed)

@@ -36,8 +36,9 @@ URL_TRUE = ("1", "true", "yes", "on")
 URL_FALSE = ("0", "false", "no", "off")
 
 
-def parse_query(url: str, parsers: Mapping[str, Callable[[str], Any]],
-                error: Callable[[str], Exception] = ValueError) -> dict[str, Any]:
+def parse_query(
+    url: str, parsers: Mapping[str, Callable[[str], Any]], error: Callable[[str], Exception] = ValueError
+) -> dict[str, Any]:
     """The query of a source URL as ``{key: parsed value}``, for the keys present.
 
     Parameters
@@ -88,6 +89,7 @@ def _range_text(lo, hi) -> str:
 
 def query_int(lo: int | None = None, hi: int | None = None) -> Callable[[str], int]:
     """A parser of integers in ``[lo, hi]`` (either bound optional)."""
+
     def parse(value: str) -> int:
         try:
             v = int(value)
@@ -96,6 +98,7 @@ def query_int(lo: int | None = None, hi: int | None = None) -> Callable[[str], i
         if (lo is not None and v < lo) or (hi is not None and v > hi):
             raise ValueError(f"expected an integer{_range_text(lo, hi)}")
         return v
+
     return parse
 
 
@@ -112,25 +115,28 @@ def query_float(value: str) -> float:
 
 def query_size(lo: int = 1, hi: int | None = None, even: bool = False) -> Callable[[str], tuple[int, int]]:
     """A parser of ``WIDTHxHEIGHT`` with each side in ``[lo, hi]`` (and even, when asked)."""
+
     def parse(value: str) -> tuple[int, int]:
         m = re.fullmatch(r"\s*(\d+)\s*x\s*(\d+)\s*", value.lower())
         if not m:
             raise ValueError("expected WIDTHxHEIGHT, e.g. 640x400")
         w, h = int(m.group(1)), int(m.group(2))
         if w < lo or h < lo or (hi is not None and (w > hi or h > hi)) or (even and (w % 2 or h % 2)):
-            raise ValueError("expected WIDTHxHEIGHT with " + ("even " if even else "")
-                             + f"sides{_range_text(lo, hi)}")
+            raise ValueError("expected WIDTHxHEIGHT with " + ("even " if even else "") + f"sides{_range_text(lo, hi)}")
         return w, h
+
     return parse
 
 
 def query_choice(*choices: str, lower: bool = False) -> Callable[[str], str]:
     """A parser accepting one of ``choices`` (case-insensitive with ``lower=True``, returned lower-case)."""
+
     def parse(value: str) -> str:
         v = value.lower() if lower else value
         if v not in choices:
             raise ValueError(f"expected one of {', '.join(choices)}")
         return v
+
     return parse
 
 
@@ -142,14 +148,10 @@ def open_source(url: str, config: Config | None = None) -> Source:
     """Create the source for ``url`` (not yet opened; use it as a context manager)."""
     scheme = urlsplit(url).scheme
     if not scheme:
-        raise SourceError(
-            f"source {url!r} has no scheme; expected one of "
-            + ", ".join(f"{s}://" for s in SCHEMES)
-        )
+        raise SourceError(f"source {url!r} has no scheme; expected one of " + ", ".join(f"{s}://" for s in SCHEMES))
     if scheme not in SCHEMES:
         raise SourceError(
-            f"unknown source scheme {scheme!r} in {url!r}; expected one of "
-            + ", ".join(f"{s}://" for s in SCHEMES)
+            f"unknown source scheme {scheme!r} in {url!r}; expected one of " + ", ".join(f"{s}://" for s in SCHEMES)
         )
     module = importlib.import_module(f"{__name__}.{SCHEMES[scheme]}")
     return module.open_url(url, config if config is not None else defaults())

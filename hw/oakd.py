@@ -63,8 +63,7 @@ COLOR_SOCKET = dai.CameraBoardSocket.CAM_A
 LEFT_SOCKET = dai.CameraBoardSocket.CAM_B
 RIGHT_SOCKET = dai.CameraBoardSocket.CAM_C
 
-_PRESETS = {p.lower(): getattr(dai.node.StereoDepth.PresetMode, p)
-            for p in dai.node.StereoDepth.PresetMode.__members__}
+_PRESETS = {p.lower(): getattr(dai.node.StereoDepth.PresetMode, p) for p in dai.node.StereoDepth.PresetMode.__members__}
 
 
 class OakdError(RuntimeError):
@@ -72,6 +71,7 @@ class OakdError(RuntimeError):
 
 
 # ---------------------------------------------------------------------------------------- options
+
 
 @dataclass(frozen=True)
 class OakdOptions:
@@ -142,10 +142,22 @@ def parse_url(url: str) -> OakdOptions:
         raise ValueError(f"{url!r} is not an oakd:// URL")
     size = query_size(even=True)
     parsers = {
-        "fps": query_float, "size": size, "mono": size, "queue": query_int(), "imu": query_bool,
-        "imu_rate": query_int(), "preset": query_choice(*sorted(_PRESETS), lower=True), "lr_check": query_bool,
-        "subpixel": query_bool, "extended": query_bool, "undistort": query_bool, "exposure_us": query_int(),
-        "iso": query_int(), "sync_ms": query_float, "timeout_s": query_float, "reconnect": query_bool,
+        "fps": query_float,
+        "size": size,
+        "mono": size,
+        "queue": query_int(),
+        "imu": query_bool,
+        "imu_rate": query_int(),
+        "preset": query_choice(*sorted(_PRESETS), lower=True),
+        "lr_check": query_bool,
+        "subpixel": query_bool,
+        "extended": query_bool,
+        "undistort": query_bool,
+        "exposure_us": query_int(),
+        "iso": query_int(),
+        "sync_ms": query_float,
+        "timeout_s": query_float,
+        "reconnect": query_bool,
     }
     kw: dict[str, Any] = {"mono_size" if k == "mono" else k: v for k, v in parse_query(url, parsers).items()}
     kw["device"] = (parts.netloc + parts.path).strip("/")
@@ -155,14 +167,16 @@ def parse_url(url: str) -> OakdOptions:
     if not 0 < o.fps <= 120:
         raise ValueError(f"{url}: fps={o.fps}: expected 0 < fps <= 120")
     if (o.exposure_us > 0) != (o.iso > 0):
-        raise ValueError(f"{url}: manual exposure needs both exposure_us and iso (> 0), got "
-                         f"exposure_us={o.exposure_us}, iso={o.iso}")
+        raise ValueError(
+            f"{url}: manual exposure needs both exposure_us and iso (> 0), got exposure_us={o.exposure_us}, iso={o.iso}"
+        )
     if o.timeout_s <= 0 or o.imu_rate <= 0:
         raise ValueError(f"{url}: timeout_s and imu_rate must be positive")
     return o
 
 
 # ---------------------------------------------------------------------------------------- calibration
+
 
 def load_calibration_file(path: str) -> dai.CalibrationHandler:
     """A ``dai.CalibrationHandler`` from a DepthAI calibration JSON (as
@@ -175,9 +189,13 @@ def load_calibration_file(path: str) -> dai.CalibrationHandler:
         raise OakdError(f"{path}: not a DepthAI calibration file: {e}") from e
 
 
-def intrinsics_from_calibration(calib: dai.CalibrationHandler, width: int, height: int,
-                                socket: dai.CameraBoardSocket = COLOR_SOCKET,
-                                undistorted: bool = False) -> Intrinsics:
+def intrinsics_from_calibration(
+    calib: dai.CalibrationHandler,
+    width: int,
+    height: int,
+    socket: dai.CameraBoardSocket = COLOR_SOCKET,
+    undistorted: bool = False,
+) -> Intrinsics:
     """Intrinsics of a camera at an output size, as the Camera node produces it.
 
     ``Camera.requestOutput`` resizes with ``ImgResizeMode.CROP``: scale to cover, then centre-crop;
@@ -203,12 +221,20 @@ def intrinsics_from_calibration(calib: dai.CalibrationHandler, width: int, heigh
         if len(d) == 14 and not any(d[8:]):
             d = d[:8]
         dist = tuple(d)
-    return Intrinsics(fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]),
-                      width=int(width), height=int(height), dist=dist)
+    return Intrinsics(
+        fx=float(K[0, 0]),
+        fy=float(K[1, 1]),
+        cx=float(K[0, 2]),
+        cy=float(K[1, 2]),
+        width=int(width),
+        height=int(height),
+        dist=dist,
+    )
 
 
-def imu_rotation_from_calibration(calib: dai.CalibrationHandler,
-                                  socket: dai.CameraBoardSocket = COLOR_SOCKET) -> np.ndarray | None:
+def imu_rotation_from_calibration(
+    calib: dai.CalibrationHandler, socket: dai.CameraBoardSocket = COLOR_SOCKET
+) -> np.ndarray | None:
     """IMU -> camera rotation from the calibration's IMU extrinsics; ``None`` when it has none.
 
     Older factory calibrations carry no IMU extrinsics (DepthAI then raises or returns zeros); the
@@ -228,6 +254,7 @@ def imu_rotation_from_calibration(calib: dai.CalibrationHandler,
 
 # ---------------------------------------------------------------------------------------- conversion
 
+
 def td_to_ns(td: datetime.timedelta) -> int:
     """A DepthAI timestamp (``datetime.timedelta``, microsecond resolution) -> int64 nanoseconds."""
     return ((td.days * 86_400 + td.seconds) * 1_000_000 + td.microseconds) * 1_000
@@ -238,8 +265,12 @@ def exposure_of(img: dai.ImgFrame) -> Exposure:
     exp_us = img.getExposureTime().total_seconds() * 1e6
     iso = float(img.getSensitivity())
     ct = float(img.getColorTemperature())
-    return Exposure(exposure_us=exp_us if exp_us > 0 else None, iso=iso if iso > 0 else None,
-                    wb_gains=None, color_temperature_k=ct if ct > 0 else None)
+    return Exposure(
+        exposure_us=exp_us if exp_us > 0 else None,
+        iso=iso if iso > 0 else None,
+        wb_gains=None,
+        color_temperature_k=ct if ct > 0 else None,
+    )
 
 
 def color_to_rgb(img: dai.ImgFrame) -> np.ndarray:
@@ -286,8 +317,9 @@ class FrameConverter:
         Names of the Sync node's inputs.
     """
 
-    def __init__(self, intrinsics: Intrinsics, imu: ImuMatcher | None = None,
-                 color_key: str = "color", depth_key: str = "depth"):
+    def __init__(
+        self, intrinsics: Intrinsics, imu: ImuMatcher | None = None, color_key: str = "color", depth_key: str = "depth"
+    ):
         self.intrinsics = intrinsics
         self.imu = imu
         self.color_key, self.depth_key = color_key, depth_key
@@ -338,6 +370,7 @@ class FrameConverter:
 
 # ---------------------------------------------------------------------------------------- pipeline
 
+
 def build_sync(pipeline: dai.Pipeline, opts: OakdOptions) -> tuple[Any, Any]:
     """The host-side Sync node pairing colour and depth, and its non-blocking output queue.
 
@@ -364,19 +397,21 @@ def build_device_pipeline(pipeline: dai.Pipeline, opts: OakdOptions, has_imu: bo
     cam = pipeline.create(dai.node.Camera).build(COLOR_SOCKET)
     if opts.exposure_us > 0:
         cam.initialControl.setManualExposure(int(opts.exposure_us), int(opts.iso))
-    color_out = cam.requestOutput(opts.size, type=dai.ImgFrame.Type.BGR888i, fps=fps,
-                                  enableUndistortion=bool(opts.undistort))
+    color_out = cam.requestOutput(
+        opts.size, type=dai.ImgFrame.Type.BGR888i, fps=fps, enableUndistortion=bool(opts.undistort)
+    )
     left = pipeline.create(dai.node.Camera).build(LEFT_SOCKET)
     right = pipeline.create(dai.node.Camera).build(RIGHT_SOCKET)
     stereo = pipeline.create(dai.node.StereoDepth).build(
-        left.requestOutput(opts.mono_size, fps=fps), right.requestOutput(opts.mono_size, fps=fps),
+        left.requestOutput(opts.mono_size, fps=fps),
+        right.requestOutput(opts.mono_size, fps=fps),
         presetMode=_PRESETS[opts.preset],
     )
     stereo.setLeftRightCheck(opts.lr_check)
     stereo.setSubpixel(opts.subpixel)
     stereo.setExtendedDisparity(opts.extended)
-    stereo.setDepthAlign(COLOR_SOCKET)          # depth in the colour camera's view ...
-    stereo.setOutputSize(*opts.size)            # ... at the colour output's size
+    stereo.setDepthAlign(COLOR_SOCKET)  # depth in the colour camera's view ...
+    stereo.setOutputSize(*opts.size)  # ... at the colour output's size
     sync, sync_queue = build_sync(pipeline, opts)
     color_out.link(sync.inputs["color"])
     stereo.depth.link(sync.inputs["depth"])
@@ -392,12 +427,20 @@ def build_device_pipeline(pipeline: dai.Pipeline, opts: OakdOptions, has_imu: bo
 
 # ---------------------------------------------------------------------------------------- devices
 
+
 def list_devices() -> list[dict[str, str]]:
     """OAK devices DepthAI can see: ``[{"id", "name", "state", "protocol", "platform"}]`` (for doctor)."""
     out = []
     for d in dai.Device.getAllAvailableDevices():
-        out.append({"id": d.getDeviceId(), "name": d.name, "state": str(d.state).split(".")[-1],
-                    "protocol": str(d.protocol).split(".")[-1], "platform": str(d.platform).split(".")[-1]})
+        out.append(
+            {
+                "id": d.getDeviceId(),
+                "name": d.name,
+                "state": str(d.state).split(".")[-1],
+                "protocol": str(d.protocol).split(".")[-1],
+                "platform": str(d.platform).split(".")[-1],
+            }
+        )
     return out
 
 
@@ -406,6 +449,7 @@ def depthai_version() -> str:
 
 
 # ---------------------------------------------------------------------------------------- the source
+
 
 @dataclass
 class OakdSession:
@@ -446,7 +490,7 @@ def connect_device(opts: OakdOptions, imu_rotation: Any = None, max_skew_ms: flo
         raise OakdError(
             f"cannot open OAK device {opts.device or '(first available)'}: {e}. Devices found: {found}. "
             "Check the USB cable/port (USB3 preferred) or PoE link, and on Linux the udev rule "
-            "(echo 'SUBSYSTEM==\"usb\", ATTRS{idVendor}==\"03e7\", MODE=\"0666\"' | "
+            '(echo \'SUBSYSTEM=="usb", ATTRS{idVendor}=="03e7", MODE="0666"\' | '
             "sudo tee /etc/udev/rules.d/80-movidius.rules; sudo udevadm control --reload-rules "
             "&& sudo udevadm trigger). `illuminet doctor` lists what DepthAI sees."
         ) from e
@@ -464,7 +508,9 @@ def connect_device(opts: OakdOptions, imu_rotation: Any = None, max_skew_ms: flo
                 log.warning(
                     "OAK %s: its calibration has no IMU-to-camera extrinsics, so gravity is not given "
                     "(a wrong axis guess would mislabel floors and walls). Set [imu] rotation "
-                    "(IMU axes -> camera axes) to enable it.", device_id)
+                    "(IMU axes -> camera axes) to enable it.",
+                    device_id,
+                )
                 has_imu = False
             else:
                 matcher = ImuMatcher(max_skew_ms=max_skew_ms, rotation=R)
@@ -474,10 +520,17 @@ def connect_device(opts: OakdOptions, imu_rotation: Any = None, max_skew_ms: flo
     except Exception:
         device.close()
         raise
-    log.info("OAK %s: %dx%d at %.0f fps, depth aligned to CAM_A, IMU %s", device_id,
-             opts.size[0], opts.size[1], opts.fps, "on" if matcher else "off")
-    return OakdSession(pipeline=pipeline, queues=queues, converter=FrameConverter(intr, matcher),
-                       device=device, device_id=device_id)
+    log.info(
+        "OAK %s: %dx%d at %.0f fps, depth aligned to CAM_A, IMU %s",
+        device_id,
+        opts.size[0],
+        opts.size[1],
+        opts.fps,
+        "on" if matcher else "off",
+    )
+    return OakdSession(
+        pipeline=pipeline, queues=queues, converter=FrameConverter(intr, matcher), device=device, device_id=device_id
+    )
 
 
 class OakdSource(Source):
@@ -504,8 +557,14 @@ class OakdSource(Source):
     BACKOFF_START_S = 0.5
     BACKOFF_MAX_S = 10.0
 
-    def __init__(self, opts: OakdOptions, reconnect: bool = True, imu_rotation: Any = None,
-                 max_skew_ms: float = 20.0, connect: Any = None):
+    def __init__(
+        self,
+        opts: OakdOptions,
+        reconnect: bool = True,
+        imu_rotation: Any = None,
+        max_skew_ms: float = 20.0,
+        connect: Any = None,
+    ):
         self.opts = opts
         self.reconnect = opts.reconnect if opts.reconnect is not None else bool(reconnect)
         self.imu_rotation = imu_rotation
@@ -605,8 +664,13 @@ class OakdSource(Source):
                     ) from e
                 self._disconnect()
                 self.reconnects += 1
-                log.warning("OAK %s lost (%s); reconnecting in %.1f s (attempt %d)",
-                            self.device_id or self.opts.device, e, backoff, self.reconnects)
+                log.warning(
+                    "OAK %s lost (%s); reconnecting in %.1f s (attempt %d)",
+                    self.device_id or self.opts.device,
+                    e,
+                    backoff,
+                    self.reconnects,
+                )
                 if self._stop.wait(backoff):
                     return None
                 backoff = min(backoff * 2, self.BACKOFF_MAX_S)
@@ -614,8 +678,12 @@ class OakdSource(Source):
 
     def stats(self) -> dict[str, Any]:
         conv = self._last_converter
-        return {"device": self.device_id, "dropped": self._dropped_before + (conv.dropped if conv else 0),
-                "reconnects": self.reconnects, "bad_frames": self.bad_frames}
+        return {
+            "device": self.device_id,
+            "dropped": self._dropped_before + (conv.dropped if conv else 0),
+            "reconnects": self.reconnects,
+            "bad_frames": self.bad_frames,
+        }
 
 
 def open_url(url: str, config: Config) -> OakdSource:
@@ -623,5 +691,6 @@ def open_url(url: str, config: Config) -> OakdSource:
     opts = parse_url(url)
     rot = config.imu.rotation
     custom_rot = None if np.allclose(np.reshape(rot, (3, 3)), np.eye(3)) else rot
-    return OakdSource(opts, reconnect=config.source.reconnect, imu_rotation=custom_rot,
-                      max_skew_ms=config.imu.max_skew_ms)
+    return OakdSource(
+        opts, reconnect=config.source.reconnect, imu_rotation=custom_rot, max_skew_ms=config.imu.max_skew_ms
+    )

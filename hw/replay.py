@@ -57,8 +57,16 @@ class ReplaySource(Source):
 
     name = "replay"
 
-    def __init__(self, path: str | Path, *, timing: str = "recorded", loop: bool = False, max_frames: int = 0,
-                 workers: int = 2, strict: bool = False):
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        timing: str = "recorded",
+        loop: bool = False,
+        max_frames: int = 0,
+        workers: int = 2,
+        strict: bool = False,
+    ):
         if timing not in TIMINGS:
             raise SourceError(f"replay {path}: timing must be one of {', '.join(TIMINGS)}, got {timing!r}")
         if max_frames < 0:
@@ -72,8 +80,8 @@ class ReplaySource(Source):
         self.session: SessionReader | None = None
         self._pool: ThreadPoolExecutor | None = None
         self._pending: collections.deque = collections.deque()
-        self._next_pos = 0      # next session position to schedule for decoding
-        self._next_round = 0    # loop round of that position
+        self._next_pos = 0  # next session position to schedule for decoding
+        self._next_round = 0  # loop round of that position
         self._emitted = 0
         self._corrupt = 0
         self._bad_in_row = 0
@@ -175,8 +183,11 @@ class ReplaySource(Source):
         self._pending.clear()
 
     def stats(self) -> dict:
-        return {"frames": self._emitted, "corrupt": self._corrupt,
-                "session_problems": len(self.session.problems) if self.session is not None else 0}
+        return {
+            "frames": self._emitted,
+            "corrupt": self._corrupt,
+            "session_problems": len(self.session.problems) if self.session is not None else 0,
+        }
 
 
 def open_url(url: str, config: Config) -> ReplaySource:
@@ -186,7 +197,8 @@ def open_url(url: str, config: Config) -> ReplaySource:
     if not path:
         raise SourceError(f"{url}: no session path; expected replay://PATH (relative) or replay:///ABS/PATH")
     src = config.source
-    q = parse_query(url, {"timing": query_choice(*TIMINGS), "loop": query_bool, "max_frames": query_int(lo=0)},
-                    error=SourceError)
+    q = parse_query(
+        url, {"timing": query_choice(*TIMINGS), "loop": query_bool, "max_frames": query_int(lo=0)}, error=SourceError
+    )
     timing, loop, max_frames = q.get("timing", src.timing), q.get("loop", src.loop), q.get("max_frames", src.max_frames)
     return ReplaySource(path, timing=timing, loop=loop, max_frames=max_frames, strict=config.logging.strict)

@@ -71,6 +71,7 @@ class ImuProtocolError(ValueError):
 
 # ---------------------------------------------------------------------------------------- protocol
 
+
 def checksum(payload: bytes) -> int:
     """NMEA-style XOR of all bytes of ``payload`` (the text between ``$`` and ``*``)."""
     cs = 0
@@ -124,7 +125,7 @@ def parse_line(line: bytes) -> ImuSample:
     star = line.rfind(b"*")
     if star < 0 or len(line) - star - 1 != 2:
         raise ImuProtocolError(f"line has no '*XX' checksum at its end: {line[:60]!r}")
-    payload, cs_text = line[1:star], line[star + 1:]
+    payload, cs_text = line[1:star], line[star + 1 :]
     try:
         cs = int(cs_text, 16)
     except ValueError:
@@ -187,7 +188,7 @@ class LineParser:
             # a '$' before the line end means the line was cut (e.g. a reset mid-line): resync there
             if nxt >= 0 and (end < 0 or nxt < end):
                 self.malformed += 1
-                self.last_error = f"truncated line {bytes(buf[:min(nxt, 40)])!r}"
+                self.last_error = f"truncated line {bytes(buf[: min(nxt, 40)])!r}"
                 del buf[:nxt]
                 continue
             if end < 0:
@@ -215,8 +216,13 @@ class LineParser:
         return out
 
     def counters(self) -> dict[str, int]:
-        return {"good": self.good, "bad_checksum": self.bad_checksum, "malformed": self.malformed,
-                "overlong": self.overlong, "garbage_bytes": self.garbage_bytes}
+        return {
+            "good": self.good,
+            "bad_checksum": self.bad_checksum,
+            "malformed": self.malformed,
+            "overlong": self.overlong,
+            "garbage_bytes": self.garbage_bytes,
+        }
 
 
 def write_samples(port: Any, samples: Iterable[ImuSample], chunk: int = WRITE_CHUNK) -> int:
@@ -232,11 +238,12 @@ def write_samples(port: Any, samples: Iterable[ImuSample], chunk: int = WRITE_CH
     """
     data = b"".join(format_line(s.t_ns, s.accel, s.gyro) for s in samples)
     for i in range(0, len(data), chunk):
-        port.write(data[i:i + chunk])
+        port.write(data[i : i + chunk])
     return len(data)
 
 
 # ---------------------------------------------------------------------------------------- matching
+
 
 def rotation_from_list(values: Sequence[float], where: str = "[imu] rotation") -> np.ndarray:
     """A 3x3 IMU->camera rotation from 9 row-major numbers, checked to be a proper rotation."""
@@ -255,8 +262,8 @@ def rotation_from_list(values: Sequence[float], where: str = "[imu] rotation") -
 @dataclass(frozen=True)
 class _Entry:
     t_ns: int
-    sample: ImuSample        # in camera axes
-    lowpass: np.ndarray      # low-passed specific force in camera axes at this time
+    sample: ImuSample  # in camera axes
+    lowpass: np.ndarray  # low-passed specific force in camera axes at this time
 
 
 class ImuMatcher:
@@ -366,6 +373,7 @@ class _OffsetClock:
 
 # ---------------------------------------------------------------------------------------- the port
 
+
 class SerialImu:
     """Reads the protocol from a serial port in a background thread and feeds an :class:`ImuMatcher`.
 
@@ -385,8 +393,14 @@ class SerialImu:
         Use this already-open port (tests share one ``loop://`` port between writer and reader).
     """
 
-    def __init__(self, url: str, baudrate: int = 115200, matcher: ImuMatcher | None = None,
-                 clock: str = "device", port: Any = None):
+    def __init__(
+        self,
+        url: str,
+        baudrate: int = 115200,
+        matcher: ImuMatcher | None = None,
+        clock: str = "device",
+        port: Any = None,
+    ):
         if clock not in ("device", "host"):
             raise ValueError(f"SerialImu clock must be 'device' or 'host', got {clock!r}")
         self.url, self.baudrate = parse_serial_url(url, baudrate)
@@ -451,8 +465,12 @@ class SerialImu:
 
     def stats(self) -> dict[str, Any]:
         d = dict(self.parser.counters())
-        d.update(matched=self.matcher.matched, unmatched=self.matcher.unmatched,
-                 out_of_order=self.matcher.out_of_order, read_errors=self.read_errors)
+        d.update(
+            matched=self.matcher.matched,
+            unmatched=self.matcher.unmatched,
+            out_of_order=self.matcher.out_of_order,
+            read_errors=self.read_errors,
+        )
         return d
 
     def __enter__(self) -> SerialImu:
@@ -472,7 +490,7 @@ def parse_serial_url(url: str, baudrate: int = 115200) -> tuple[str, int]:
     """
     if not url:
         raise ValueError("serial IMU URL is empty; expected e.g. serial:///dev/ttyUSB0?baud=115200 or loop://")
-    rest = url[len("serial://"):] if url.startswith("serial://") else url
+    rest = url[len("serial://") :] if url.startswith("serial://") else url
     if "?" in rest:
         base, query = rest.split("?", 1)
         keep = []
@@ -495,11 +513,14 @@ def parse_serial_url(url: str, baudrate: int = 115200) -> tuple[str, int]:
 
 def list_ports() -> list[dict[str, str]]:
     """Serial ports on this machine: ``[{"device", "description", "hwid"}]`` (for ``illuminet doctor``)."""
-    return [{"device": p.device, "description": p.description or "", "hwid": p.hwid or ""}
-            for p in serial.tools.list_ports.comports()]
+    return [
+        {"device": p.device, "description": p.description or "", "hwid": p.hwid or ""}
+        for p in serial.tools.list_ports.comports()
+    ]
 
 
 # ---------------------------------------------------------------------------------------- the stage
+
 
 class ImuStage(Stage):
     """Pipeline stage: attaches serial-IMU samples and gravity to each frame (``[imu]`` config).
@@ -518,8 +539,9 @@ class ImuStage(Stage):
         sec = cfg.imu
         if not sec.url:
             return None
-        matcher = ImuMatcher(max_skew_ms=sec.max_skew_ms, rotation=rotation_from_list(sec.rotation),
-                             tau_s=sec.gravity_tau_s)
+        matcher = ImuMatcher(
+            max_skew_ms=sec.max_skew_ms, rotation=rotation_from_list(sec.rotation), tau_s=sec.gravity_tau_s
+        )
         return cls(SerialImu(sec.url, baudrate=sec.baudrate, matcher=matcher, clock=sec.clock))
 
     def open(self) -> None:

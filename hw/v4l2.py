@@ -63,6 +63,7 @@ MONO_REFUSAL = (
 
 # ---------------------------------------------------------------------------------------- options
 
+
 @dataclass(frozen=True)
 class V4l2Options:
     """What ``v4l2://DEVICE?key=value&...`` asks for.
@@ -121,11 +122,21 @@ def parse_url(url: str) -> V4l2Options:
     device = parts.netloc + parts.path
     if not device:
         raise ValueError(f"{url}: no device; expected e.g. v4l2:///dev/video0?stereo=sbs")
-    kw: dict[str, Any] = parse_query(url, {
-        "stereo": query_choice("sbs", "pair"), "right": str, "size": query_size(), "fps": query_float,
-        "fourcc": _fourcc, "swap": query_bool, "calib": str, "exposure_us": query_int(), "scale": query_float,
-        "reconnect": query_bool,
-    })
+    kw: dict[str, Any] = parse_query(
+        url,
+        {
+            "stereo": query_choice("sbs", "pair"),
+            "right": str,
+            "size": query_size(),
+            "fps": query_float,
+            "fourcc": _fourcc,
+            "swap": query_bool,
+            "calib": str,
+            "exposure_us": query_int(),
+            "scale": query_float,
+            "reconnect": query_bool,
+        },
+    )
     kw["device"] = device
     if kw.get("right") and kw.get("stereo", "pair") != "pair":
         raise ValueError(f"{url}: right= names a second camera, which contradicts stereo={kw['stereo']}")
@@ -141,6 +152,7 @@ def parse_url(url: str) -> V4l2Options:
 
 
 # ---------------------------------------------------------------------------------------- capture
+
 
 class CaptureBackend(Protocol):
     """One video device. ``grab`` latches the next frame, ``retrieve`` decodes the latched one."""
@@ -169,8 +181,14 @@ class OpenCvCapture:
     that waited in the queue (the loop wants the newest frame, not every frame).
     """
 
-    def __init__(self, device: str, size: tuple[int, int] | None = None, fps: float | None = None,
-                 fourcc: str = "", exposure_us: int = 0):
+    def __init__(
+        self,
+        device: str,
+        size: tuple[int, int] | None = None,
+        fps: float | None = None,
+        fourcc: str = "",
+        exposure_us: int = 0,
+    ):
         self.name = device
         self.size, self.fps, self.fourcc, self.exposure_us = size, fps, fourcc, exposure_us
         self._cap: Any = None
@@ -232,7 +250,7 @@ def split_sbs(image: np.ndarray, swap: bool = False) -> tuple[np.ndarray, np.nda
     w = image.shape[1]
     if w % 2:
         raise ValueError(f"side-by-side frame width {w} is odd: not a left|right pair (is this a mono camera?)")
-    a, b = image[:, : w // 2], image[:, w // 2:]
+    a, b = image[:, : w // 2], image[:, w // 2 :]
     return (b, a) if swap else (a, b)
 
 
@@ -280,12 +298,15 @@ class StereoGrabber:
                 raise ValueError(f"{self.right.name}: no image in the grabbed frame")
             left, right = img, rimg
             if left.shape != right.shape:
-                raise ValueError(f"left {left.shape} and right {right.shape} images differ in size; "
-                                 "set the same size= for both cameras")
+                raise ValueError(
+                    f"left {left.shape} and right {right.shape} images differ in size; "
+                    "set the same size= for both cameras"
+                )
         return left, right, t
 
 
 # ---------------------------------------------------------------------------------------- the source
+
 
 def _host_stereo(calib_path: str, size: tuple[int, int], scale: float):
     """HostStereo for ``size`` (per-eye width, height) from a calibration file (imported when needed)."""
@@ -322,8 +343,16 @@ class V4l2Source(Source):
     BACKOFF_START_S = 0.5
     BACKOFF_MAX_S = 10.0
 
-    def __init__(self, grabber: StereoGrabber, calib_path: str, scale: float = 0.5, reconnect: bool = True,
-                 exposure_us: int = 0, stereo_factory: Callable[..., Any] | None = None, max_failures: int = 10):
+    def __init__(
+        self,
+        grabber: StereoGrabber,
+        calib_path: str,
+        scale: float = 0.5,
+        reconnect: bool = True,
+        exposure_us: int = 0,
+        stereo_factory: Callable[..., Any] | None = None,
+        max_failures: int = 10,
+    ):
         self.grabber = grabber
         self.calib_path = calib_path
         self.scale = scale
@@ -358,13 +387,20 @@ class V4l2Source(Source):
         self.grabber.close()
         self._open = False
         if not self.reconnect:
-            raise EndOfStream(f"V4L2 camera {self.grabber.left.name} lost: {why}. Reconnect it and run again, "
-                              "or enable [source] reconnect.")
+            raise EndOfStream(
+                f"V4L2 camera {self.grabber.left.name} lost: {why}. Reconnect it and run again, "
+                "or enable [source] reconnect."
+            )
         delay = self.BACKOFF_START_S
         while not self._stop.is_set():
             self.reconnects += 1
-            log.warning("V4L2 camera %s lost (%s); reopening in %.1f s (attempt %d)",
-                        self.grabber.left.name, why, delay, self.reconnects)
+            log.warning(
+                "V4L2 camera %s lost (%s); reopening in %.1f s (attempt %d)",
+                self.grabber.left.name,
+                why,
+                delay,
+                self.reconnects,
+            )
             if self._stop.wait(delay):
                 return
             try:
@@ -425,15 +461,22 @@ class V4l2Source(Source):
         exposure = Exposure(exposure_us=float(self.exposure_us)) if self.exposure_us > 0 else Exposure()
         seq = self._seq
         self._seq += 1
-        return Frame(seq=seq, t_device_ns=int(t), t_host_ns=int(t_host), color=np.ascontiguousarray(rgb),
-                     depth=np.ascontiguousarray(depth, dtype=np.float32), intrinsics=self._stereo.intrinsics,
-                     exposure=exposure)
+        return Frame(
+            seq=seq,
+            t_device_ns=int(t),
+            t_host_ns=int(t_host),
+            color=np.ascontiguousarray(rgb),
+            depth=np.ascontiguousarray(depth, dtype=np.float32),
+            intrinsics=self._stereo.intrinsics,
+            exposure=exposure,
+        )
 
     def stats(self) -> dict[str, Any]:
         return {"dropped": self.dropped, "bad_frames": self.bad_frames, "reconnects": self.reconnects}
 
 
 # ---------------------------------------------------------------------------------------- registry
+
 
 def open_url(url: str, config: Config) -> V4l2Source:
     """The source registry's entry point: an unopened :class:`V4l2Source` for ``v4l2://...``.
@@ -457,8 +500,9 @@ def open_url(url: str, config: Config) -> V4l2Source:
     left = OpenCvCapture(o.device, o.size, o.fps, o.fourcc, o.exposure_us)
     right = OpenCvCapture(o.right, o.size, o.fps, o.fourcc, o.exposure_us) if o.stereo == "pair" else None
     reconnect = o.reconnect if o.reconnect is not None else config.source.reconnect
-    return V4l2Source(StereoGrabber(left, right, swap=o.swap), calib, scale=o.scale, reconnect=reconnect,
-                      exposure_us=o.exposure_us)
+    return V4l2Source(
+        StereoGrabber(left, right, swap=o.swap), calib, scale=o.scale, reconnect=reconnect, exposure_us=o.exposure_us
+    )
 
 
 def list_devices() -> list[dict[str, str]]:

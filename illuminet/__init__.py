@@ -35,6 +35,7 @@ def __getattr__(name: str):
 def __dir__():
     return sorted(list(globals()) + list(_API))
 
+
 # In a source checkout the subpackages are the sibling folders runtime/, hw/, models/ and
 # calibration/ (pyproject maps them for installs). Letting the package path include the checkout
 # root makes `python -m illuminet` and tests work from a checkout even without an install.

@@ -20,15 +20,15 @@ from __future__ import annotations
 
 import contextlib
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
 from illuminet.runtime.config import SCHEMA, Config, ConfigError, apply_overrides, defaults, load
 from illuminet.runtime.frame import Exposure, Frame, Intrinsics
 from illuminet.runtime.scene import ANCHOR, COMPOSITE, LIGHT, SHADING
-
 
 # --------------------------------------------------------------------------------------------------
 # configuration
@@ -48,8 +48,11 @@ def _config(config: Config | str | os.PathLike | None, overrides: dict[str, Any]
         else:
             owners = [sec for sec, keys in SCHEMA.items() if name in keys]
             if len(owners) != 1:
-                where = (f"it is in sections {', '.join(owners)}; write section__{name}=..." if owners else
-                         "no section has it; see config.toml")
+                where = (
+                    f"it is in sections {', '.join(owners)}; write section__{name}=..."
+                    if owners
+                    else "no section has it; see config.toml"
+                )
                 raise ConfigError(f"illuminet.open(): override {name}={value!r}: {where}")
             section, key = owners[0], name
         items.append((section, key, value))
@@ -120,7 +123,7 @@ class Stream:
         self._sinks: list = []
         self._done = False
 
-    def open(self) -> "Stream":
+    def open(self) -> Stream:
         """Open the source, the stages and the sinks (done by ``with`` or the first ``next``)."""
         if self._stack is not None:
             return self
@@ -145,7 +148,7 @@ class Stream:
         self._stack, self._source, self._chain, self._sinks = stack, source, chain, sinks
         return self
 
-    def __enter__(self) -> "Stream":
+    def __enter__(self) -> Stream:
         return self.open()
 
     def __exit__(self, *exc) -> None:
@@ -185,8 +188,15 @@ class Stream:
         return list(self._chain.stages) if self._chain is not None else []
 
 
-def open(url: str, /, config: Config | str | os.PathLike | None = None, *, render: bool = True,  # noqa: A001
-         strict: bool | None = None, **overrides: Any) -> Stream:
+def open(
+    url: str,
+    /,
+    config: Config | str | os.PathLike | None = None,
+    *,
+    render: bool = True,  # noqa: A001
+    strict: bool | None = None,
+    **overrides: Any,
+) -> Stream:
     """Process frames from ``url`` through the pipeline; a context-managed iterator of :class:`Result`.
 
     Parameters
@@ -233,8 +243,10 @@ def _intrinsics(intrinsics: Any, width: int, height: int) -> Intrinsics:
         elif a.shape == (4,):
             K = Intrinsics(*(float(x) for x in a), width, height)
         else:
-            raise ValueError(f"intrinsics: expected an Intrinsics, a 3x3 camera matrix or (fx, fy, cx, cy), "
-                             f"got an array of shape {a.shape}")
+            raise ValueError(
+                f"intrinsics: expected an Intrinsics, a 3x3 camera matrix or (fx, fy, cx, cy), "
+                f"got an array of shape {a.shape}"
+            )
     return K if (K.width, K.height) == (width, height) else K.scaled(width, height)
 
 
@@ -259,14 +271,25 @@ def align_depth(depth: np.ndarray, color_shape: tuple[int, ...], what: str = "de
     if (dh, dw) == (h, w):
         return d
     if abs(dw / dh - w / h) > 0.01 * (w / h):
-        raise ValueError(f"{what}: size {dw}x{dh} has another aspect ratio than the colour image {w}x{h}; "
-                         f"depth must be aligned to colour (same field of view, possibly another resolution)")
+        raise ValueError(
+            f"{what}: size {dw}x{dh} has another aspect ratio than the colour image {w}x{h}; "
+            f"depth must be aligned to colour (same field of view, possibly another resolution)"
+        )
     return cv2.resize(d, (w, h), interpolation=cv2.INTER_NEAREST)
 
 
-def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Any, anchor_px: tuple[float, float],
-            bundle: str | None = None, *, config: Config | str | os.PathLike | None = None,
-            exposure: Exposure | None = None, precision: str | None = None, **overrides: Any):
+def relight(
+    color: np.ndarray,
+    depth: np.ndarray,
+    intrinsics: Any,
+    anchor_px: tuple[float, float],
+    bundle: str | None = None,
+    *,
+    config: Config | str | os.PathLike | None = None,
+    exposure: Exposure | None = None,
+    precision: str | None = None,
+    **overrides: Any,
+):
     """Place the bundle's object at ``anchor_px`` in one RGB-D image and predict its radiance.
 
     Parameters
@@ -297,12 +320,19 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Any, anchor_px: tu
     d = align_depth(depth, color.shape)
     h, w = color.shape[:2]
     K = _intrinsics(intrinsics, w, h)
-    return _relight(color, d, K, tuple(anchor_px), _config(config, overrides), bundle=bundle, exposure=exposure,
-                    precision=precision)
+    return _relight(
+        color, d, K, tuple(anchor_px), _config(config, overrides), bundle=bundle, exposure=exposure, precision=precision
+    )
 
 
-def render_preview(color: np.ndarray, depth: np.ndarray | None, intrinsics: Any, result,
-                   config: Config | str | os.PathLike | None = None, **overrides: Any) -> np.ndarray:
+def render_preview(
+    color: np.ndarray,
+    depth: np.ndarray | None,
+    intrinsics: Any,
+    result,
+    config: Config | str | os.PathLike | None = None,
+    **overrides: Any,
+) -> np.ndarray:
     """The relit object composited into the colour image (HxWx3 uint8 RGB), by the runtime's renderer.
 
     ``result`` is what :func:`relight` returned; the same bundle's render mesh is drawn with its
@@ -321,16 +351,19 @@ def render_preview(color: np.ndarray, depth: np.ndarray | None, intrinsics: Any,
     if str(result.bundle):  # the bundle folder relight loaded: the same object and carry
         cfg = apply_overrides(cfg, [("model", "bundle", str(result.bundle))])
     R = np.asarray(result.T_cam_obj)[:3, :3]
-    shading = ObjectShading(irradiance=np.asarray(result.proxy_irradiance, np.float32), method=result.method,
-                            dominant_dir=R.T @ np.asarray(result.dominant_dir, np.float64),
-                            dominant_share=float(result.dominant_share))
+    shading = ObjectShading(
+        irradiance=np.asarray(result.proxy_irradiance, np.float32),
+        method=result.method,
+        dominant_dir=R.T @ np.asarray(result.dominant_dir, np.float64),
+        dominant_share=float(result.dominant_share),
+    )
     stage = RenderStage(cfg)
     stage.open()
     try:
         irr = stage.render_irradiance(shading)
         light, share = dominant_light(shading, stage.comp.mesh.normals, irr)
-        return stage.comp.draw(color, d, K.K, np.asarray(result.T_cam_obj, np.float64), irr,
-                               float(result.exposure_scale), light, share)
+        return stage.comp.draw(
+            color, d, K.K, np.asarray(result.T_cam_obj, np.float64), irr, float(result.exposure_scale), light, share
+        )
     finally:
         stage.close()
-

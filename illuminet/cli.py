@@ -21,16 +21,16 @@ os.environ.setdefault("DEPTHAI_TELEMETRY", "0")
 
 #: command modules of this package, in the order --help lists them
 COMMAND_MODULES: list[str] = [
-    "run",        # run, replay, record
-    "demo",       # the pipeline on the built-in default session, to a video
-    "bench",      # benchmarks
-    "doctor",     # what hardware/drivers are found
+    "run",  # run, replay, record
+    "demo",  # the pipeline on the built-in default session, to a video
+    "bench",  # benchmarks
+    "doctor",  # what hardware/drivers are found
     "calibrate",  # calibrate board|capture|intrinsics|stereo|photometric
-    "train",      # train an object bundle (the learned transfer)
-    "bundle",     # a bundle of any mesh with PRT, no training
-    "eval",       # evaluation report
-    "relight",    # one RGB-D image -> placed object + radiance
-    "config",     # print the effective configuration
+    "train",  # train an object bundle (the learned transfer)
+    "bundle",  # a bundle of any mesh with PRT, no training
+    "eval",  # evaluation report
+    "relight",  # one RGB-D image -> placed object + radiance
+    "config",  # print the effective configuration
 ]
 
 log = logging.getLogger("illuminet")
@@ -43,11 +43,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"illuminet {__version__}")
     parser.add_argument(
-        "--config", "-c", metavar="TOML",
+        "--config",
+        "-c",
+        metavar="TOML",
         help="configuration file (default: ./config.toml when present, else built-in defaults)",
     )
     parser.add_argument(
-        "--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
         help="override one configuration key (TOML value syntax); repeatable",
     )
     parser.add_argument("--log-level", choices=("debug", "info", "warning", "error"), help="overrides [logging] level")

@@ -11,8 +11,8 @@ from collections.abc import Callable
 from typing import Any
 
 from illuminet.runtime.config import Config, ConfigError
-from illuminet.runtime.stream.sinks import EstimateSink, PngSequenceSink, SessionRecorderSink, VideoSink
 from illuminet.runtime.stage import Sink, Stage
+from illuminet.runtime.stream.sinks import EstimateSink, PngSequenceSink, SessionRecorderSink, VideoSink
 
 
 def build_stages(cfg: Config, *, render: bool = True) -> list[Stage]:
@@ -89,11 +89,17 @@ def build_sinks(
     if out.record:
         if not 1 <= out.record_jpeg_quality <= 100:
             raise ConfigError(
-                f"[output] record_jpeg_quality: expected an int in 1..100, got {out.record_jpeg_quality!r}")
-        sinks.append(SessionRecorderSink(
-            out.record, source=source_url if source_url is not None else cfg.source.url,
-            color=out.record_color, jpeg_quality=out.record_jpeg_quality, fsync=out.record_fsync,
-        ))
+                f"[output] record_jpeg_quality: expected an int in 1..100, got {out.record_jpeg_quality!r}"
+            )
+        sinks.append(
+            SessionRecorderSink(
+                out.record,
+                source=source_url if source_url is not None else cfg.source.url,
+                color=out.record_color,
+                jpeg_quality=out.record_jpeg_quality,
+                fsync=out.record_fsync,
+            )
+        )
     if out.video:
         sinks.append(VideoSink(out.video, fps=out.fps))
     if out.png_dir:
@@ -106,8 +112,9 @@ def build_sinks(
         bundle = str(cfg.model.bundle)
         model = out.viewer_model or (bundle if bundle.startswith("builtin:") else "builtin:vase")
         try:
-            sinks.append(MjpegSink(out.listen, out.port, stats=stats, viewer_model=model,
-                                   object_scale=cfg.render.object_scale))
+            sinks.append(
+                MjpegSink(out.listen, out.port, stats=stats, viewer_model=model, object_scale=cfg.render.object_scale)
+            )
         except ValueError as e:  # the viewer model: a one-line message naming the key
             raise ConfigError(str(e)) from None
     return sinks
@@ -122,8 +129,15 @@ def chain_diagram(stages: list[Stage]) -> str:
     line = "Source ──Frame──▶ " + " ──▶ ".join(s.name for s in stages) + " ──▶ Sinks"
     rows = [("stage", "class", "requires", "optional", "provides")]
     for s in stages:
-        rows.append((s.name, type(s).__name__, ", ".join(k.name for k in s.requires) or "-",
-                     ", ".join(k.name for k in s.optional) or "-", ", ".join(k.name for k in s.provides) or "-"))
+        rows.append(
+            (
+                s.name,
+                type(s).__name__,
+                ", ".join(k.name for k in s.requires) or "-",
+                ", ".join(k.name for k in s.optional) or "-",
+                ", ".join(k.name for k in s.provides) or "-",
+            )
+        )
     w = [max(len(r[i]) for r in rows) for i in range(5)]
     table = ["  ".join(c.ljust(w[i]) for i, c in enumerate(r)).rstrip() for r in rows]
     return "\n".join([line, ""] + table)

@@ -63,8 +63,12 @@ class StatusLine:
     def format(snap: dict[str, Any]) -> str:
         """The line for one :meth:`LoopStats.snapshot`."""
         fps = snap.get("fps_recent") or snap.get("fps") or 0.0
-        parts = [f"frames {snap.get('frames', 0)}", f"{fps:.1f} fps", f"dropped {snap.get('dropped', 0)}",
-                 f"failed {snap.get('failed_frames', 0)}"]
+        parts = [
+            f"frames {snap.get('frames', 0)}",
+            f"{fps:.1f} fps",
+            f"dropped {snap.get('dropped', 0)}",
+            f"failed {snap.get('failed_frames', 0)}",
+        ]
         if snap.get("sink_failures"):
             parts.append(f"sink failures {snap['sink_failures']}")
         parts.append(f"{snap.get('elapsed_s', 0.0):.1f} s")

@@ -105,6 +105,7 @@ def parse_variant(spec: str) -> Variant:
 
 # ------------------------------------------------------------------------------------- metrics
 
+
 def srgb(x: np.ndarray) -> np.ndarray:
     x = np.clip(x, 0.0, 1.0)
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
@@ -123,9 +124,13 @@ def shading_metrics(pred: np.ndarray, true: np.ndarray, k: float, raw: np.ndarra
     ea = srgb(p) - ts
     r = np.asarray(pred if raw is None else raw, np.float64) * k / np.pi
     ar = float((r * t).sum() / max((r * r).sum(), 1e-30))
-    return {"mae": float(np.abs(es).mean()), "rmse": float(np.sqrt((es**2).mean())),
-            "mae_abs": float(np.abs(ea).mean()), "rmse_lin": float(np.sqrt(((ar * r - t) ** 2).mean())),
-            "gain": a}
+    return {
+        "mae": float(np.abs(es).mean()),
+        "rmse": float(np.sqrt((es**2).mean())),
+        "mae_abs": float(np.abs(ea).mean()),
+        "rmse_lin": float(np.sqrt(((ar * r - t) ** 2).mean())),
+        "gain": a,
+    }
 
 
 def angle_deg(a, b) -> float | None:
@@ -163,6 +168,7 @@ def true_dominant(scene, T_cam_obj: np.ndarray, frame: int, centre: np.ndarray) 
 
 # ------------------------------------------------------------------------------------ the runner
 
+
 class CameraEval:
     """The camera suites for one bundle, one base configuration and its variants.
 
@@ -178,8 +184,15 @@ class CameraEval:
     vertices : evaluate on this many render vertices (evenly spread; ``None`` = all).
     """
 
-    def __init__(self, cfg: Config, build_stages, bundle: str | None = None, variants=(),
-                 hdr_dir: str | Path | None = None, vertices: int | None = None):
+    def __init__(
+        self,
+        cfg: Config,
+        build_stages,
+        bundle: str | None = None,
+        variants=(),
+        hdr_dir: str | Path | None = None,
+        vertices: int | None = None,
+    ):
         import trimesh
 
         from illuminet.runtime.assets.bundle import load_bundle
@@ -192,7 +205,9 @@ class CameraEval:
         self.variants = [Variant("ours", [])] + list(variants)
         names = [v.name for v in self.variants]
         if len(set(names)) != len(names) or set(names) & set(BASELINES):
-            raise ConfigError(f"--variant names must be unique and not one of ours, {', '.join(BASELINES)}: got {names}")
+            raise ConfigError(
+                f"--variant names must be unique and not one of ours, {', '.join(BASELINES)}: got {names}"
+            )
         for v in self.variants:  # a wrong key fails here, before any scene is built
             v.cfg = apply_overrides(self.base, v.overrides)
         self.model_cfg = apply_overrides(self.base, [("model", "shading", "model")])
@@ -221,8 +236,10 @@ class CameraEval:
         if v.shape[0] == self.bundle.n_proxy:
             v = self.bundle.carry(v)
         if v.shape[0] != len(self.bundle.vertices):
-            raise ValueError(f"shading has {v.shape[0]} values; expected {self.bundle.n_proxy} (proxy) or "
-                             f"{len(self.bundle.vertices)} (render mesh)")
+            raise ValueError(
+                f"shading has {v.shape[0]} values; expected {self.bundle.n_proxy} (proxy) or "
+                f"{len(self.bundle.vertices)} (render mesh)"
+            )
         return v[self.sel]
 
     def url(self, suite: str, i: int, seed: int, frames: int) -> str:
@@ -238,7 +255,6 @@ class CameraEval:
         from illuminet.runtime.physics import linearize
         from illuminet.runtime.stages.shading import ShadingStage, preprocess_plane
 
-        b = self.bundle
         src = open_url(self.url(suite, i, seed, frames))
         src.open()
         sc = src.scene
@@ -264,7 +280,9 @@ class CameraEval:
                         d = light.primary_dir
                     elif sh is not None:
                         d = sh.dominant_dir
-                    per_frame.setdefault(v.name, []).append(None if sh is None else (self._render(sh.irradiance), None, d))
+                    per_frame.setdefault(v.name, []).append(
+                        None if sh is None else (self._render(sh.irradiance), None, d)
+                    )
                     last[v.name] = out
                     if model is None:
                         continue
@@ -276,7 +294,8 @@ class CameraEval:
                         except Exception as e:  # the learned transfer cannot use this frame's plane
                             log.debug("model baseline skipped a frame: %s", e)
                     per_frame.setdefault("model", []).append(
-                        None if ms is None else (self._render(ms.irradiance), None, ms.dominant_dir))
+                        None if ms is None else (self._render(ms.irradiance), None, ms.dominant_dir)
+                    )
                     self._frame_baselines(out, pl, per_frame, BL, linearize, preprocess_plane)
             finally:
                 for st in stages + ([model] if model else []):
@@ -299,9 +318,16 @@ class CameraEval:
         L, *_ = np.linalg.lstsq(Tr, true_e, rcond=None)
         raw = Tr @ L
         oracles["oracle_prt"] = (np.maximum(raw, 0), raw, sh_direction(L))
-        res = {"url": self.url(suite, i, seed, frames), "k": k, "anchor_error_m": float(np.linalg.norm(T[:3, 3] - T0[:3, 3])),
-               "indirect_share": None, "methods": {}}
-        direct = sc.true_object_shading(self.mesh, T, frame=fi, points=self.points, normals=self.normals, indirect=False)
+        res = {
+            "url": self.url(suite, i, seed, frames),
+            "k": k,
+            "anchor_error_m": float(np.linalg.norm(T[:3, 3] - T0[:3, 3])),
+            "indirect_share": None,
+            "methods": {},
+        }
+        direct = sc.true_object_shading(
+            self.mesh, T, frame=fi, points=self.points, normals=self.normals, indirect=False
+        )
         res["indirect_share"] = float(1 - (direct @ LUMA).sum() / max((true_e @ LUMA).sum(), 1e-12))
         settle = frames // 2
         for m, seq in list(per_frame.items()) + [(m, [p]) for m, p in oracles.items()]:
@@ -362,10 +388,16 @@ class CameraEval:
         if frames < 2:
             raise ValueError(f"camera frames must be >= 2 (flicker needs two), got {frames}")
         t0 = time.time()
-        report = {"bundle": self.bundle.name, "scenes": scenes, "frames": frames, "seed": seed,
-                  "vertices": int(len(self.sel)), "variants": {v.name: [f"{s}.{k}={val!r}" for s, k, val in v.overrides]
-                                                              for v in self.variants},
-                  "hdr_test_maps": [p.name for p in self.hdr_maps], "suites": {}}
+        report = {
+            "bundle": self.bundle.name,
+            "scenes": scenes,
+            "frames": frames,
+            "seed": seed,
+            "vertices": int(len(self.sel)),
+            "variants": {v.name: [f"{s}.{k}={val!r}" for s, k, val in v.overrides] for v in self.variants},
+            "hdr_test_maps": [p.name for p in self.hdr_maps],
+            "suites": {},
+        }
         done, total = 0, len(suites) * scenes
         for suite in suites:
             cases = []
@@ -381,8 +413,10 @@ class CameraEval:
         return report
 
     def _aggregate(self, cases: list, n: int) -> dict:
-        res: dict = {"_scenes": {"evaluated": len(cases), "no_plane": n - len(cases)},
-                     "_indirect_share": float(np.mean([c["indirect_share"] for c in cases])) if cases else None}
+        res: dict = {
+            "_scenes": {"evaluated": len(cases), "no_plane": n - len(cases)},
+            "_indirect_share": float(np.mean([c["indirect_share"] for c in cases])) if cases else None,
+        }
         methods = sorted({m for c in cases for m in c["methods"]})
         for m in methods:
             rows = [c["methods"][m] for c in cases if m in c["methods"]]
@@ -408,6 +442,7 @@ class CameraEval:
 
 # ------------------------------------------------------------------------------------ reporting
 
+
 def _fmt(v, nd=3):
     return "n/a" if v is None else f"{v:.{nd}f}"
 
@@ -418,8 +453,10 @@ def method_order(report: dict) -> list[str]:
 
 def table(report: dict) -> str:
     """One markdown table: a row per (suite, method), the metrics as columns."""
-    lines = ["| suite | method | MAE | RMSE | MAE (no gain) | angle (deg) | chroma (deg) | flicker |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| suite | method | MAE | RMSE | MAE (no gain) | angle (deg) | chroma (deg) | flicker |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for suite, res in report["suites"].items():
         for m in method_order(report):
             r = res.get(m)
@@ -428,23 +465,40 @@ def table(report: dict) -> str:
             label = m if m in report["variants"] else LABELS[m]
             if m in ("sh_rgbd", "sh_rgbd_prt") and "lam" in r:
                 label += f" (lambda {r['lam']:g})"
-            lines.append(f"| {suite} | {label} | {_fmt(r['mae'])} | {_fmt(r['rmse'])} | {_fmt(r['mae_abs'])} | "
-                         f"{_fmt(r['angle'], 1)} | {_fmt(r['chroma'], 1)} | {_fmt(r['flicker'], 4)} |")
+            lines.append(
+                f"| {suite} | {label} | {_fmt(r['mae'])} | {_fmt(r['rmse'])} | {_fmt(r['mae_abs'])} | "
+                f"{_fmt(r['angle'], 1)} | {_fmt(r['chroma'], 1)} | {_fmt(r['flicker'], 4)} |"
+            )
     return "\n".join(lines)
 
 
 def markdown(report: dict) -> str:
-    head = ["", "## End to end on the synthetic camera", "",
-            f"Bundle `{report['bundle']}`, {report['scenes']} scene(s) per suite, {report['frames']} frames each, "
-            f"{report['vertices']} render vertices; ground truth with indirect light. MAE/RMSE: sRGB intensities "
-            "after the best gain; angle: dominant light; chroma: the light's colour; flicker: frame to frame "
-            "(see models/camera_eval.py)."]
+    head = [
+        "",
+        "## End to end on the synthetic camera",
+        "",
+        f"Bundle `{report['bundle']}`, {report['scenes']} scene(s) per suite, {report['frames']} frames each, "
+        f"{report['vertices']} render vertices; ground truth with indirect light. MAE/RMSE: sRGB intensities "
+        "after the best gain; angle: dominant light; chroma: the light's colour; flicker: frame to frame "
+        "(see models/camera_eval.py).",
+    ]
     if len(report["variants"]) > 1:
-        head.append("Variants: " + "; ".join(f"`{n}` = {', '.join(o) or 'the configuration as given'}"
-                                            for n, o in report["variants"].items()) + ".")
+        head.append(
+            "Variants: "
+            + "; ".join(
+                f"`{n}` = {', '.join(o) or 'the configuration as given'}" for n, o in report["variants"].items()
+            )
+            + "."
+        )
     if report.get("hdr_test_maps"):
         head.append("Outdoor: held-out HDR maps " + ", ".join(report["hdr_test_maps"]) + ".")
-    foot = ["", "Scenes evaluated (no real plane under the object) and the indirect share of the true "
-            "shading: " + ", ".join(f"{s} {r['_scenes']['evaluated']} ({r['_scenes']['no_plane']}), "
-                                    f"{_fmt(r['_indirect_share'], 2)}" for s, r in report["suites"].items())]
+    foot = [
+        "",
+        "Scenes evaluated (no real plane under the object) and the indirect share of the true "
+        "shading: "
+        + ", ".join(
+            f"{s} {r['_scenes']['evaluated']} ({r['_scenes']['no_plane']}), {_fmt(r['_indirect_share'], 2)}"
+            for s, r in report["suites"].items()
+        ),
+    ]
     return "\n".join(head) + "\n\n" + table(report) + "\n" + "\n".join(foot) + "\n"

@@ -41,7 +41,11 @@ LUMA = np.array([0.2126, 0.7152, 0.0722])
 #: the scenes of the cross-check: name -> (synthetic kind, seed, what it tests)
 SCENES = {
     "lamp_room": ("lamp", 2, "floor, walls, ceiling; a warm point lamp 0.35-0.7 m from the object, dim ceiling lights"),
-    "area_lamp_boxes": ("cluttered", 4, "room with boxes and a table; the key light replaced by a 20 cm disc of 16 points"),
+    "area_lamp_boxes": (
+        "cluttered",
+        4,
+        "room with boxes and a table; the key light replaced by a 20 cm disc of 16 points",
+    ),
     "indoor_table": ("indoor", 1, "room with a table under 32 ceiling, lamp and window lights"),
     "outdoor_hdr": ("outdoor", 3, "ground and facade under the median cut (32 lights) of a held-out HDR map"),
 }
@@ -57,7 +61,8 @@ def load_mitsuba(variant: str = "scalar_rgb"):
         import mitsuba as mi
     except ImportError:
         raise CrosscheckUnavailable(
-            "the cross-check needs Mitsuba 3: pip install 'illuminet[groundtruth]' (or: pip install mitsuba)") from None
+            "the cross-check needs Mitsuba 3: pip install 'illuminet[groundtruth]' (or: pip install mitsuba)"
+        ) from None
     if variant == "llvm":
         try:
             mi.set_variant("llvm_ad_rgb")
@@ -73,6 +78,7 @@ def load_mitsuba(variant: str = "scalar_rgb"):
 
 
 # ------------------------------------------------------------------------------ scene conversion
+
 
 def _rect_transform(mi, p, lo, hi):
     """Mitsuba's ``rectangle`` ([-1, 1]^2 at z = 0, normal +z) onto a plane's rectangle."""
@@ -93,8 +99,9 @@ def _rect_transform(mi, p, lo, hi):
     return mi.ScalarTransform4f(M.tolist())
 
 
-def to_mitsuba(mi, scene, mesh=None, T_world_obj: np.ndarray | None = None, max_depth: int = -1,
-               ground_half_m: float = 500.0):
+def to_mitsuba(
+    mi, scene, mesh=None, T_world_obj: np.ndarray | None = None, max_depth: int = -1, ground_half_m: float = 500.0
+):
     """A Mitsuba scene of a :class:`~illuminet.hw.synthetic.scene.SyntheticScene`.
 
     Planes become one-sided diffuse rectangles of their mean albedo (back sides black, as in the
@@ -108,22 +115,30 @@ def to_mitsuba(mi, scene, mesh=None, T_world_obj: np.ndarray | None = None, max_
         if not np.all(np.isfinite(lo)):
             lo, hi = np.full(2, -ground_half_m), np.full(2, ground_half_m)
         d[f"plane{i}_{p.name}"] = {
-            "type": "rectangle", "to_world": _rect_transform(mi, p, lo, hi),
+            "type": "rectangle",
+            "to_world": _rect_transform(mi, p, lo, hi),
             "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [float(x) for x in p.albedo_mean]}},
         }
     for j, (pos, e) in enumerate(zip(scene.lights.positions, scene.lights.intensities)):
         if not np.any(e > 0):
             continue
-        d[f"light{j}"] = {"type": "point", "position": [float(x) for x in pos],
-                          "intensity": {"type": "rgb", "value": [float(x) for x in e]}}
+        d[f"light{j}"] = {
+            "type": "point",
+            "position": [float(x) for x in pos],
+            "intensity": {"type": "rgb", "value": [float(x) for x in e]},
+        }
     tmp = None
     if mesh is not None:
         fd, tmp = tempfile.mkstemp(suffix=".ply")
         os.close(fd)
         mesh.export(tmp, file_type="ply")
-        d["object"] = {"type": "ply", "filename": tmp, "face_normals": True,
-                       "to_world": mi.ScalarTransform4f(np.asarray(T_world_obj, float).tolist()),
-                       "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}}}
+        d["object"] = {
+            "type": "ply",
+            "filename": tmp,
+            "face_normals": True,
+            "to_world": mi.ScalarTransform4f(np.asarray(T_world_obj, float).tolist()),
+            "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}},
+        }
     try:
         return mi.load_dict(d)
     finally:
@@ -143,8 +158,9 @@ def _cosine_rays(normals: np.ndarray, spp: int, rng: np.random.Generator) -> np.
     return np.einsum("vij,vkj->vki", tangent_frames(normals), local)
 
 
-def mitsuba_indirect(mi, mscene, points: np.ndarray, normals: np.ndarray, spp: int = 256, seed: int = 0,
-                     eps: float = 1e-4) -> np.ndarray:
+def mitsuba_indirect(
+    mi, mscene, points: np.ndarray, normals: np.ndarray, spp: int = 256, seed: int = 0, eps: float = 1e-4
+) -> np.ndarray:
     """Irradiance (V, 3) arriving at world points from surfaces (not straight from the point lights),
     by Mitsuba's integrator along ``spp`` cosine-distributed rays per point: ``pi * mean(L_i)``."""
     rng = np.random.default_rng(seed)
@@ -171,8 +187,10 @@ def mitsuba_indirect(mi, mscene, points: np.ndarray, normals: np.ndarray, spp: i
     o = np.repeat(orig, spp, axis=0)
     dd = dirs.reshape(-1, 3)
     sampler.seed(seed, n)
-    ray = mi.Ray3f(mi.Point3f(*(mi.Float(o[:, i].astype(np.float32)) for i in range(3))),
-                   mi.Vector3f(*(mi.Float(dd[:, i].astype(np.float32)) for i in range(3))))
+    ray = mi.Ray3f(
+        mi.Point3f(*(mi.Float(o[:, i].astype(np.float32)) for i in range(3))),
+        mi.Vector3f(*(mi.Float(dd[:, i].astype(np.float32)) for i in range(3))),
+    )
     spec, _, _ = integ.sample(mscene, sampler, ray)
     dr.eval(spec)
     rgb = np.stack([np.array(spec[i]) for i in range(3)], -1).reshape(V, spp, 3)
@@ -180,6 +198,7 @@ def mitsuba_indirect(mi, mscene, points: np.ndarray, normals: np.ndarray, spp: i
 
 
 # ------------------------------------------------------------------------------ the cross-check
+
 
 def _area_lamp(scene, rng) -> None:
     """Replace the scene's strongest light by 16 points on a 20 cm horizontal disc (same total
@@ -212,9 +231,17 @@ def build_crosscheck_scene(name: str, bounces: int, hdr_dir: str | Path | None =
     return sc
 
 
-def run_crosscheck(names=tuple(SCENES), obj: str = "builtin:bowl", vertices: int = 300, spp: int = 256,
-                   bounces: int | None = None, hdr_dir: str | Path | None = None, variant: str = "scalar_rgb",
-                   one_bounce: bool = True, progress=None) -> dict:
+def run_crosscheck(
+    names=tuple(SCENES),
+    obj: str = "builtin:bowl",
+    vertices: int = 300,
+    spp: int = 256,
+    bounces: int | None = None,
+    hdr_dir: str | Path | None = None,
+    variant: str = "scalar_rgb",
+    one_bounce: bool = True,
+    progress=None,
+) -> dict:
     """Per scene: in-house vs Mitsuba irradiance at ``vertices`` vertices of ``obj`` (see module doc).
 
     Returns a report dict: per scene the mean relative errors (luminance) with and without the
@@ -229,8 +256,14 @@ def run_crosscheck(names=tuple(SCENES), obj: str = "builtin:bowl", vertices: int
     V = len(mesh.vertices)
     sel = np.linspace(0, V - 1, min(vertices, V)).astype(int)
     pts, nrm = np.asarray(mesh.vertices)[sel], np.asarray(mesh.vertex_normals)[sel]
-    report = {"object": obj, "vertices": int(len(sel)), "spp": spp, "bounces": n_bounces, "variant": mi.variant(),
-              "scenes": {}}
+    report = {
+        "object": obj,
+        "vertices": int(len(sel)),
+        "spp": spp,
+        "bounces": n_bounces,
+        "variant": mi.variant(),
+        "scenes": {},
+    }
     for si, name in enumerate(names):
         t0 = time.time()
         sc = build_crosscheck_scene(name, n_bounces, hdr_dir)
@@ -256,14 +289,20 @@ def run_crosscheck(names=tuple(SCENES), obj: str = "builtin:bowl", vertices: int
             return float(np.mean(np.abs(pred[m] - truth[m]) / np.maximum(truth[m], floor)))
 
         res = {
-            "kind": SCENES[name][0], "seed": SCENES[name][1], "what": SCENES[name][2], "hdr": sc.info.get("hdr"),
-            "rel_err_with_bounce": rel(ours), "rel_err_direct_only": rel(direct),
-            "rel_err_with_bounce_down": rel(ours, down), "rel_err_direct_only_down": rel(direct, down),
+            "kind": SCENES[name][0],
+            "seed": SCENES[name][1],
+            "what": SCENES[name][2],
+            "hdr": sc.info.get("hdr"),
+            "rel_err_with_bounce": rel(ours),
+            "rel_err_direct_only": rel(direct),
+            "rel_err_with_bounce_down": rel(ours, down),
+            "rel_err_direct_only_down": rel(direct, down),
             "mitsuba_noise": float(np.mean(np.abs(halves[0] - halves[1]) / 2 / np.maximum(truth, floor))),
             "down_vertices": int(down.sum()),
             "indirect_share_mitsuba": float(m_all.sum() / max(truth.sum(), 1e-12)),
             "indirect_ratio_vs_all": float((ours - direct).sum() / max(m_all.sum(), 1e-12)),
-            "seconds_ours": round(t_ours, 2), "seconds_mitsuba": round(t_mi, 2),
+            "seconds_ours": round(t_ours, 2),
+            "seconds_mitsuba": round(t_mi, 2),
         }
         if one_bounce:
             # one bounce in both: the in-house transport of a single inter-reflection vs max_depth = 2
@@ -278,20 +317,26 @@ def run_crosscheck(names=tuple(SCENES), obj: str = "builtin:bowl", vertices: int
 
 
 def markdown(report: dict) -> str:
-    lines = [f"# Cross-check of the ground truth against Mitsuba 3 ({report['variant']})", "",
-             f"Object `{report['object']}`, {report['vertices']} vertices, {report['spp']} rays per vertex in "
-             f"Mitsuba (all bounces); in-house: {report['bounces']} bounce(s). Error: mean over vertices of "
-             "|ours - Mitsuba| / Mitsuba of the total irradiance (luminance; denominators at least 5 % of the "
-             "mean, so contact points do not dominate); 'down': vertices facing down (normal y < -0.3). "
-             "Indirect ratios: sum over vertices, ours / Mitsuba (1.00 = the same light); one bounce: the "
-             "in-house transport baked with 1 bounce against Mitsuba's `max_depth = 2`.", "",
-             "| scene | indirect share | error, with bounce | direct only | down: with bounce | down: direct only "
-             "| Mitsuba noise | indirect ratio | one-bounce ratio |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"# Cross-check of the ground truth against Mitsuba 3 ({report['variant']})",
+        "",
+        f"Object `{report['object']}`, {report['vertices']} vertices, {report['spp']} rays per vertex in "
+        f"Mitsuba (all bounces); in-house: {report['bounces']} bounce(s). Error: mean over vertices of "
+        "|ours - Mitsuba| / Mitsuba of the total irradiance (luminance; denominators at least 5 % of the "
+        "mean, so contact points do not dominate); 'down': vertices facing down (normal y < -0.3). "
+        "Indirect ratios: sum over vertices, ours / Mitsuba (1.00 = the same light); one bounce: the "
+        "in-house transport baked with 1 bounce against Mitsuba's `max_depth = 2`.",
+        "",
+        "| scene | indirect share | error, with bounce | direct only | down: with bounce | down: direct only "
+        "| Mitsuba noise | indirect ratio | one-bounce ratio |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for name, r in report["scenes"].items():
         one = r.get("indirect_ratio_one_bounce")
-        lines.append(f"| {name} | {r['indirect_share_mitsuba']:.1%} | {r['rel_err_with_bounce']:.1%} | "
-                     f"{r['rel_err_direct_only']:.1%} | {r['rel_err_with_bounce_down']:.1%} | "
-                     f"{r['rel_err_direct_only_down']:.1%} | {r['mitsuba_noise']:.1%} | "
-                     f"{r['indirect_ratio_vs_all']:.2f} | " + ("n/a" if one is None else f"{one:.2f}") + " |")
+        lines.append(
+            f"| {name} | {r['indirect_share_mitsuba']:.1%} | {r['rel_err_with_bounce']:.1%} | "
+            f"{r['rel_err_direct_only']:.1%} | {r['rel_err_with_bounce_down']:.1%} | "
+            f"{r['rel_err_direct_only_down']:.1%} | {r['mitsuba_noise']:.1%} | "
+            f"{r['indirect_ratio_vs_all']:.2f} | " + ("n/a" if one is None else f"{one:.2f}") + " |"
+        )
     return "\n".join(lines) + "\n"

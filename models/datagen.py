@@ -47,6 +47,7 @@ DISTANT_R = 50.0  # metres at which "distant" lights (sun, sky, HDR) are placed
 
 # --------------------------------------------------------------------------- object geometry
 
+
 @dataclass
 class ObjectGeometry:
     """An object's render mesh, its lighting proxy (a vertex subset with a graph), and the mapping.
@@ -129,14 +130,19 @@ def build_geometry(mesh, n_proxy: int = 400, k_graph: int = 6, seed: int = 0, na
     w = 1.0 / np.maximum(d, 1e-6) ** 2
     w /= w.sum(1, keepdims=True)
     return ObjectGeometry(
-        vertices=v.astype(np.float32), normals=n.astype(np.float32),
-        faces=np.asarray(mesh.faces, dtype=np.int32), proxy_index=pidx.astype(np.int32),
-        proxy_edges=edges.astype(np.int32), carry_index=ci.astype(np.int32),
-        carry_weight=w.astype(np.float32), name=name,
+        vertices=v.astype(np.float32),
+        normals=n.astype(np.float32),
+        faces=np.asarray(mesh.faces, dtype=np.int32),
+        proxy_index=pidx.astype(np.int32),
+        proxy_edges=edges.astype(np.int32),
+        carry_index=ci.astype(np.int32),
+        carry_weight=w.astype(np.float32),
+        name=name,
     )
 
 
 # --------------------------------------------------------------------------- visibility
+
 
 def fibonacci_directions(n: int) -> np.ndarray:
     """``n`` near-uniform unit directions on the sphere, (n, 3) float32.
@@ -183,7 +189,7 @@ class DirectionVisibility:
         hit = np.zeros(len(origins), dtype=bool)
         step = 1 << 20
         for s in range(0, len(origins), step):
-            hit[s:s + step] = rmi.intersects_any(origins[s:s + step], dirs[s:s + step])
+            hit[s : s + step] = rmi.intersects_any(origins[s : s + step], dirs[s : s + step])
         vis = ~hit.reshape(n_pts, n_dirs)
         if plane_blocks:
             vis &= (self.dirs[None, :, 1] >= -1e-3) | (pts[:, None, 1] < 1e-3)
@@ -217,6 +223,7 @@ def oi_point_lights(points, normals, light_pos, light_rgb, vis=None) -> np.ndarr
 
 
 # --------------------------------------------------------------------------- lighting samplers
+
 
 def _rand_color(rng, warmth: float) -> np.ndarray:
     """A light colour between blue-ish (warmth -1) and warm tungsten (+1), unit luminance-ish."""
@@ -256,19 +263,21 @@ def sample_lights(kind: str, rng: np.random.Generator, n: int = N_LIGHTS, hdr_li
         az = rng.uniform(0, 2 * np.pi)
         sun = np.array([np.cos(el) * np.cos(az), np.sin(el), np.cos(el) * np.sin(az)])
         pos[0] = _distant(sun)
-        rgb[0] = (_rand_color(rng, rng.uniform(0.1, 0.6))
-                  * (rng.uniform(0.2, 1.0) if overcast else rng.uniform(3.0, 8.0)))
+        rgb[0] = _rand_color(rng, rng.uniform(0.1, 0.6)) * (
+            rng.uniform(0.2, 1.0) if overcast else rng.uniform(3.0, 8.0)
+        )
         sky = fibonacci_directions(2 * (n - 1))
         sky = sky[sky[:, 1] > 0][: n - 1]
         pos[1:] = _distant(sky)
         sky_i = (rng.uniform(0.6, 1.2) if overcast else rng.uniform(0.15, 0.5)) / (n - 1)
         # brighter sky towards the sun and the horizon
         shape = 1.0 + 0.8 * np.clip(sky @ sun, 0, None) ** 2 + 0.3 * (1 - sky[:, 1])
-        rgb[1:] = (_rand_color(rng, rng.uniform(-0.9, -0.2) if not overcast else 0.0)[None]
-                   * (sky_i * shape)[:, None] * 6)
+        rgb[1:] = (
+            _rand_color(rng, rng.uniform(-0.9, -0.2) if not overcast else 0.0)[None] * (sky_i * shape)[:, None] * 6
+        )
         # ground bounce: a dim light from low directions (the plane stops anything below y = 0)
         rgb[1:] *= rng.uniform(0.8, 1.2, (n - 1, 1))
-        rgb *= DISTANT_R ** 2 / 6
+        rgb *= DISTANT_R**2 / 6
     elif kind == "spatial":
         k_near = rng.integers(2, 6)
         for j in range(n):
@@ -292,7 +301,7 @@ def sample_lights(kind: str, rng: np.random.Generator, n: int = N_LIGHTS, hdr_li
         Rx = np.array([[1, 0, 0], [0, np.cos(p), -np.sin(p)], [0, np.sin(p), np.cos(p)]])
         d = dirs @ (Rx @ Ry).T
         pos = _distant(d[:n])
-        rgb = rgb0[:n] * DISTANT_R ** 2 * np.exp(rng.uniform(-1.0, 1.0))
+        rgb = rgb0[:n] * DISTANT_R**2 * np.exp(rng.uniform(-1.0, 1.0))
     else:
         raise ValueError(f"unknown lighting kind {kind!r}; expected one of {KINDS + ('hdr',)}")
     return pos.astype(np.float32), rgb.astype(np.float32)
@@ -345,6 +354,7 @@ def load_hdr_lights(folder: str | Path | None, n: int = N_LIGHTS, split: str = "
 
 # --------------------------------------------------------------------------- plane + samples
 
+
 def plane_grid(grid: int, extent: float) -> np.ndarray:
     """(G*G, 3) plane vertices, vertex i*G+j = (x_j, 0, z_i) (the plane-light stage's layout)."""
     x = np.linspace(-extent / 2, extent / 2, grid)
@@ -355,16 +365,22 @@ def plane_grid(grid: int, extent: float) -> np.ndarray:
 class Scene:
     """Everything fixed for one object: geometry, plane grid and visibility tables."""
 
-    def __init__(self, geom: ObjectGeometry, mesh, grid: int = 32, extent: float = 1.0,
-                 n_dirs: int = 1024, render_vis: bool = False):
+    def __init__(
+        self,
+        geom: ObjectGeometry,
+        mesh,
+        grid: int = 32,
+        extent: float = 1.0,
+        n_dirs: int = 1024,
+        render_vis: bool = False,
+    ):
         self.geom = geom
         self.grid = grid
         self.extent = extent
         self.plane_v = plane_grid(grid, extent)
         self.plane_n = np.tile(np.array([[0, 1, 0]], np.float32), (len(self.plane_v), 1))
         self.obj_vis = DirectionVisibility(mesh, geom.proxy_vertices, geom.proxy_normals, n_dirs)
-        self.render_vis = (DirectionVisibility(mesh, geom.vertices, geom.normals, n_dirs)
-                           if render_vis else None)
+        self.render_vis = DirectionVisibility(mesh, geom.vertices, geom.normals, n_dirs) if render_vis else None
 
     def truth(self, pos, rgb):
         """True plane irradiance (P, 3), proxy OI (V, 3, 3) and proxy shading (V, 3)."""
@@ -422,8 +438,9 @@ def _yaw(a: float) -> np.ndarray:
     return np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]], np.float32)
 
 
-def generate(scene: Scene, n: int, seed: int, kinds=KINDS, hdr_lights=None, hdr_share: float = 0.25,
-             progress=None) -> dict[str, np.ndarray]:
+def generate(
+    scene: Scene, n: int, seed: int, kinds=KINDS, hdr_lights=None, hdr_share: float = 0.25, progress=None
+) -> dict[str, np.ndarray]:
     """``n`` training samples as arrays.
 
     Returns

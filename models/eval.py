@@ -30,24 +30,32 @@ from pathlib import Path
 
 import numpy as np
 
+from illuminet.models import datagen
 from illuminet.runtime.assets.bundle import Bundle, TransferChain, load_bundle
 from illuminet.runtime.stages.shading import LUMA, dominant_light_from_oi, preprocess_plane
-
-from illuminet.models import datagen
 
 log = logging.getLogger(__name__)
 
 SUITES = ("indoor", "outdoor", "spatial")
 METHODS = ("ours_int8", "ours_fp32", "constant", "ambient", "sh_rgbd", "oracle_sh")
-LABELS = {"ours_int8": "Ours (int8)", "ours_fp32": "Ours (fp32)", "constant": "Constant prior",
-          "ambient": "Ambient only", "sh_rgbd": "SH from RGB-D", "oracle_sh": "Oracle SH (true light)",
-          "ablation_full": "GAN stage, all losses", "ablation_noshsm": "GAN stage, no shading/smooth"}
+LABELS = {
+    "ours_int8": "Ours (int8)",
+    "ours_fp32": "Ours (fp32)",
+    "constant": "Constant prior",
+    "ambient": "Ambient only",
+    "sh_rgbd": "SH from RGB-D",
+    "oracle_sh": "Oracle SH (true light)",
+    "ablation_full": "GAN stage, all losses",
+    "ablation_noshsm": "GAN stage, no shading/smooth",
+}
 SEED_BASE = 1_000_003  # test seeds never collide with training seeds (seed*1000 + 1/2)
 
 
 # --------------------------------------------------------------------------- spherical harmonics
 # the SH basis and the RGB-D fit live in the runtime (the stage's `sh` mode uses them too)
-from illuminet.runtime.sh import SH_A_HAT as _A_HAT, sh9, sh_eval, sh_fit as sh_fit_rgbd  # noqa: E402
+from illuminet.runtime.sh import SH_A_HAT as _A_HAT  # noqa: E402
+from illuminet.runtime.sh import sh9, sh_eval  # noqa: E402
+from illuminet.runtime.sh import sh_fit as sh_fit_rgbd  # noqa: E402
 
 #: regularisation strengths tried on validation cases for the SH baseline (the best one is used)
 SH_LAMBDAS = (0.0, 1e-3, 1e-2, 0.1, 1.0, 10.0)
@@ -74,6 +82,7 @@ def sh_dominant(coef: np.ndarray) -> np.ndarray | None:
 
 # --------------------------------------------------------------------------- metrics
 
+
 def exposed(e: np.ndarray, k: float) -> np.ndarray:
     """Irradiance -> recorded intensity of a white Lambertian surface, clipped to [0, 1]."""
     return np.clip(np.asarray(e) / np.pi * k, 0.0, 1.0)
@@ -83,8 +92,11 @@ def case_metrics(pred_e: np.ndarray, true_e: np.ndarray, k: float) -> dict:
     p, t = exposed(pred_e, k), exposed(true_e, k)
     err = p - t
     a = float((p * t).sum() / max((p * p).sum(), 1e-12))
-    return {"mae": float(np.abs(err).mean()), "rmse": float(np.sqrt((err ** 2).mean())),
-            "si_rmse": float(np.sqrt(((a * p - t) ** 2).mean()))}
+    return {
+        "mae": float(np.abs(err).mean()),
+        "rmse": float(np.sqrt((err**2).mean())),
+        "si_rmse": float(np.sqrt(((a * p - t) ** 2).mean())),
+    }
 
 
 def angle_deg(a, b) -> float | None:
@@ -96,6 +108,7 @@ def angle_deg(a, b) -> float | None:
 
 # --------------------------------------------------------------------------- evaluation
 
+
 class Evaluator:
     """Holds a bundle, its chains and the ground-truth scene (visibility tables of the render mesh)."""
 
@@ -106,12 +119,17 @@ class Evaluator:
         b = self.bundle
         self.chains = {p: TransferChain(b, p) for p in ("int8", "fp32")}
         mesh = trimesh.Trimesh(b.vertices, b.faces, process=False)
-        geom = datagen.ObjectGeometry(b.vertices, b.normals, b.faces, b.proxy_index, b.proxy_edges,
-                                      b.carry_index, b.carry_weight, b.name)
+        geom = datagen.ObjectGeometry(
+            b.vertices, b.normals, b.faces, b.proxy_index, b.proxy_edges, b.carry_index, b.carry_weight, b.name
+        )
         t0 = time.time()
         self.scene = datagen.Scene(geom, mesh, b.grid, b.extent_m, render_vis=True)
-        log.info("evaluation scene for %s: %d render vertices (visibility tables %.1fs)", b.name,
-                 len(b.vertices), time.time() - t0)
+        log.info(
+            "evaluation scene for %s: %d render vertices (visibility tables %.1fs)",
+            b.name,
+            len(b.vertices),
+            time.time() - t0,
+        )
         self.centre = np.array([0.0, float(np.ptp(b.vertices[:, 1])) / 2, 0.0])
         self.hdr = datagen.load_hdr_lights(hdr_dir, split="test") if hdr_dir else []
         self.hdr_names = [p.name for p in datagen.hdr_maps(hdr_dir, "test")] if self.hdr else []
@@ -167,14 +185,29 @@ class Evaluator:
             out[name] = (b.carry(np.maximum(f(x), 0) * s), None)
         return out
 
-    def run(self, n_cases: int = 100, n_flicker: int = 8, flicker_frames: int = 12, smoothing: float = 0.7,
-            seed: int = 0, progress=None, keep_examples: bool = True) -> dict:
+    def run(
+        self,
+        n_cases: int = 100,
+        n_flicker: int = 8,
+        flicker_frames: int = 12,
+        smoothing: float = 0.7,
+        seed: int = 0,
+        progress=None,
+        keep_examples: bool = True,
+    ) -> dict:
         """All suites; returns the report dict (per suite and method: mean metrics)."""
         sh_scores = self.tune_sh()
-        report = {"bundle": self.bundle.name, "n_cases": n_cases, "seed": seed, "suites": {},
-                  "sh_lambda": self.sh_lambda, "sh_lambda_validation_mae": {str(k): v for k, v in sh_scores.items()},
-                  "hdr_test_maps": self.hdr_names, "render_vertices": int(len(self.bundle.vertices)),
-                  "exposure": "white Lambertian, I = clip(E/pi*k, 0, 1), k: plane mean radiance (albedo 0.5) -> 0.18"}
+        report = {
+            "bundle": self.bundle.name,
+            "n_cases": n_cases,
+            "seed": seed,
+            "suites": {},
+            "sh_lambda": self.sh_lambda,
+            "sh_lambda_validation_mae": {str(k): v for k, v in sh_scores.items()},
+            "hdr_test_maps": self.hdr_names,
+            "render_vertices": int(len(self.bundle.vertices)),
+            "exposure": "white Lambertian, I = clip(E/pi*k, 0, 1), k: plane mean radiance (albedo 0.5) -> 0.18",
+        }
         self.examples = {}
         for si, suite in enumerate(self.suites()):
             rng = np.random.default_rng(SEED_BASE + 7 * seed + si)
@@ -213,14 +246,16 @@ class Evaluator:
 
     def flicker(self, suite: str, n: int, frames: int, smoothing: float, seed: int) -> dict:
         """Mean frame-to-frame change of the intensities on static scenes (fresh plane noise per frame)."""
-        rng = np.random.default_rng(SEED_BASE + 999 + 10 * seed + (self.suites().index(suite) if suite in self.suites() else 9))
+        rng = np.random.default_rng(
+            SEED_BASE + 999 + 10 * seed + (self.suites().index(suite) if suite in self.suites() else 9)
+        )
         out: dict[str, list] = {}
         for _ in range(n):
             pos, rgb, e_plane, _, _ = self._case(suite, rng)
             k = 0.18 / max(float((0.5 * e_plane @ LUMA).mean() / np.pi), 1e-12)
             prev: dict = {}
             ema = None
-            for t in range(frames):
+            for _ in range(frames):
                 # the same lighting, a new measurement: noise, texture and masks change per frame only
                 # through sensor noise: a static camera sees the same plane texture and holes
                 frng = np.random.default_rng(int(rng.integers(1 << 31)))
@@ -239,6 +274,7 @@ class Evaluator:
 
 # --------------------------------------------------------------------------- report writing
 
+
 def _fmt(v, nd=3):
     return "n/a" if v is None else f"{v:.{nd}f}"
 
@@ -248,25 +284,38 @@ def markdown(report: dict) -> str:
     suites = list(report["suites"])
     if not suites:
         return f"# Evaluation: bundle `{report['bundle']}`\n"
-    methods = [m for m in list(METHODS) + ["ablation_full", "ablation_noshsm"]
-               if m in report["suites"][suites[0]]]
-    lines = [f"# Evaluation: bundle `{report['bundle']}`", "",
-             f"{report['n_cases']} test cases per suite, every render vertex ({report['render_vertices']}) front "
-             f"and back; {report['exposure']}. Test seeds differ from training seeds"
-             + (f"; real HDR suite uses held-out maps: {', '.join(report['hdr_test_maps'])}" if report['hdr_test_maps'] else "")
-             + f". SH baseline regulariser chosen on separate validation cases: lambda = {report.get('sh_lambda')}"
-             + ".", "", "## Relighting error (the paper's table)", "",
-             "| Method | " + " | ".join(f"{s} MAE | {s} RMSE" for s in suites) + " |",
-             "|---|" + "---|---|" * len(suites)]
+    methods = [m for m in list(METHODS) + ["ablation_full", "ablation_noshsm"] if m in report["suites"][suites[0]]]
+    lines = [
+        f"# Evaluation: bundle `{report['bundle']}`",
+        "",
+        f"{report['n_cases']} test cases per suite, every render vertex ({report['render_vertices']}) front "
+        f"and back; {report['exposure']}. Test seeds differ from training seeds"
+        + (
+            f"; real HDR suite uses held-out maps: {', '.join(report['hdr_test_maps'])}"
+            if report["hdr_test_maps"]
+            else ""
+        )
+        + f". SH baseline regulariser chosen on separate validation cases: lambda = {report.get('sh_lambda')}"
+        + ".",
+        "",
+        "## Relighting error (the paper's table)",
+        "",
+        "| Method | " + " | ".join(f"{s} MAE | {s} RMSE" for s in suites) + " |",
+        "|---|" + "---|---|" * len(suites),
+    ]
     for m in methods:
         row = [LABELS.get(m, m)]
         for s in suites:
             r = report["suites"][s].get(m, {})
             row += [_fmt(r.get("mae")), _fmt(r.get("rmse"))]
         lines.append("| " + " | ".join(row) + " |")
-    lines += ["", "## Scale-invariant RMSE, dominant-light angular error (median, degrees), temporal flicker", "",
-              "| Method | " + " | ".join(f"{s} si-RMSE | {s} angle | {s} flicker" for s in suites) + " |",
-              "|---|" + "---|---|---|" * len(suites)]
+    lines += [
+        "",
+        "## Scale-invariant RMSE, dominant-light angular error (median, degrees), temporal flicker",
+        "",
+        "| Method | " + " | ".join(f"{s} si-RMSE | {s} angle | {s} flicker" for s in suites) + " |",
+        "|---|" + "---|---|---|" * len(suites),
+    ]
     for m in methods + ["ours_int8_smoothed"]:
         row = [LABELS.get(m, m if m != "ours_int8_smoothed" else "Ours (int8) + temporal smoothing")]
         for s in suites:
@@ -290,8 +339,9 @@ def markdown(report: dict) -> str:
 def finish(report: dict) -> dict:
     if not report["suites"]:
         return report
-    report["int8_vs_fp32_mae_max_diff"] = float(max(
-        abs(r["ours_int8"]["mae"] - r["ours_fp32"]["mae"]) for r in report["suites"].values()))
+    report["int8_vs_fp32_mae_max_diff"] = float(
+        max(abs(r["ours_int8"]["mae"] - r["ours_fp32"]["mae"]) for r in report["suites"].values())
+    )
     wins = {}
     for s, r in report["suites"].items():
         wins[s] = {m: bool(r["ours_int8"]["mae"] < r[m]["mae"]) for m in ("constant", "ambient", "sh_rgbd")}

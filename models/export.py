@@ -109,14 +109,21 @@ def build_onnx(result: dict, a_plane: np.ndarray, a_obj: np.ndarray, normals: np
     g.op("Reshape", [oi9, g.const("shape_oi_out", [1, V, 3, 3])], "oi_out", out="oi")
     g.op("Reshape", [sh, g.const("shape_sh_out", [1, V, 3])], "shading_out", out="shading")
     graph = helper.make_graph(
-        g.nodes, "illuminet_transfer",
+        g.nodes,
+        "illuminet_transfer",
         [helper.make_tensor_value_info("plane", TensorProto.FLOAT, [1, P, 4])],
-        [helper.make_tensor_value_info("oi", TensorProto.FLOAT, [1, V, 3, 3]),
-         helper.make_tensor_value_info("shading", TensorProto.FLOAT, [1, V, 3])],
+        [
+            helper.make_tensor_value_info("oi", TensorProto.FLOAT, [1, V, 3, 3]),
+            helper.make_tensor_value_info("shading", TensorProto.FLOAT, [1, V, 3]),
+        ],
         g.inits,
     )
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
-                              producer_name="illuminet", producer_version=str((meta or {}).get("version", "")))
+    model = helper.make_model(
+        graph,
+        opset_imports=[helper.make_opsetid("", OPSET)],
+        producer_name="illuminet",
+        producer_version=str((meta or {}).get("version", "")),
+    )
     model.ir_version = 8  # readable by onnxruntime >= 1.14
     for k, v in (meta or {}).items():
         e = model.metadata_props.add()
@@ -149,13 +156,20 @@ def quantize_int8(fp32_path: Path, int8_path: Path, fc_nodes: list[str]) -> None
     quiet = _OrtQuantisationChatter()
     root.addFilter(quiet)
     try:
-        quantize_dynamic(str(fp32_path), str(int8_path), weight_type=QuantType.QInt8,
-                         nodes_to_quantize=list(fc_nodes), per_channel=False)
+        quantize_dynamic(
+            str(fp32_path),
+            str(int8_path),
+            weight_type=QuantType.QInt8,
+            nodes_to_quantize=list(fc_nodes),
+            per_channel=False,
+        )
     finally:
         root.removeFilter(quiet)
     logging.getLogger(__name__).info(
         "int8: dynamic quantisation of %d FC MatMul(s) (weights int8, activation scales at run time); "
-        "onnxruntime's pre-processing hint does not apply to this graph (see quantize_int8)", len(fc_nodes))
+        "onnxruntime's pre-processing hint does not apply to this graph (see quantize_int8)",
+        len(fc_nodes),
+    )
 
 
 def sha256(path: Path) -> str:
@@ -186,12 +200,23 @@ def write_bundle(out: str | Path, result: dict, trainer, command: str = "", extr
     P, V = trainer.a_plane.shape[0], trainer.a_obj.shape[0]
     prior = trainer.data["train"]["shading"].mean(0).astype(np.float32)
     np.savez_compressed(
-        out / FILES["mesh"], vertices=g.vertices, normals=g.normals, faces=g.faces,
-        proxy_index=g.proxy_index, proxy_edges=g.proxy_edges, carry_index=g.carry_index,
-        carry_weight=g.carry_weight, prior_shading=prior,
+        out / FILES["mesh"],
+        vertices=g.vertices,
+        normals=g.normals,
+        faces=g.faces,
+        proxy_index=g.proxy_index,
+        proxy_edges=g.proxy_edges,
+        carry_index=g.carry_index,
+        carry_weight=g.carry_weight,
+        prior_shading=prior,
     )
-    model, fc_nodes = build_onnx(result, trainer.a_plane, trainer.a_obj, trainer.normals,
-                                 {"object": cfg.object, "version": __version__, "seed": cfg.seed})
+    model, fc_nodes = build_onnx(
+        result,
+        trainer.a_plane,
+        trainer.a_obj,
+        trainer.normals,
+        {"object": cfg.object, "version": __version__, "seed": cfg.seed},
+    )
     fp32 = out / FILES["fp32"]
     int8 = out / FILES["int8"]
     fp32.write_bytes(model.SerializeToString())
@@ -200,8 +225,9 @@ def write_bundle(out: str | Path, result: dict, trainer, command: str = "", extr
     # check the exported chain against JAX on validation inputs
     xv = trainer.data["val"]["plane"][:16]
     _, sh_jax = predict_jax(result, trainer.a_plane, trainer.a_obj, trainer.normals, xv)
-    sess = {k: ort.InferenceSession(str(p), providers=["CPUExecutionProvider"])
-            for k, p in (("fp32", fp32), ("int8", int8))}
+    sess = {
+        k: ort.InferenceSession(str(p), providers=["CPUExecutionProvider"]) for k, p in (("fp32", fp32), ("int8", int8))
+    }
     diffs = {}
     for k, s in sess.items():
         pred = np.stack([s.run(["shading"], {"plane": x[None]})[0][0] for x in xv])
@@ -212,20 +238,32 @@ def write_bundle(out: str | Path, result: dict, trainer, command: str = "", extr
         "object": cfg.object,
         "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "package_version": __version__,
-        "vertices": {"render": int(len(g.vertices)), "faces": int(len(g.faces)), "proxy": int(V),
-                     "plane_input": int(P)},
+        "vertices": {
+            "render": int(len(g.vertices)),
+            "faces": int(len(g.faces)),
+            "proxy": int(V),
+            "plane_input": int(P),
+        },
         "plane": {"grid": cfg.grid, "pool": POOL, "extent_m": cfg.extent_m},
         "normalisation": {
             "input": "plane irradiance / s per pooled cell (mask-weighted mean) + observed fraction; "
-                     "s = mean observed luminance (Rec.709 weights) of the plane irradiance",
+            "s = mean observed luminance (Rec.709 weights) of the plane irradiance",
             "output": "shading and OI are divided by s: multiply by s for scene-referred irradiance",
         },
-        "onnx": {"input": {"plane": [1, P, 4]}, "outputs": {"oi": [1, V, 3, 3], "shading": [1, V, 3]},
-                 "opset": OPSET, "int8_quantised_nodes": fc_nodes},
+        "onnx": {
+            "input": {"plane": [1, P, 4]},
+            "outputs": {"oi": [1, V, 3, 3], "shading": [1, V, 3]},
+            "opset": OPSET,
+            "int8_quantised_nodes": fc_nodes,
+        },
         "export_check_max_abs_vs_jax": diffs,
-        "training": {"config": cfg.to_dict(), "seed": cfg.seed, "command": command,
-                     "timings_s": {k: round(v, 1) for k, v in trainer.timings.items()},
-                     "hdr_maps": getattr(trainer, "hdr_names", [])},
+        "training": {
+            "config": cfg.to_dict(),
+            "seed": cfg.seed,
+            "command": command,
+            "timings_s": {k: round(v, 1) for k, v in trainer.timings.items()},
+            "hdr_maps": getattr(trainer, "hdr_names", []),
+        },
         "evaluation": {},
     }
     if extra_meta:

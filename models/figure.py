@@ -52,8 +52,9 @@ def render_views(ctx, vertices, faces, colors_linear, size: int = 160) -> list[n
     vbo = ctx.buffer(data.tobytes())
     ibo = ctx.buffer(np.asarray(faces, dtype="i4").tobytes())
     vao = ctx.vertex_array(prog, [(vbo, "3f 3f", "in_pos", "in_col")], index_buffer=ibo)
-    fbo = ctx.framebuffer(color_attachments=[ctx.renderbuffer((size, size))],
-                          depth_attachment=ctx.depth_renderbuffer((size, size)))
+    fbo = ctx.framebuffer(
+        color_attachments=[ctx.renderbuffer((size, size))], depth_attachment=ctx.depth_renderbuffer((size, size))
+    )
     out = []
     try:
         for yaw in (0.0, np.pi):

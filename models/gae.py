@@ -27,6 +27,7 @@ LEAK = 0.2
 
 # --------------------------------------------------------------------------- graph helpers
 
+
 def normalized_adjacency(n: int, edges: np.ndarray) -> np.ndarray:
     """Dense ``D^-1/2 (A + I) D^-1/2`` (float32) of an undirected graph with ``n`` nodes."""
     a = np.eye(n, dtype=np.float64)
@@ -56,6 +57,7 @@ def grid_edges(g: int) -> np.ndarray:
 
 # --------------------------------------------------------------------------- layers
 
+
 def init_dense(key, n_in: int, n_out: int, scale: float = 1.0) -> dict:
     w = jax.random.normal(key, (n_in, n_out), jnp.float32) * (scale * np.sqrt(2.0 / (n_in + n_out)))
     return {"w": w, "b": jnp.zeros((n_out,), jnp.float32)}
@@ -79,8 +81,10 @@ def dropout(key, x, rate: float, train: bool):
 
 def init_bn(n: int) -> tuple[dict, dict]:
     """BatchNorm parameters (scale, bias) and state (running mean, var)."""
-    return ({"g": jnp.ones((n,), jnp.float32), "b": jnp.zeros((n,), jnp.float32)},
-            {"m": jnp.zeros((n,), jnp.float32), "v": jnp.ones((n,), jnp.float32)})
+    return (
+        {"g": jnp.ones((n,), jnp.float32), "b": jnp.zeros((n,), jnp.float32)},
+        {"m": jnp.zeros((n,), jnp.float32), "v": jnp.ones((n,), jnp.float32)},
+    )
 
 
 def batchnorm(p: dict, s: dict, x, train: bool, momentum: float = 0.9, eps: float = 1e-5):
@@ -89,8 +93,10 @@ def batchnorm(p: dict, s: dict, x, train: bool, momentum: float = 0.9, eps: floa
         axes = tuple(range(x.ndim - 1))
         m = x.mean(axes)
         v = x.var(axes)
-        s = {"m": momentum * s["m"] + (1 - momentum) * jax.lax.stop_gradient(m),
-             "v": momentum * s["v"] + (1 - momentum) * jax.lax.stop_gradient(v)}
+        s = {
+            "m": momentum * s["m"] + (1 - momentum) * jax.lax.stop_gradient(m),
+            "v": momentum * s["v"] + (1 - momentum) * jax.lax.stop_gradient(v),
+        }
     else:
         m, v = s["m"], s["v"]
     return (x - m) / jnp.sqrt(v + eps) * p["g"] + p["b"], s
@@ -102,13 +108,20 @@ def leaky(x):
 
 # --------------------------------------------------------------------------- plane GAE
 
+
 def init_plane_gae(key, n_vert: int, f_in: int = 4, hidden: int = 8, dec_feat: int = 8) -> dict:
     k = jax.random.split(key, 6)
     return {
-        "enc": {"g1": init_dense(k[0], f_in, hidden), "g2": init_dense(k[1], hidden, hidden),
-                "fc": init_dense(k[2], n_vert * hidden, LATENT)},
-        "dec": {"fc": init_dense(k[3], LATENT, n_vert * dec_feat), "g1": init_dense(k[4], dec_feat, hidden),
-                "g2": init_dense(k[5], hidden, 3)},
+        "enc": {
+            "g1": init_dense(k[0], f_in, hidden),
+            "g2": init_dense(k[1], hidden, hidden),
+            "fc": init_dense(k[2], n_vert * hidden, LATENT),
+        },
+        "dec": {
+            "fc": init_dense(k[3], LATENT, n_vert * dec_feat),
+            "g1": init_dense(k[4], dec_feat, hidden),
+            "g2": init_dense(k[5], hidden, 3),
+        },
     }
 
 
@@ -131,13 +144,20 @@ def plane_decode(p: dict, a_hat, z):
 
 # --------------------------------------------------------------------------- object GAE
 
+
 def init_object_gae(key, n_vert: int, hidden: int = 16, dec_feat: int = 4, dec_hidden: int = 32) -> dict:
     k = jax.random.split(key, 6)
     return {
-        "enc": {"g1": init_dense(k[0], 12, hidden), "g2": init_dense(k[1], hidden, hidden),
-                "fc": init_dense(k[2], n_vert * hidden, LATENT)},
-        "dec": {"fc": init_dense(k[3], LATENT, n_vert * dec_feat), "g1": init_dense(k[4], dec_feat + 3, dec_hidden),
-                "g2": init_dense(k[5], dec_hidden, 9, scale=0.5)},
+        "enc": {
+            "g1": init_dense(k[0], 12, hidden),
+            "g2": init_dense(k[1], hidden, hidden),
+            "fc": init_dense(k[2], n_vert * hidden, LATENT),
+        },
+        "dec": {
+            "fc": init_dense(k[3], LATENT, n_vert * dec_feat),
+            "g1": init_dense(k[4], dec_feat + 3, dec_hidden),
+            "g2": init_dense(k[5], dec_hidden, 9, scale=0.5),
+        },
     }
 
 
@@ -162,6 +182,7 @@ def object_decode(p: dict, a_hat, normals, z):
 
 
 # --------------------------------------------------------------------------- colour GAE
+
 
 def init_colour(key, hidden: int = 16) -> dict:
     k = jax.random.split(key, 2)

@@ -44,8 +44,12 @@ def generator(p: dict, s: dict, z, train: bool):
 
 def init_discriminator(key, n_vert: int, hidden: int = 16, fc: int = 64) -> tuple[dict, dict]:
     k = jax.random.split(key, 4)
-    params = {"g1": init_dense(k[0], 12, hidden), "g2": init_dense(k[1], hidden, hidden),
-              "fc0": init_dense(k[2], n_vert * hidden, fc), "fc1": init_dense(k[3], fc, 1)}
+    params = {
+        "g1": init_dense(k[0], 12, hidden),
+        "g2": init_dense(k[1], hidden, hidden),
+        "fc0": init_dense(k[2], n_vert * hidden, fc),
+        "fc1": init_dense(k[3], fc, 1),
+    }
     state = {}
     for name, n in (("bn_g1", hidden), ("bn_g2", hidden), ("bn_fc0", fc)):
         params[name], state[name] = init_bn(n)
@@ -67,7 +71,7 @@ def discriminator(p: dict, s: dict, a_hat, normals, oi, train: bool = True):
 
 def lsgan_d_loss(d_real, d_fake):
     """Least-squares GAN, discriminator side: real -> 1, fake -> 0."""
-    return jnp.mean((d_real - 1.0) ** 2) + jnp.mean(d_fake ** 2)
+    return jnp.mean((d_real - 1.0) ** 2) + jnp.mean(d_fake**2)
 
 
 def lsgan_g_loss(d_fake):

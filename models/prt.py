@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
 from illuminet.runtime.groundtruth.lighting import fibonacci_sphere
 from illuminet.runtime.groundtruth.visibility import DEFAULT_EPS, first_hits
 from illuminet.runtime.prt import PrtTables, pack_visibility, unoccluded_transfer
@@ -60,8 +61,11 @@ class PrtResult:
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The arrays of ``prt.npz`` (:data:`illuminet.runtime.prt.PRT_KEYS`, + ``bounce``)."""
-        out = {"transfer": self.transfer.astype(np.float32), "vis_directions": self.vis_directions.astype(np.float32),
-               "vis_bits": pack_visibility(self.visibility)}
+        out = {
+            "transfer": self.transfer.astype(np.float32),
+            "vis_directions": self.vis_directions.astype(np.float32),
+            "vis_bits": pack_visibility(self.visibility),
+        }
         if self.bounce is not None:
             out["bounce"] = self.bounce.astype(np.float32)
         return out
@@ -79,10 +83,17 @@ def _front_pairs(normals: np.ndarray, directions: np.ndarray, extra: np.ndarray 
     return np.nonzero(front)
 
 
-def compute_prt(mesh, points: np.ndarray, normals: np.ndarray, carry: Callable[[np.ndarray], np.ndarray] | None = None,
-                transfer_rays: int = DEFAULT_TRANSFER_RAYS, table_directions: int = DEFAULT_TABLE_DIRECTIONS,
-                albedo: float = 0.0, eps: float = DEFAULT_EPS,
-                progress: Callable[[str, int, int], None] | None = None) -> PrtResult:
+def compute_prt(
+    mesh,
+    points: np.ndarray,
+    normals: np.ndarray,
+    carry: Callable[[np.ndarray], np.ndarray] | None = None,
+    transfer_rays: int = DEFAULT_TRANSFER_RAYS,
+    table_directions: int = DEFAULT_TABLE_DIRECTIONS,
+    albedo: float = 0.0,
+    eps: float = DEFAULT_EPS,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> PrtResult:
     """PRT tables of ``points`` on ``mesh`` (see the module docstring).
 
     Parameters
@@ -162,8 +173,9 @@ def compute_prt(mesh, points: np.ndarray, normals: np.ndarray, carry: Callable[[
         bary /= np.maximum(bary.sum(1, keepdims=True), 1e-12)
         # one sparse (V, R) matrix: point i gathers dw cos / pi x barycentric weight of each hit's corners
         vals = (dw * cos[hb] / np.pi)[:, None] * bary
-        gather = csr_matrix((vals.ravel(), (np.repeat(vi[hb], 3), corner.ravel())),
-                            shape=(len(P), len(mesh.vertices)))  # duplicates are summed
+        gather = csr_matrix(
+            (vals.ravel(), (np.repeat(vi[hb], 3), corner.ravel())), shape=(len(P), len(mesh.vertices))
+        )  # duplicates are summed
 
         def op(t_points: np.ndarray) -> np.ndarray:
             """Transfer on the points -> the transfer of the light those points reflect onto them (albedo 1)."""
@@ -174,8 +186,15 @@ def compute_prt(mesh, points: np.ndarray, normals: np.ndarray, carry: Callable[[
     elif albedo > 0:
         bounce = np.zeros_like(T, dtype=np.float32)
     timings["bounce_s"] = time.perf_counter() - t0
-    return PrtResult(transfer=T.astype(np.float32), vis_directions=K.astype(np.float32), visibility=vis,
-                     bounce=bounce, albedo=float(albedo), timings_s=timings, bounce_operator=op)
+    return PrtResult(
+        transfer=T.astype(np.float32),
+        vis_directions=K.astype(np.float32),
+        visibility=vis,
+        bounce=bounce,
+        albedo=float(albedo),
+        timings_s=timings,
+        bounce_operator=op,
+    )
 
 
 def interreflection(result: PrtResult, albedo: float, bounces: int) -> np.ndarray:
@@ -197,8 +216,10 @@ def interreflection(result: PrtResult, albedo: float, bounces: int) -> np.ndarra
 # --------------------------------------------------------------------------- bundles
 
 #: how ``prior_shading`` of a PRT-only bundle is defined (recorded in its bundle.json)
-PRIOR_UNIFORM = ("irradiance under a uniform environment (floor included) relative to an unoccluded upward "
-                 "plane's: 1 - ambient occlusion (+ bounce); no training")
+PRIOR_UNIFORM = (
+    "irradiance under a uniform environment (floor included) relative to an unoccluded upward "
+    "plane's: 1 - ambient occlusion (+ bounce); no training"
+)
 
 
 def uniform_prior(result: PrtResult) -> np.ndarray:
@@ -232,38 +253,64 @@ def prt_meta(result: PrtResult, transfer_rays: int, table_directions: int, comma
         "bounce_albedo": result.albedo,
         "timings_s": {k: round(v, 3) for k, v in result.timings_s.items()},
         "convention": "E = transfer @ L_radiance (9 SH coefficients, no 1/pi; LightEstimate.radiance_sh9()), object "
-                      "frame +Y up; unoccluded: transfer = A_hat_l Y_lm(n)",
+        "frame +Y up; unoccluded: transfer = A_hat_l Y_lm(n)",
         "floor": "transfer: the floor does not occlude (its radiance is the ambient SH's lower hemisphere); "
-                 "visibility table: object and facing only; the floor blocks the primary light below the "
-                 "horizon at run time (runtime/prt.py floor_factor)",
+        "visibility table: object and facing only; the floor blocks the primary light below the "
+        "horizon at run time (runtime/prt.py floor_factor)",
     }
 
 
-def add_prt(bundle_dir, transfer_rays: int = DEFAULT_TRANSFER_RAYS, table_directions: int = DEFAULT_TABLE_DIRECTIONS,
-            albedo: float = 0.8, command: str = "", seed: int = 0, progress=None) -> tuple[Path, PrtResult]:
+def add_prt(
+    bundle_dir,
+    transfer_rays: int = DEFAULT_TRANSFER_RAYS,
+    table_directions: int = DEFAULT_TABLE_DIRECTIONS,
+    albedo: float = 0.8,
+    command: str = "",
+    seed: int = 0,
+    progress=None,
+) -> tuple[Path, PrtResult]:
     """Compute PRT tables for an existing bundle's proxy vertices and add them (``prt.npz``).
 
     The bundle's other files (mesh, ONNX models, evaluation) are kept as they are; ``bundle.json``
     gets a ``prt`` section and the new file's checksum. Returns (bundle.json path, result).
     """
     import trimesh
+
     from illuminet.models.export import finalize_bundle
     from illuminet.runtime.assets.bundle import load_bundle
     from illuminet.runtime.prt import PRT_FILE
 
     b = load_bundle(bundle_dir)
     mesh = trimesh.Trimesh(np.asarray(b.vertices, np.float64), np.asarray(b.faces), process=False)
-    res = compute_prt(mesh, b.proxy_vertices, b.proxy_normals, carry=b.carry, transfer_rays=transfer_rays,
-                      table_directions=table_directions, albedo=albedo, progress=progress)
+    res = compute_prt(
+        mesh,
+        b.proxy_vertices,
+        b.proxy_normals,
+        carry=b.carry,
+        transfer_rays=transfer_rays,
+        table_directions=table_directions,
+        albedo=albedo,
+        progress=progress,
+    )
     np.savez_compressed(b.path / PRT_FILE, **res.arrays())
     meta = dict(b.meta)
     meta["prt"] = prt_meta(res, transfer_rays, table_directions, command, seed)
     return finalize_bundle(b.path, meta), res
 
 
-def new_bundle(spec: str, out, height: float | None = None, n_proxy: int = 1000, seed: int = 0,
-               transfer_rays: int = DEFAULT_TRANSFER_RAYS, table_directions: int = DEFAULT_TABLE_DIRECTIONS,
-               albedo: float = 0.8, command: str = "", progress=None, up: str = "y") -> tuple[Path, PrtResult]:
+def new_bundle(
+    spec: str,
+    out,
+    height: float | None = None,
+    n_proxy: int = 1000,
+    seed: int = 0,
+    transfer_rays: int = DEFAULT_TRANSFER_RAYS,
+    table_directions: int = DEFAULT_TABLE_DIRECTIONS,
+    albedo: float = 0.8,
+    command: str = "",
+    progress=None,
+    up: str = "y",
+) -> tuple[Path, PrtResult]:
     """A PRT-only bundle (``mesh.npz`` + ``prt.npz`` + ``bundle.json``, no ONNX) of any mesh.
 
     Parameters
@@ -282,13 +329,13 @@ def new_bundle(spec: str, out, height: float | None = None, n_proxy: int = 1000,
         Naming the file when it is missing, unreadable or holds no triangles.
     """
     import trimesh
+
+    from illuminet import __version__
     from illuminet.models.datagen import build_geometry
     from illuminet.models.export import finalize_bundle
     from illuminet.runtime.assets.bundle import BUNDLE_FORMAT, FILES
     from illuminet.runtime.assets.objects import DEFAULT_HEIGHT, load_object, normalise
     from illuminet.runtime.prt import PRT_FILE
-
-    from illuminet import __version__
 
     t0 = time.perf_counter()
     builtin = spec.startswith("builtin:")
@@ -299,15 +346,30 @@ def new_bundle(spec: str, out, height: float | None = None, n_proxy: int = 1000,
     g = build_geometry(mesh, n_proxy=n_proxy, seed=seed, name=name)
     t_geom = time.perf_counter() - t0
     occluder = trimesh.Trimesh(np.asarray(g.vertices, np.float64), g.faces, process=False)
-    res = compute_prt(occluder, g.proxy_vertices, g.proxy_normals, carry=_carry_fn(g.carry_index, g.carry_weight),
-                      transfer_rays=transfer_rays, table_directions=table_directions, albedo=albedo,
-                      progress=progress)
+    res = compute_prt(
+        occluder,
+        g.proxy_vertices,
+        g.proxy_normals,
+        carry=_carry_fn(g.carry_index, g.carry_weight),
+        transfer_rays=transfer_rays,
+        table_directions=table_directions,
+        albedo=albedo,
+        progress=progress,
+    )
     res.timings_s = {"mesh_and_proxy_s": t_geom, **res.timings_s}
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(out / FILES["mesh"], vertices=g.vertices, normals=g.normals, faces=g.faces,
-                        proxy_index=g.proxy_index, proxy_edges=g.proxy_edges, carry_index=g.carry_index,
-                        carry_weight=g.carry_weight, prior_shading=uniform_prior(res))
+    np.savez_compressed(
+        out / FILES["mesh"],
+        vertices=g.vertices,
+        normals=g.normals,
+        faces=g.faces,
+        proxy_index=g.proxy_index,
+        proxy_edges=g.proxy_edges,
+        carry_index=g.carry_index,
+        carry_weight=g.carry_weight,
+        prior_shading=uniform_prior(res),
+    )
     np.savez_compressed(out / PRT_FILE, **res.arrays())
     meta = {
         "format": BUNDLE_FORMAT,

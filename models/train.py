@@ -82,17 +82,53 @@ class TrainConfig:
 #: named presets; every field can still be overridden on the command line
 PRESETS: dict[str, dict] = {
     # CI: seconds, checks the machinery only
-    "tiny": dict(n_train=48, n_val=16, n_proxy=64, epochs_gae=1, epochs_colour=1, epochs_gan=1, batch=16,
-                 unroll=1, hdr_share=0.0, epochs_finetune=1),
+    "tiny": dict(
+        n_train=48,
+        n_val=16,
+        n_proxy=64,
+        epochs_gae=1,
+        epochs_colour=1,
+        epochs_gan=1,
+        batch=16,
+        unroll=1,
+        hdr_share=0.0,
+        epochs_finetune=1,
+    ),
     # what the shipped bundles use: ~15-25 min on a 2-core CPU
-    "small": dict(n_train=3000, n_val=300, n_proxy=400, epochs_gae=50, epochs_colour=4, epochs_gan=15, batch=64,
-                  epochs_finetune=25),
+    "small": dict(
+        n_train=3000,
+        n_val=300,
+        n_proxy=400,
+        epochs_gae=50,
+        epochs_colour=4,
+        epochs_gan=15,
+        batch=64,
+        epochs_finetune=25,
+    ),
     # the default for `illuminet train`: the same (within 30 min on a quiet 2-core CPU)
-    "default": dict(n_train=3000, n_val=300, n_proxy=400, epochs_gae=50, epochs_colour=4, epochs_gan=15, batch=64,
-                    epochs_finetune=25),
+    "default": dict(
+        n_train=3000,
+        n_val=300,
+        n_proxy=400,
+        epochs_gae=50,
+        epochs_colour=4,
+        epochs_gan=15,
+        batch=64,
+        epochs_finetune=25,
+    ),
     # close to the paper's schedule; for a GPU (jax[cuda]) or a many-core machine
-    "gpu": dict(n_train=10000, n_val=1000, n_proxy=800, epochs_gae=400, epochs_colour=100, epochs_gan=100,
-                batch=256, lr_g=1e-4, unroll=5, epochs_finetune=50),
+    "gpu": dict(
+        n_train=10000,
+        n_val=1000,
+        n_proxy=800,
+        epochs_gae=400,
+        epochs_colour=100,
+        epochs_gan=100,
+        batch=256,
+        lr_g=1e-4,
+        unroll=5,
+        epochs_finetune=50,
+    ),
 }
 
 
@@ -105,6 +141,7 @@ def make_config(preset: str = "default", **overrides) -> TrainConfig:
 
 
 # --------------------------------------------------------------------------- small utilities
+
 
 class Progress:
     """Progress of a long loop on stderr, drawn by tqdm (rate, ETA, the caller's loss figures).
@@ -124,8 +161,15 @@ class Progress:
             except ImportError:
                 tqdm = None
             if tqdm is not None:
-                self._bar = tqdm(total=self.total, desc=label, unit="step", mininterval=0.5, dynamic_ncols=True,
-                                 disable=None, file=sys.stderr)
+                self._bar = tqdm(
+                    total=self.total,
+                    desc=label,
+                    unit="step",
+                    mininterval=0.5,
+                    dynamic_ncols=True,
+                    disable=None,
+                    file=sys.stderr,
+                )
 
     def __call__(self, done: int, total: int | None = None, extra: str = "") -> None:
         bar = self._bar
@@ -164,14 +208,17 @@ def load_tree(path: Path, like):
         for i, ref in enumerate(leaves):
             a = z[f"leaf_{i}"]
             if a.shape != np.shape(ref):
-                raise ValueError(f"checkpoint {path}: leaf {i} has shape {a.shape}, expected {np.shape(ref)}"
-                                 " (a different configuration? delete the work folder to start over)")
+                raise ValueError(
+                    f"checkpoint {path}: leaf {i} has shape {a.shape}, expected {np.shape(ref)}"
+                    " (a different configuration? delete the work folder to start over)"
+                )
             new.append(jnp.asarray(a))
         meta = json.loads(bytes(z["meta"]).decode() or "{}")
     return jax.tree_util.tree_unflatten(treedef, new), meta
 
 
 # --------------------------------------------------------------------------- the trainer
+
 
 class Trainer:
     """Runs the stages for one object into ``out`` (bundle folder; work files in ``out/work``)."""
@@ -215,8 +262,14 @@ class Trainer:
             log.warning("no HDR maps found in %s; training on synthetic lights only", c.hdr_dir)
         self.hdr_names = [p.name for p in datagen.hdr_maps(c.hdr_dir, "train")] if hdr else []
         self.scene = datagen.Scene(g, mesh, c.grid, c.extent_m)
-        log.info("object %s: %d render vertices, %d proxy vertices, %d proxy edges; tables in %.1fs",
-                 c.object, len(g.vertices), V, len(g.proxy_edges), time.time() - t0)
+        log.info(
+            "object %s: %d render vertices, %d proxy vertices, %d proxy edges; tables in %.1fs",
+            c.object,
+            len(g.vertices),
+            V,
+            len(g.proxy_edges),
+            time.time() - t0,
+        )
         self.data = {}
         for split, n, seed in (("train", c.n_train, c.seed * 1000 + 1), ("val", c.n_val, c.seed * 1000 + 2)):
             path = self.work / f"data_{split}.npz"
@@ -233,8 +286,9 @@ class Trainer:
         self.timings["data_s"] = time.time() - t0
 
     # ------------------------------------------------------------- the epoch loop (every stage)
-    def _epoch_loop(self, name: str, state, step, evaluate, epochs: int, key, terms: tuple[str, ...],
-                    bar_text, seed_offset: int = 0):
+    def _epoch_loop(
+        self, name: str, state, step, evaluate, epochs: int, key, terms: tuple[str, ...], bar_text, seed_offset: int = 0
+    ):
         """Epochs over the training set with a checkpoint after each; resumes from ``<work>/<name>.npz``.
 
         Parameters
@@ -280,7 +334,7 @@ class Trainer:
             acc = np.zeros(len(terms))
             for i in range(steps):
                 key, sub = jax.random.split(key)
-                state, losses = step(state, perm[i * bs:(i + 1) * bs], sub)
+                state, losses = step(state, perm[i * bs : (i + 1) * bs], sub)
                 acc += np.array([float(x) for x in losses])
                 bar(ep * steps + i + 1, extra=bar_text(acc / (i + 1)))
             acc /= steps
@@ -299,8 +353,16 @@ class Trainer:
             params, opt_state, loss = step_fn(state[0], state[1], idx, k)
             return (params, opt_state), (loss,)
 
-        params, _ = self._epoch_loop(name, (params, opt.init(params)), step, lambda st: eval_fn(st[0]), epochs,
-                                     key, ("train_loss",), lambda m: f"loss {m[0]:.4f}")
+        params, _ = self._epoch_loop(
+            name,
+            (params, opt.init(params)),
+            step,
+            lambda st: eval_fn(st[0]),
+            epochs,
+            key,
+            ("train_loss",),
+            lambda m: f"loss {m[0]:.4f}",
+        )
         return params
 
     # ------------------------------------------------------------- stages
@@ -359,8 +421,15 @@ class Trainer:
             return optax.apply_updates(p, u), s, loss
 
         pp = gae.init_plane_gae(init_key, self.a_plane.shape[0])
-        return self._run_stage("plane_gae", pp, opt, plane_step,
-                               lambda p: {"val_rec_l1": float(plane_loss(p, Xv, None, False))}, c.epochs_gae, key)
+        return self._run_stage(
+            "plane_gae",
+            pp,
+            opt,
+            plane_step,
+            lambda p: {"val_rec_l1": float(plane_loss(p, Xv, None, False))},
+            c.epochs_gae,
+            key,
+        )
 
     def train_object_gae(self, init_key, key):
         """Stage 2, the object GAE: OI -> z -> OI (decoder conditioned on the target's normals)."""
@@ -391,8 +460,15 @@ class Trainer:
             return optax.apply_updates(p, u), s, loss
 
         po = gae.init_object_gae(init_key, self.a_obj.shape[0])
-        return self._run_stage("object_gae", po, opt, obj_step,
-                               lambda p: {"val_rec": float(obj_loss(p, Fv, OIv, SHv, None, False))}, c.epochs_gae, key)
+        return self._run_stage(
+            "object_gae",
+            po,
+            opt,
+            obj_step,
+            lambda p: {"val_rec": float(obj_loss(p, Fv, OIv, SHv, None, False))},
+            c.epochs_gae,
+            key,
+        )
 
     def train_colour_gae(self, init_key, key):
         """Stage 3, the colour GAE: OI -> per-channel shading."""
@@ -419,8 +495,9 @@ class Trainer:
             return optax.apply_updates(p, u), s, loss
 
         pc = gae.init_colour(init_key)
-        return self._run_stage("colour_gae", pc, opt, col_step,
-                               lambda p: {"val_l1": float(col_loss(p, OIv, SHv))}, c.epochs_colour, key)
+        return self._run_stage(
+            "colour_gae", pc, opt, col_step, lambda p: {"val_l1": float(col_loss(p, OIv, SHv))}, c.epochs_colour, key
+        )
 
     def finetune(self, result, key) -> dict:
         """Fine-tune plane encoder + generator (BN statistics frozen) + decoder + colour end to end.
@@ -442,8 +519,12 @@ class Trainer:
         X, OI, SH = (jnp.asarray(self.data["train"][k]) for k in ("plane", "oi", "shading"))
         Xv, SHv = jnp.asarray(self.data["val"]["plane"]), jnp.asarray(self.data["val"]["shading"])
         gen_state = result["gen_state"]
-        params = {"penc": result["plane"]["enc"], "gen": result["gen"], "dec": result["object"]["dec"],
-                  "col": result["colour"]}
+        params = {
+            "penc": result["plane"]["enc"],
+            "gen": result["gen"],
+            "dec": result["object"]["dec"],
+            "col": result["colour"],
+        }
 
         def chain(p, x, k, train):
             z = gae.plane_encode(p["penc"], a_p, x, k, train, c.dropout)
@@ -453,8 +534,11 @@ class Trainer:
 
         def loss(p, x, oi_t, sh_t, k):
             oi, sh = chain(p, x, k, True)
-            return (jnp.mean(jnp.abs(sh - sh_t)) + 0.5 * jnp.mean(jnp.abs(oi - oi_t))
-                    + 0.1 * c.beta_smooth * gan.smoothness(nb_o, oi))
+            return (
+                jnp.mean(jnp.abs(sh - sh_t))
+                + 0.5 * jnp.mean(jnp.abs(oi - oi_t))
+                + 0.1 * c.beta_smooth * gan.smoothness(nb_o, oi)
+            )
 
         opt = optax.adam(c.lr_finetune, b1=c.betas_gae[0], b2=c.betas_gae[1])
 
@@ -468,8 +552,9 @@ class Trainer:
         def val(p):
             return jnp.mean(jnp.abs(chain(p, Xv, None, False)[1] - SHv))
 
-        p = self._run_stage("finetune", params, opt, step, lambda p: {"val_shading_mae": float(val(p))},
-                            c.epochs_finetune, key)
+        p = self._run_stage(
+            "finetune", params, opt, step, lambda p: {"val_shading_mae": float(val(p))}, c.epochs_finetune, key
+        )
         out = dict(result)
         out["plane"] = {"enc": p["penc"], "dec": result["plane"]["dec"]}
         out["gen"] = p["gen"]
@@ -513,10 +598,17 @@ class Trainer:
             return state, (lg, ld, *parts)
 
         state = (gp, gs, dp, ds, opt_g.init(gp), opt_d.init(dp))
-        state = self._epoch_loop(name, state, gan_step,
-                                 lambda st: {"val_shading_mae": float(val_mae(st[0], st[1]))}, c.epochs_gan, key,
-                                 ("g_loss", "d_loss", "lsgan", "pair", "shading", "smooth"),
-                                 lambda m: f"G {m[0]:.3f} D {m[1]:.3f}", seed_offset=17)
+        state = self._epoch_loop(
+            name,
+            state,
+            gan_step,
+            lambda st: {"val_shading_mae": float(val_mae(st[0], st[1]))},
+            c.epochs_gan,
+            key,
+            ("g_loss", "d_loss", "lsgan", "pair", "shading", "smooth"),
+            lambda m: f"G {m[0]:.3f} D {m[1]:.3f}",
+            seed_offset=17,
+        )
         gp, gs = state[0], state[1]
         return {"gen": gp, "gen_state": gs}
 

@@ -55,7 +55,11 @@ def _f(types, default, doc, choices=None, length=None) -> Field:
 #: section -> key -> Field. Keep config.toml in step with this table.
 SCHEMA: dict[str, dict[str, Field]] = {
     "source": {
-        "url": _f(str, "synthetic://indoor?seed=0", "frame source URL: oakd://, v4l2:///dev/videoN, replay://PATH, synthetic://SCENE"),
+        "url": _f(
+            str,
+            "synthetic://indoor?seed=0",
+            "frame source URL: oakd://, v4l2:///dev/videoN, replay://PATH, synthetic://SCENE",
+        ),
         "timing": _f(str, "recorded", "replay timing", choices=("recorded", "asap")),
         "loop": _f(bool, False, "replay: start again at the end"),
         "max_frames": _f(int, 0, "stop after this many frames (0 = no limit)"),
@@ -64,51 +68,75 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "response_curve": _f(str, "", "camera response curve from `illuminet calibrate photometric` ('' = sRGB)"),
     },
     "planes": {
-        "method": _f(str, "region", "plane segmentation (docs/planes.md compares them)",
-                     choices=("ransac", "region", "opencv")),
+        "method": _f(
+            str, "region", "plane segmentation (docs/planes.md compares them)", choices=("ransac", "region", "opencv")
+        ),
         "redetect_every": _f(int, 30, "full re-detection every N frames (tracking in between)"),
         "max_planes": _f(int, 4, "most planes kept per frame"),
         "min_area_m2": _f(float, 0.02, "smallest plane kept, square metres"),
-        "inlier_threshold_m": _f(float, 0.03, "distance of an inlier at 1 m; grows with z^2 like stereo noise "
-                                              "(0.045 for integer-disparity depth)"),
+        "inlier_threshold_m": _f(
+            float,
+            0.03,
+            "distance of an inlier at 1 m; grows with z^2 like stereo noise (0.045 for integer-disparity depth)",
+        ),
         "smoothing": _f(float, 0.8, "temporal smoothing of plane parameters, 0 = none, <1"),
     },
     "anchor": {
         "mode": _f(str, "auto", "where the object stands", choices=("auto", "pixel", "point")),
         "pixel": _f(list, [320, 300], "mode=pixel: colour-image pixel (x, y)", length=2),
         "point": _f(list, [0.0, 0.3, 1.5], "mode=point: 3D point in camera coordinates, metres", length=3),
-        "lock": _f(str, "world",
-                   "world: placed once, then held in the room by camera odometry; camera: follows the camera",
-                   choices=("world", "camera")),
+        "lock": _f(
+            str,
+            "world",
+            "world: placed once, then held in the room by camera odometry; camera: follows the camera",
+            choices=("world", "camera"),
+        ),
     },
     "plane_light": {
         "grid": _f(int, 32, "plane OI grid is grid x grid vertices"),
         "extent_m": _f(float, 1.0, "side of the square plane patch around the anchor, metres"),
         "fusion": _f(float, 0.9, "temporal fusion weight of the previous estimate, 0 = none"),
         "assumed_albedo": _f(float, 0.5, "mean albedo assumed for the plane (radiance -> irradiance)"),
-        "smoothing_cells": _f(float, 1.5,
-                              "masked Gaussian over the grid against coarse albedo texture, sigma in cells (0 = off)"),
+        "smoothing_cells": _f(
+            float, 1.5, "masked Gaussian over the grid against coarse albedo texture, sigma in cells (0 = off)"
+        ),
         "extra_planes": _f(int, 0, "also measure up to N more planes (walls first) as further PlaneLight slices"),
     },
     "light": {
-        "enabled": _f(bool, True, "estimate the room's lighting every frame (results['light']: ambient SH9 + primary light)"),
+        "enabled": _f(
+            bool, True, "estimate the room's lighting every frame (results['light']: ambient SH9 + primary light)"
+        ),
         "environment": _f(bool, True, "use the radiance of every surface the camera sees, fused over frames"),
-        "planes": _f(bool, True, "use the irradiance of every tracked plane (walls, tables), not only the anchor plane"),
+        "planes": _f(
+            bool, True, "use the irradiance of every tracked plane (walls, tables), not only the anchor plane"
+        ),
         "near_light": _f(bool, True, "fit a near lamp to the planes' irradiance falloff"),
         "emitters": _f(bool, True, "take the primary light's direction from bright emitters in view"),
         "shadows": _f(bool, True, "take the primary light's direction from real cast shadows"),
         "rate_hz": _f(float, 10.0, "estimates per second (frames in between reuse the last one; 0 = every frame)"),
-        "pipelined": _f(bool, True, "compute the estimate on a worker thread, collected one update later (deterministic)"),
-        "time_constant_s": _f(float, 0.1, "temporal filter time constant, seconds (with the pipeline's one update of delay, a switch is followed within 0.5 s)"),
+        "pipelined": _f(
+            bool, True, "compute the estimate on a worker thread, collected one update later (deterministic)"
+        ),
+        "time_constant_s": _f(
+            float,
+            0.1,
+            "temporal filter time constant, seconds (with the pipeline's one update of delay, a switch is "
+            "followed within 0.5 s)",
+        ),
         "search_every": _f(int, 10, "frames between full near-light searches (local refinement in between)"),
         "smoothness": _f(float, 0.02, "Laplacian penalty on the ambient SH bands (keeps unseen directions smooth)"),
     },
     "model": {
         "bundle": _f(str, "builtin:vase", "object bundle: builtin:NAME or a bundle folder"),
         "precision": _f(str, "int8", "ONNX chain used at run time", choices=("int8", "fp32")),
-        "shading": _f(str, "auto", "what drives the object's shading: PRT from the light estimate, the learned "
-                      "model, or a baseline (auto: prt when the frame has a light estimate and the bundle PRT, "
-                      "else model)", choices=("auto", "prt", "model", "sh", "ambient", "constant")),
+        "shading": _f(
+            str,
+            "auto",
+            "what drives the object's shading: PRT from the light estimate, the learned "
+            "model, or a baseline (auto: prt when the frame has a light estimate and the bundle PRT, "
+            "else model)",
+            choices=("auto", "prt", "model", "sh", "ambient", "constant"),
+        ),
         "temporal_smoothing": _f(float, 0.7, "exponential smoothing of predicted shading, 0 = none"),
     },
     "render": {
@@ -116,14 +144,22 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "shadow": _f(bool, True, "draw the object's shadow on the anchor plane"),
         "shadow_map": _f(int, 1024, "shadow map resolution, pixels"),
         "occlusion": _f(bool, True, "real geometry nearer than the object hides it"),
-        "antialias": _f(str, "edge", "object edges: filtered silhouette (cheap), multisampling, or none",
-                        choices=("edge", "msaa", "off")),
-        "msaa": _f(int, 4, "samples per pixel when antialias = \"msaa\" (0 = off)"),
+        "antialias": _f(
+            str,
+            "edge",
+            "object edges: filtered silhouette (cheap), multisampling, or none",
+            choices=("edge", "msaa", "off"),
+        ),
+        "msaa": _f(int, 4, 'samples per pixel when antialias = "msaa" (0 = off)'),
         "shadow_softness": _f(float, 0.05, "shadow penumbra radius as a fraction of the object's size"),
         "contact_shadow": _f(float, 0.75, "strength of the contact shadow under the object's base, 0..1"),
         "depth_tolerance_m": _f(float, 0.03, "real depth this much nearer (at 1 m; grows with z^2) hides the object"),
-        "gl_backend": _f(str, "egl", "OpenGL context: headless EGL, or the platform default (needs a display)",
-                         choices=("egl", "default")),
+        "gl_backend": _f(
+            str,
+            "egl",
+            "OpenGL context: headless EGL, or the platform default (needs a display)",
+            choices=("egl", "default"),
+        ),
     },
     "output": {
         "video": _f(str, "", "write an .mp4/.avi video here ('' = off)"),
@@ -133,25 +169,48 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "listen": _f(str, "127.0.0.1", "MJPEG bind address; 0.0.0.0 serves the local network"),
         "port": _f(int, 8080, "MJPEG port"),
         "fps": _f(float, 30.0, "frame rate written into video files"),
-        "record_color": _f(str, "raw", "colour encoding of recorded sessions: raw bytes (lossless, least CPU), "
-                                       "PNG (lossless, ~40 % smaller), JPEG (lossy)",
-                           choices=("raw", "png", "jpeg")),
+        "record_color": _f(
+            str,
+            "raw",
+            "colour encoding of recorded sessions: raw bytes (lossless, least CPU), "
+            "PNG (lossless, ~40 % smaller), JPEG (lossy)",
+            choices=("raw", "png", "jpeg"),
+        ),
         "record_jpeg_quality": _f(int, 95, "JPEG quality 1..100 when record_color = 'jpeg'"),
         "record_fsync": _f(bool, True, "fsync every recorded frame (survives power loss; kill -9 is safe either way)"),
-        "estimates": _f(str, "", "write each frame's lighting estimate as a JSON line here ('' = off, '-' = stdout; docs/estimate.md)"),
-        "viewer_model": _f(str, "", "model the MJPEG server's /viewer page draws: a .glb/.gltf/.obj/.ply/.stl file or builtin:NAME ('' = the [model] bundle's object)"),
+        "estimates": _f(
+            str,
+            "",
+            "write each frame's lighting estimate as a JSON line here ('' = off, '-' = stdout; docs/estimate.md)",
+        ),
+        "viewer_model": _f(
+            str,
+            "",
+            "model the MJPEG server's /viewer page draws: a .glb/.gltf/.obj/.ply/.stl file or builtin:NAME "
+            "('' = the [model] bundle's object)",
+        ),
     },
     "imu": {
-        "url": _f(str, "", "serial IMU: serial://PORT?baud=N, or any serial.serial_for_url URL "
-                           "(/dev/ttyUSB0, loop://); '' = none"),
+        "url": _f(
+            str,
+            "",
+            "serial IMU: serial://PORT?baud=N, or any serial.serial_for_url URL (/dev/ttyUSB0, loop://); '' = none",
+        ),
         "baudrate": _f(int, 115200, "serial baud rate"),
         "max_skew_ms": _f(float, 20.0, "largest IMU-to-frame timestamp gap accepted"),
-        "rotation": _f(list, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-                       "IMU axes -> camera axes (x right, y down, z forward): 3x3 rotation, row-major", length=9),
+        "rotation": _f(
+            list,
+            [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+            "IMU axes -> camera axes (x right, y down, z forward): 3x3 rotation, row-major",
+            length=9,
+        ),
         "gravity_tau_s": _f(float, 0.3, "time constant of the accelerometer low-pass that gives gravity, seconds"),
-        "clock": _f(str, "device",
-                    "IMU timestamps: sender's own clock (offset estimated) or this host's monotonic clock",
-                    choices=("device", "host")),
+        "clock": _f(
+            str,
+            "device",
+            "IMU timestamps: sender's own clock (offset estimated) or this host's monotonic clock",
+            choices=("device", "host"),
+        ),
     },
     "logging": {
         "level": _f(str, "info", "log level", choices=("debug", "info", "warning", "error")),
@@ -222,9 +281,7 @@ def defaults() -> Config:
 
 def _check_value(where: str, section: str, key: str, value: Any) -> Any:
     fld = SCHEMA[section][key]
-    ok = any(
-        isinstance(value, t) and not (t in (int, float) and isinstance(value, bool)) for t in fld.types
-    )
+    ok = any(isinstance(value, t) and not (t in (int, float) and isinstance(value, bool)) for t in fld.types)
     # ints are accepted where floats are expected (TOML writes 1 for 1.0)
     if not ok and float in fld.types and isinstance(value, int) and not isinstance(value, bool):
         value, ok = float(value), True
@@ -246,16 +303,12 @@ def validate(data: Mapping[str, Any], where: str = "<config>") -> Config:
     cfg = defaults().to_dict()
     for section, keys in data.items():
         if section not in SCHEMA:
-            raise ConfigError(
-                f"{where}: unknown section [{section}]; known sections: {', '.join(SCHEMA)}"
-            )
+            raise ConfigError(f"{where}: unknown section [{section}]; known sections: {', '.join(SCHEMA)}")
         if not isinstance(keys, Mapping):
             raise ConfigError(f"{where}: [{section}] must be a table of keys, got {type(keys).__name__} {keys!r}")
         for key, value in keys.items():
             if key not in SCHEMA[section]:
-                raise ConfigError(
-                    f"{where}: [{section}] unknown key {key!r}; known keys: {', '.join(SCHEMA[section])}"
-                )
+                raise ConfigError(f"{where}: [{section}] unknown key {key!r}; known keys: {', '.join(SCHEMA[section])}")
             cfg[section][key] = _check_value(where, section, key, value)
     return Config(cfg, where)
 

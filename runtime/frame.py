@@ -71,8 +71,12 @@ class Intrinsics:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Intrinsics:
         return cls(
-            fx=float(d["fx"]), fy=float(d["fy"]), cx=float(d["cx"]), cy=float(d["cy"]),
-            width=int(d["width"]), height=int(d["height"]),
+            fx=float(d["fx"]),
+            fy=float(d["fy"]),
+            cx=float(d["cx"]),
+            cy=float(d["cy"]),
+            width=int(d["width"]),
+            height=int(d["height"]),
             dist=tuple(float(x) for x in d.get("dist", ())),
         )
 
@@ -194,9 +198,7 @@ class Frame:
                     f"{getattr(d, 'shape', type(d))} {getattr(d, 'dtype', '')}"
                 )
             if d.shape != c.shape[:2]:
-                raise ValueError(
-                    f"Frame.depth {d.shape} must be aligned to colour {c.shape[:2]} (same size)"
-                )
+                raise ValueError(f"Frame.depth {d.shape} must be aligned to colour {c.shape[:2]} (same size)")
 
     @property
     def size(self) -> tuple[int, int]:

@@ -48,9 +48,7 @@ def srgb_to_linear(x: np.ndarray) -> np.ndarray:
     if x.dtype == np.uint8:
         return _SRGB_LUT[x]
     x = np.asarray(x, dtype=np.float32)
-    return np.where(x <= 0.04045, x / 12.92, ((np.maximum(x, 0.04045) + 0.055) / 1.055) ** 2.4).astype(
-        np.float32
-    )
+    return np.where(x <= 0.04045, x / 12.92, ((np.maximum(x, 0.04045) + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
 def linear_to_srgb(x: np.ndarray) -> np.ndarray:

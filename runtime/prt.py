@@ -32,6 +32,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from illuminet.runtime.sh import SH_A_HAT, sh9
 
 #: file name of the PRT tables in a bundle
@@ -122,8 +123,12 @@ class PrtTables:
                 raise ValueError(f"bounce must be ({V}, 9), got {bounce.shape}")
         if not (np.isfinite(t).all() and (bounce is None or np.isfinite(bounce).all())):
             raise ValueError("transfer/bounce hold non-finite values")
-        return cls(transfer=t.astype(np.float64), directions=d.astype(np.float64) / np.linalg.norm(d, axis=1, keepdims=True),
-                   visibility=unpack_visibility(bits, V), bounce=None if bounce is None else bounce.astype(np.float64))
+        return cls(
+            transfer=t.astype(np.float64),
+            directions=d.astype(np.float64) / np.linalg.norm(d, axis=1, keepdims=True),
+            visibility=unpack_visibility(bits, V),
+            bounce=None if bounce is None else bounce.astype(np.float64),
+        )
 
     def _weights(self, cos: np.ndarray) -> np.ndarray:
         """Kernel weights from cosines to table directions (overwritten): (1 - chord^2 / R^2)^2 inside

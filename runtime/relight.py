@@ -33,21 +33,21 @@ log = logging.getLogger(__name__)
 class RelightResult:
     """The placed object (camera coordinates) and its predicted per-vertex radiance."""
 
-    vertices: np.ndarray      # (R, 3) camera coordinates, metres
-    normals: np.ndarray       # (R, 3) camera coordinates, unit
-    faces: np.ndarray         # (F, 3) int32
-    radiance: np.ndarray      # (R, 3) linear RGB of a white diffuse surface, input image's linear units
-    irradiance: np.ndarray    # (R, 3) scene-referred irradiance E (radiance = E / pi * exposure_scale)
+    vertices: np.ndarray  # (R, 3) camera coordinates, metres
+    normals: np.ndarray  # (R, 3) camera coordinates, unit
+    faces: np.ndarray  # (F, 3) int32
+    radiance: np.ndarray  # (R, 3) linear RGB of a white diffuse surface, input image's linear units
+    irradiance: np.ndarray  # (R, 3) scene-referred irradiance E (radiance = E / pi * exposure_scale)
     proxy_irradiance: np.ndarray  # (V, 3)
-    oi: np.ndarray            # (V, 3, 3) proxy OI, camera frame (channel, xyz)
-    T_cam_obj: np.ndarray     # (4, 4)
+    oi: np.ndarray  # (V, 3, 3) proxy OI, camera frame (channel, xyz)
+    T_cam_obj: np.ndarray  # (4, 4)
     exposure_scale: float
     dominant_dir: np.ndarray  # (3,) towards the dominant light, camera frame
     dominant_share: float
     method: str
     bundle: str
-    plane_source: str         # "stages" (kept in the npz: format 1 never drops a field)
-    plane_observed: float     # fraction of the plane grid that was observed
+    plane_source: str  # "stages" (kept in the npz: format 1 never drops a field)
+    plane_observed: float  # fraction of the plane grid that was observed
     light: LightEstimate | None = None  # the frame's light estimate, when the chain made one
 
     def save(self, path) -> None:
@@ -55,14 +55,24 @@ class RelightResult:
         the frame had a light estimate."""
         extra = light_fields(self.light) if self.light is not None else {}
         np.savez_compressed(
-            path, vertices=self.vertices.astype(np.float32), normals=self.normals.astype(np.float32),
-            faces=self.faces.astype(np.int32), radiance=self.radiance.astype(np.float32),
-            irradiance=self.irradiance.astype(np.float32), proxy_irradiance=self.proxy_irradiance.astype(np.float32),
-            oi=self.oi.astype(np.float32), T_cam_obj=self.T_cam_obj.astype(np.float64),
-            exposure_scale=np.float64(self.exposure_scale), dominant_dir=self.dominant_dir.astype(np.float32),
-            dominant_share=np.float64(self.dominant_share), method=np.str_(self.method),
-            bundle=np.str_(self.bundle), plane_source=np.str_(self.plane_source),
-            plane_observed=np.float64(self.plane_observed), format=np.int64(1), **extra,
+            path,
+            vertices=self.vertices.astype(np.float32),
+            normals=self.normals.astype(np.float32),
+            faces=self.faces.astype(np.int32),
+            radiance=self.radiance.astype(np.float32),
+            irradiance=self.irradiance.astype(np.float32),
+            proxy_irradiance=self.proxy_irradiance.astype(np.float32),
+            oi=self.oi.astype(np.float32),
+            T_cam_obj=self.T_cam_obj.astype(np.float64),
+            exposure_scale=np.float64(self.exposure_scale),
+            dominant_dir=self.dominant_dir.astype(np.float32),
+            dominant_share=np.float64(self.dominant_share),
+            method=np.str_(self.method),
+            bundle=np.str_(self.bundle),
+            plane_source=np.str_(self.plane_source),
+            plane_observed=np.float64(self.plane_observed),
+            format=np.int64(1),
+            **extra,
         )
 
 
@@ -85,8 +95,9 @@ def light_fields(estimate: LightEstimate) -> dict[str, np.ndarray]:
         "sh9_radiance": estimate.radiance_sh9().astype(np.float32),
         "primary_dir": np.asarray(estimate.primary_dir, np.float32).reshape(3) if has else nan3,
         "primary_rgb": np.asarray(estimate.primary_rgb, np.float32).reshape(3) if has else np.zeros(3, np.float32),
-        "primary_pos": (np.asarray(estimate.primary_pos, np.float32).reshape(3)
-                        if estimate.primary_pos is not None else nan3),
+        "primary_pos": (
+            np.asarray(estimate.primary_pos, np.float32).reshape(3) if estimate.primary_pos is not None else nan3
+        ),
         "light_frame": np.str_(LIGHT_FRAME),
     }
 
@@ -110,9 +121,16 @@ def lighting_stages(cfg: Config, response_lut=None) -> list:
     return stages
 
 
-def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor_px: tuple[float, float],
-            cfg: Config, bundle: str | None = None, exposure: Exposure | None = None,
-            precision: str | None = None) -> RelightResult:
+def relight(
+    color: np.ndarray,
+    depth: np.ndarray,
+    intrinsics: Intrinsics,
+    anchor_px: tuple[float, float],
+    cfg: Config,
+    bundle: str | None = None,
+    exposure: Exposure | None = None,
+    precision: str | None = None,
+) -> RelightResult:
     """Predict the radiance of a virtual object placed at ``anchor_px`` in one RGB-D image.
 
     Parameters
@@ -139,8 +157,15 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
     if cfg.model.shading != "auto":
         log.info("relight uses [model] shading = %s", cfg.model.shading)
     cfg = apply_overrides(cfg, over)
-    frame = Frame(seq=0, t_device_ns=0, t_host_ns=0, color=color, depth=depth, intrinsics=intrinsics,
-                  exposure=exposure or Exposure())
+    frame = Frame(
+        seq=0,
+        t_device_ns=0,
+        t_host_ns=0,
+        color=color,
+        depth=depth,
+        intrinsics=intrinsics,
+        exposure=exposure or Exposure(),
+    )
     response_lut = None
     if cfg.source.response_curve:
         from illuminet.runtime.physics import load_response_lut
@@ -159,16 +184,22 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
         for st in stages:
             st.close()
     if ANCHOR.name not in f.results or PLANE_LIGHT.name not in f.results:
-        raise ValueError(f"no plane found under the anchor pixel ({anchor_px[0]}, {anchor_px[1]}): "
-                         "the depth there does not belong to a detected plane")
+        raise ValueError(
+            f"no plane found under the anchor pixel ({anchor_px[0]}, {anchor_px[1]}): "
+            "the depth there does not belong to a detected plane"
+        )
     anchor, pl, source = f.results[ANCHOR.name], f.results[PLANE_LIGHT.name], "stages"
     light = f.results.get(LIGHT.name)
     if anchor.synthetic or not np.any(pl.mask):
-        raise ValueError(f"no real plane observed under the anchor pixel ({anchor_px[0]}, {anchor_px[1]}); "
-                         "relight needs the plane under the object to be visible in the image")
+        raise ValueError(
+            f"no real plane observed under the anchor pixel ({anchor_px[0]}, {anchor_px[1]}); "
+            "relight needs the plane under the object to be visible in the image"
+        )
     if shading_stage.mode == "prt" and light is None:
-        raise ValueError('[model] shading = "prt" needs a light estimate, and relight\'s chain made none on this '
-                         'image: use shading "auto" or "model"')
+        raise ValueError(
+            '[model] shading = "prt" needs a light estimate, and relight\'s chain made none on this '
+            'image: use shading "auto" or "model"'
+        )
     sh = shading_stage.predict(pl, light)
     shading_stage.close()
     R, t = anchor.R, anchor.t
@@ -178,10 +209,20 @@ def relight(color: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, anchor
     dom = sh.dominant_dir if sh.dominant_dir is not None else np.array([0, 1, 0], np.float32)
     first = pl.plane_slices[0] if pl.plane_slices else slice(None)
     return RelightResult(
-        vertices=(b.vertices * scale) @ R.T + t, normals=b.normals @ R.T, faces=b.faces,
-        radiance=irr * INV_PI * pl.exposure_scale, irradiance=irr, proxy_irradiance=sh.irradiance,
-        oi=np.einsum("vcx,yx->vcy", oi, R), T_cam_obj=np.asarray(anchor.T_cam_obj),
+        vertices=(b.vertices * scale) @ R.T + t,
+        normals=b.normals @ R.T,
+        faces=b.faces,
+        radiance=irr * INV_PI * pl.exposure_scale,
+        irradiance=irr,
+        proxy_irradiance=sh.irradiance,
+        oi=np.einsum("vcx,yx->vcy", oi, R),
+        T_cam_obj=np.asarray(anchor.T_cam_obj),
         exposure_scale=float(pl.exposure_scale),
-        dominant_dir=(R @ dom).astype(np.float32), dominant_share=float(sh.dominant_share), method=sh.method,
-        bundle=str(b.path), plane_source=source, plane_observed=float(np.mean(pl.mask[first])), light=light,
+        dominant_dir=(R @ dom).astype(np.float32),
+        dominant_share=float(sh.dominant_share),
+        method=sh.method,
+        bundle=str(b.path),
+        plane_source=source,
+        plane_observed=float(np.mean(pl.mask[first])),
+        light=light,
     )

@@ -139,7 +139,6 @@ class ObjectShading:
     dominant_share: float = 0.0
 
 
-
 @dataclass(frozen=True)
 class LightEstimate:
     """The room's lighting at the anchor: the product's central per-frame output.
@@ -201,9 +200,19 @@ class LightEstimate:
         if self.primary_dir is not None:
             d = np.asarray(self.primary_dir, np.float64)
             x, y, z = d
-            basis = np.array([0.282095, 0.488603 * y, 0.488603 * z, 0.488603 * x, 1.092548 * x * y,
-                              1.092548 * y * z, 0.315392 * (3 * z * z - 1), 1.092548 * x * z,
-                              0.546274 * (x * x - y * y)])
+            basis = np.array(
+                [
+                    0.282095,
+                    0.488603 * y,
+                    0.488603 * z,
+                    0.488603 * x,
+                    1.092548 * x * y,
+                    1.092548 * y * z,
+                    0.315392 * (3 * z * z - 1),
+                    1.092548 * x * z,
+                    0.546274 * (x * x - y * y),
+                ]
+            )
             a_hat = np.array([np.pi] + [2 * np.pi / 3] * 3 + [np.pi / 4] * 5)
             out += (basis * a_hat)[:, None] * np.asarray(self.primary_rgb, np.float64)[None, :]
         return out
@@ -215,6 +224,7 @@ class LightEstimate:
         p = float(np.asarray(self.primary_rgb) @ luma) if self.primary_dir is not None else 0.0
         amb = float(np.asarray(self.sh9)[0] @ luma) * 0.282095
         return float(np.clip(p / max(p + amb, 1e-12), 0.0, 1.0))
+
 
 @dataclass(frozen=True)
 class ResultKey:

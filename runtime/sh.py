@@ -18,9 +18,20 @@ import numpy as np
 def sh9(n: np.ndarray) -> np.ndarray:
     """Real SH basis up to order 2 at unit directions n (N, 3) -> (N, 9)."""
     x, y, z = n[:, 0], n[:, 1], n[:, 2]
-    return np.stack([np.full_like(x, 0.282095), 0.488603 * y, 0.488603 * z, 0.488603 * x,
-                     1.092548 * x * y, 1.092548 * y * z, 0.315392 * (3 * z * z - 1), 1.092548 * x * z,
-                     0.546274 * (x * x - y * y)], 1)
+    return np.stack(
+        [
+            np.full_like(x, 0.282095),
+            0.488603 * y,
+            0.488603 * z,
+            0.488603 * x,
+            1.092548 * x * y,
+            1.092548 * y * z,
+            0.315392 * (3 * z * z - 1),
+            1.092548 * x * z,
+            0.546274 * (x * x - y * y),
+        ],
+        1,
+    )
 
 
 SH_A_HAT = np.array([np.pi] + [2 * np.pi / 3] * 3 + [np.pi / 4] * 5)
@@ -29,8 +40,9 @@ SH_A_HAT = np.array([np.pi] + [2 * np.pi / 3] * 3 + [np.pi / 4] * 5)
 _BAND = np.array([0, 1, 1, 1, 2, 2, 2, 2, 2])
 
 
-def sh_fit(normals: np.ndarray, irradiance: np.ndarray, weights: np.ndarray | None = None,
-                lam: float = 0.0) -> np.ndarray:
+def sh_fit(
+    normals: np.ndarray, irradiance: np.ndarray, weights: np.ndarray | None = None, lam: float = 0.0
+) -> np.ndarray:
     """Regularised least-squares SH9 irradiance coefficients (9, 3) from samples with normals.
 
     The classic physics baseline: every valid RGB-D sample, its normal and its irradiance. The

@@ -152,8 +152,10 @@ class Stage(_LifeCycle):
         """``frame``'s result ``key``, or :class:`MissingInput` naming this stage and the key."""
         value = frame.results.get(key.name)
         if value is None:
-            raise MissingInput(f"stage {self.name!r} needs results[{key.name!r}] ({key.doc}), "
-                               f"which this frame lacks: put a stage that provides it before {self.name!r}")
+            raise MissingInput(
+                f"stage {self.name!r} needs results[{key.name!r}] ({key.doc}), "
+                f"which this frame lacks: put a stage that provides it before {self.name!r}"
+            )
         return value
 
 
@@ -186,20 +188,26 @@ def check_chain(stages: Sequence[Stage], source: Source | None = None) -> None:
     provided: dict[str, str] = {k.name: "the source" for k in getattr(source, "provides", ())}
     names = [_stage_name(s, f"stage{i}") for i, s in enumerate(stages)]
     for i, st in enumerate(stages):
-        for key, needed in [(k, True) for k in getattr(st, "requires", ())] + \
-                           [(k, False) for k in getattr(st, "optional", ())]:
+        for key, needed in [(k, True) for k in getattr(st, "requires", ())] + [
+            (k, False) for k in getattr(st, "optional", ())
+        ]:
             if key.name in provided:
                 continue
-            later = [names[j] for j in range(i + 1, len(stages))
-                     if any(k.name == key.name for k in getattr(stages[j], "provides", ()))]
+            later = [
+                names[j]
+                for j in range(i + 1, len(stages))
+                if any(k.name == key.name for k in getattr(stages[j], "provides", ()))
+            ]
             if later:
                 raise PipelineError(
                     f"stage {names[i]!r} reads results[{key.name!r}], which stage {later[0]!r} provides only "
-                    f"after it: put {later[0]!r} before {names[i]!r}")
+                    f"after it: put {later[0]!r} before {names[i]!r}"
+                )
             if needed:
                 raise PipelineError(
                     f"stage {names[i]!r} requires results[{key.name!r}] ({key.doc}), which no earlier stage "
-                    f"provides: add the stage that produces it before {names[i]!r}")
+                    f"provides: add the stage that produces it before {names[i]!r}"
+                )
         for key in getattr(st, "provides", ()):
             provided.setdefault(key.name, names[i])
 
@@ -229,8 +237,9 @@ class StageChain:
         Its ``provides`` count as available to the first stage.
     """
 
-    def __init__(self, stages: Sequence[Stage], *, strict: bool = False, source: Source | None = None,
-                 check: bool = True) -> None:
+    def __init__(
+        self, stages: Sequence[Stage], *, strict: bool = False, source: Source | None = None, check: bool = True
+    ) -> None:
         self.stages = list(stages)
         if check:
             check_chain(self.stages, source)
@@ -239,8 +248,7 @@ class StageChain:
         self._last_good: list[dict[str, Any]] = [{} for _ in self.stages]
         self._logged: set[str] = set()
 
-    def run(self, frame: Frame, on_time: Callable[[str, float], None] | None = None
-            ) -> tuple[Frame, list[StageEvent]]:
+    def run(self, frame: Frame, on_time: Callable[[str, float], None] | None = None) -> tuple[Frame, list[StageEvent]]:
         """All stages on ``frame``; returns the finished frame and the failures/skips (usually none).
 
         ``on_time(stage_name, seconds)`` is called for every stage that ran (also when it failed).
@@ -251,8 +259,11 @@ class StageChain:
             if missing:
                 if self.strict:
                     st.require(frame, next(key for key in st.requires if key.name in missing))
-                events.append(StageEvent(k, self.names[k], "skipped",
-                                         f"stage:{self.names[k]}: missing {', '.join(missing)}", None))
+                events.append(
+                    StageEvent(
+                        k, self.names[k], "skipped", f"stage:{self.names[k]}: missing {', '.join(missing)}", None
+                    )
+                )
                 frame = self._hold(k, frame)
                 continue
             before = frame.results
@@ -271,8 +282,7 @@ class StageChain:
                 continue
             if on_time is not None:
                 on_time(self.names[k], time.perf_counter() - t0)
-            self._last_good[k] = {key: v for key, v in out.results.items()
-                                  if key not in before or before[key] is not v}
+            self._last_good[k] = {key: v for key, v in out.results.items() if key not in before or before[key] is not v}
             frame = out
         return frame, events
 
@@ -288,6 +298,10 @@ class StageChain:
         for ev in events:
             if ev.key not in self._logged:
                 self._logged.add(ev.key)
-                log.warning("%s on frame %d%s; the frame goes on with its last good result (logged once)",
-                            ev.key, frame.seq, f": {ev.error}" if ev.error is not None else "")
+                log.warning(
+                    "%s on frame %d%s; the frame goes on with its last good result (logged once)",
+                    ev.key,
+                    frame.seq,
+                    f": {ev.error}" if ev.error is not None else "",
+                )
         return out

@@ -38,6 +38,14 @@ def plane_light(grid: int = 32, extent: float = 1.0, scale: float = 1.0, seed: i
     irr = (1.0 + 0.8 * xx.ravel())[:, None] * np.array([1.0, 0.9, 0.8]) * scale
     irr = (irr * rng.uniform(0.98, 1.02, irr.shape)).astype(np.float32)
     mask = rng.random(grid * grid) > 0.1
-    return PlaneLight(vertices=v, normals=np.tile([[0, 1, 0]], (grid * grid, 1)).astype(np.float32),
-                      irradiance=irr, mask=mask, confidence=np.ones(grid * grid, np.float32), grid=grid,
-                      exposure_scale=1.0, plane_slices=(slice(0, grid * grid),), labels=("floor",))
+    return PlaneLight(
+        vertices=v,
+        normals=np.tile([[0, 1, 0]], (grid * grid, 1)).astype(np.float32),
+        irradiance=irr,
+        mask=mask,
+        confidence=np.ones(grid * grid, np.float32),
+        grid=grid,
+        exposure_scale=1.0,
+        plane_slices=(slice(0, grid * grid),),
+        labels=("floor",),
+    )

@@ -39,7 +39,9 @@ def same_frame(a: Frame, b: Frame) -> bool:
     return (
         np.array_equal(a.color, b.color)
         and ((a.depth is None and b.depth is None) or np.array_equal(a.depth, b.depth))
-        and a.t_device_ns == b.t_device_ns and a.seq == b.seq and a.exposure == b.exposure
+        and a.t_device_ns == b.t_device_ns
+        and a.seq == b.seq
+        and a.exposure == b.exposure
         and a.intrinsics == b.intrinsics
     )
 
@@ -53,8 +55,9 @@ def env() -> dict[str, str]:
 
 
 def spawn(args: list[str], **kw) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, *args], cwd=REPO, env=env(), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, **kw)
+    return subprocess.Popen(
+        [sys.executable, *args], cwd=REPO, env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw
+    )
 
 
 def complete_lines(index: Path) -> int:
@@ -85,5 +88,6 @@ def cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
     Commands that run the full pipeline open the renderer's own GL context; running them in a child
     process keeps that context out of the test process (whose GL tests share one context).
     """
-    return subprocess.run([sys.executable, "-m", "illuminet", *args], cwd=REPO, env=env(),
-                          capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "illuminet", *args], cwd=REPO, env=env(), capture_output=True, text=True, timeout=timeout
+    )

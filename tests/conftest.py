@@ -12,6 +12,7 @@ os.environ.setdefault("DEPTHAI_TELEMETRY", "0")
 
 REPO = Path(__file__).resolve().parent.parent
 
+
 def _shared_data_dir() -> Path:
     """../shared/data beside the checkout; ILLUMINET_SHARED_DATA overrides (e.g. for git worktrees)."""
     env = os.environ.get("ILLUMINET_SHARED_DATA")

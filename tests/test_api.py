@@ -25,9 +25,11 @@ from .conftest import REPO
 
 
 def test_import_illuminet_loads_no_heavy_modules():
-    code = ("import sys, illuminet; heavy = ('numpy', 'cv2', 'moderngl', 'onnxruntime', 'illuminet.api'); "
-            "print([m for m in heavy if m in sys.modules]); "
-            "illuminet.open; print('illuminet.api' in sys.modules)")
+    code = (
+        "import sys, illuminet; heavy = ('numpy', 'cv2', 'moderngl', 'onnxruntime', 'illuminet.api'); "
+        "print([m for m in heavy if m in sys.modules]); "
+        "illuminet.open; print('illuminet.api' in sys.modules)"
+    )
     p = subprocess.run([sys.executable, "-c", code], env=env(), capture_output=True, text=True, timeout=60)
     assert p.returncode == 0, p.stderr
     assert p.stdout.split() == ["[]", "True"]  # nothing heavy until the API is touched
@@ -61,7 +63,7 @@ def test_open_overrides_and_their_errors(tmp_path):
         illuminet.open("synthetic://indoor", nope=1)
     with pytest.raises(ConfigError, match="timing"):
         illuminet.open("synthetic://indoor", timing="sometimes")
-    (tmp_path / "c.toml").write_text("[source]\ntiming = \"asap\"\n")
+    (tmp_path / "c.toml").write_text('[source]\ntiming = "asap"\n')
     assert illuminet.open("synthetic://indoor", str(tmp_path / "c.toml")).cfg.source.timing == "asap"
 
 
@@ -86,9 +88,25 @@ def test_relight_cli_with_half_resolution_depth_writes_a_preview(tmp_path, gl, c
     cv2.imwrite(str(tmp_path / "c.png"), color[..., ::-1])
     cv2.imwrite(str(tmp_path / "d.png"), depth_to_mm(depth)[::2, ::2])  # 160x100 depth for 320x200 colour
     (tmp_path / "k.json").write_text(json.dumps({"fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy}))
-    rc = main(["relight", "--color", str(tmp_path / "c.png"), "--depth", str(tmp_path / "d.png"),
-               "--intrinsics", str(tmp_path / "k.json"), "--anchor", "160,130", "--bundle", "builtin:vase",
-               "--out", str(tmp_path / "r.npz"), "--preview", str(tmp_path / "p.png")])
+    rc = main(
+        [
+            "relight",
+            "--color",
+            str(tmp_path / "c.png"),
+            "--depth",
+            str(tmp_path / "d.png"),
+            "--intrinsics",
+            str(tmp_path / "k.json"),
+            "--anchor",
+            "160,130",
+            "--bundle",
+            "builtin:vase",
+            "--out",
+            str(tmp_path / "r.npz"),
+            "--preview",
+            str(tmp_path / "p.png"),
+        ]
+    )
     assert rc == 0, capsys.readouterr().err
     pic = cv2.imread(str(tmp_path / "p.png"))[..., ::-1]
     assert pic.shape == color.shape

@@ -44,8 +44,9 @@ def _sphere_frame(centre=(0.0, 0.0, 1.2), radius=0.45, wall_z=2.5):
 def _known_sh():
     # a smooth, strictly positive environment: sky-like gradient plus two broad lights
     lights = L.uniform_environment([0.3, 0.35, 0.4], n=512, distance=50.0)
-    lights = lights.concatenated(L.directional_lights([[0.5, -0.6, -0.6], [-0.7, -0.2, -0.4]],
-                                                      [[2.0, 1.6, 1.2], [0.4, 0.5, 0.9]]))
+    lights = lights.concatenated(
+        L.directional_lights([[0.5, -0.6, -0.6], [-0.7, -0.2, -0.4]], [[2.0, 1.6, 1.2], [0.4, 0.5, 0.9]])
+    )
     return sh_from_lights(lights, plane_blocks=False)
 
 
@@ -160,13 +161,14 @@ def test_sh_fit_on_a_synthetic_camera_frame_predicts_the_floor():
     T = sc.default_anchor()
     lin = linearize(f.color)
     albedo = sc.planes[0].albedo_mean  # the baseline is told the floor's true mean albedo here
-    fit = fit_sh_from_rgbd(lin, f.depth, f.intrinsics, albedo, R_obj_cam=T[:3, :3].T,
-                           exposure_scale=f.exposure.scale, lam=1e-2)
+    fit = fit_sh_from_rgbd(
+        lin, f.depth, f.intrinsics, albedo, R_obj_cam=T[:3, :3].T, exposure_scale=f.exposure.scale, lam=1e-2
+    )
     up = T[:3, 1]
     pred = sh_irradiance(fit, np.array([[0.0, 1.0, 0.0]]))[0]
     # the floor the camera sees: depth points within 2 cm of the anchor's plane (every 4th pixel)
     k, z = f.intrinsics, f.depth[::4, ::4]
-    v, u = np.mgrid[0:f.depth.shape[0]:4, 0:f.depth.shape[1]:4]
+    v, u = np.mgrid[0 : f.depth.shape[0] : 4, 0 : f.depth.shape[1] : 4]
     pts = np.stack([(u - k.cx) / k.fx * z, (v - k.cy) / k.fy * z, z], -1)[z > 0]
     seen_floor = pts[np.abs((pts - T[:3, 3]) @ up) < 0.02]
     assert len(seen_floor) > 1000

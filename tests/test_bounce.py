@@ -22,8 +22,16 @@ def _white_ground_under_sky(rho: float):
     d = d[d[:, 1] > 0.02]
     sky = L.directional_lights(d, np.full((len(d), 3), 4 * np.pi / 256), 200.0)  # radiance 1
     poses = [S._look_at(np.array([0.0, 1.5, 1.5]), np.zeros(3))]
-    sc = S.SyntheticScene("outdoor", 0, sky, [ground], [S.Occluder(1, 0.0)], np.zeros((1, 3)),
-                          S.OAKD_INTRINSICS_1280.scaled(160, 100), poses)
+    sc = S.SyntheticScene(
+        "outdoor",
+        0,
+        sky,
+        [ground],
+        [S.Occluder(1, 0.0)],
+        np.zeros((1, 3)),
+        S.OAKD_INTRINSICS_1280.scaled(160, 100),
+        poses,
+    )
     sc.bake(1)
     return sc, L.irradiance(np.zeros((1, 3)), np.array([[0, 1.0, 0]]), sky)[0]
 
@@ -108,7 +116,9 @@ def test_bounce_is_switchable_from_the_url():
     x = np.zeros((1, 3))
     x[0, wall.axis] = wall.coord
     x[0, 1] = 0.05
-    x[0, 2 if wall.axis == 0 else 0] = (wall.lo[1] + wall.hi[1]) / 2 if wall.axis == 0 else (wall.lo[0] + wall.hi[0]) / 2
+    x[0, 2 if wall.axis == 0 else 0] = (
+        (wall.lo[1] + wall.hi[1]) / 2 if wall.axis == 0 else (wall.lo[0] + wall.hi[0]) / 2
+    )
     T = on.scene.T_cam_world(0)
     pc = x @ T[:3, :3].T + T[:3, 3]
     n = T[:3, :3] @ wall.normal
@@ -117,8 +127,9 @@ def test_bounce_is_switchable_from_the_url():
     assert np.all(e_on > e_off)
     mesh = load_object("builtin:sphere", "proxy")
     Ta = off.scene.default_anchor()
-    np.testing.assert_allclose(off.scene.true_object_shading(mesh, Ta),
-                               off.scene.true_object_shading(mesh, Ta, indirect=False))
+    np.testing.assert_allclose(
+        off.scene.true_object_shading(mesh, Ta), off.scene.true_object_shading(mesh, Ta, indirect=False)
+    )
 
 
 @pytest.mark.parametrize("value", ["-1", "99", "x"])

@@ -32,8 +32,9 @@ class _Feeder:
     ``T_cam_obj`` is the anchor pose the estimates carry; ``grey`` makes the camera picture uniform.
     """
 
-    def __init__(self, sink: MjpegSink, direction=(-1.0, 0.6, 0.2), period: float = 0.03,
-                 T_cam_obj=None, grey: int | None = None):
+    def __init__(
+        self, sink: MjpegSink, direction=(-1.0, 0.6, 0.2), period: float = 0.03, T_cam_obj=None, grey: int | None = None
+    ):
         self.sink, self.period = sink, period
         self.direction = np.asarray(direction, float)
         self.T = np.eye(4) if T_cam_obj is None else np.asarray(T_cam_obj, float)
@@ -49,8 +50,14 @@ class _Feeder:
         sh[0] = 0.5  # a dim, uniform ambient: the primary light makes the difference between the sides
         while not self.stop.is_set():
             d = self.direction / np.linalg.norm(self.direction)
-            est = LightEstimate(sh9=sh, primary_dir=d, primary_rgb=np.array([3.0, 2.9, 2.7]), exposure_scale=1.0,
-                                T_cam_obj=self.T, method="test")
+            est = LightEstimate(
+                sh9=sh,
+                primary_dir=d,
+                primary_rgb=np.array([3.0, 2.9, 2.7]),
+                exposure_scale=1.0,
+                T_cam_obj=self.T,
+                method="test",
+            )
             f = self.frame.replace(seq=i, t_device_ns=(i + 1) * 33_000_000)
             self.sink.write(f.with_result(LIGHT, est))
             i += 1
@@ -74,8 +81,7 @@ def test_stream_page_shows_frames_and_the_light_overlay(page):
         page.goto(f"http://127.0.0.1:{sink.port}/")
         # the <img> decodes MJPEG frames: its natural size is the stream's
         page.wait_for_function("document.getElementById('stream').naturalWidth === 320", timeout=10000)
-        page.wait_for_function("document.getElementById('lightinfo').textContent.includes('elevation')",
-                               timeout=10000)
+        page.wait_for_function("document.getElementById('lightinfo').textContent.includes('elevation')", timeout=10000)
         fit = page.evaluate("getComputedStyle(document.getElementById('stream')).objectFit")
         assert fit == "contain"
         page.keyboard.press("o")  # the overlay toggles
@@ -89,8 +95,8 @@ def _side_ratio(img: np.ndarray) -> float:
     """Mean brightness of the model's left half over its right half (the model stands in the middle)."""
     h, w = img.shape
     rows = slice(int(0.2 * h), int(0.8 * h))
-    left = img[rows, int(0.32 * w):int(0.5 * w)].mean()
-    right = img[rows, int(0.5 * w):int(0.68 * w)].mean()
+    left = img[rows, int(0.32 * w) : int(0.5 * w)].mean()
+    right = img[rows, int(0.5 * w) : int(0.68 * w)].mean()
     return left / max(right, 1e-6)
 
 
@@ -98,8 +104,9 @@ def test_viewer_rendering_follows_the_light_from_left_to_right(page):
     """Fixed estimates flow through the real SSE endpoint; the lit side of the model follows the light."""
     with MjpegSink(port=0) as sink, _Feeder(sink, direction=(-1.0, 0.6, 0.2)) as feeder:
         page.goto(f"http://127.0.0.1:{sink.port}/viewer?ui=0")
-        page.wait_for_function("window.illuminetViewer && illuminetViewer.modelLoaded && illuminetViewer.estimates >= 3",
-                               timeout=20000)
+        page.wait_for_function(
+            "window.illuminetViewer && illuminetViewer.modelLoaded && illuminetViewer.estimates >= 3", timeout=20000
+        )
         page.wait_for_function("illuminetViewer.rendered > 3")
         left_lit = _shot(page)
         feeder.direction = np.array([1.0, 0.6, 0.2])
@@ -121,16 +128,21 @@ def test_viewer_over_the_camera_picture_draws_the_model_where_the_anchor_project
     T[:3, 3] = [0.15, 0.12, 1.2]  # the anchor: right of and below the image centre, 1.2 m away
     with MjpegSink(port=0) as sink, _Feeder(sink, direction=(0.0, 1.0, 0.3), T_cam_obj=T, grey=40) as feeder:
         page.goto(f"http://127.0.0.1:{sink.port}/viewer?background=1&ui=0")
-        page.wait_for_function("window.illuminetViewer && illuminetViewer.modelLoaded && illuminetViewer.estimates >= 3"
-                               " && document.querySelector('#stage img').naturalWidth === 320", timeout=20000)
+        page.wait_for_function(
+            "window.illuminetViewer && illuminetViewer.modelLoaded && illuminetViewer.estimates >= 3"
+            " && document.querySelector('#stage img').naturalWidth === 320",
+            timeout=20000,
+        )
         n = page.evaluate("illuminetViewer.rendered")
         page.wait_for_function(f"illuminetViewer.rendered > {n + 2}")
         img = _shot(page)
         K = feeder.frame.intrinsics
+
     # the page is the picture's size (320x240 viewport, same aspect): pixels map 1:1
     def project(p):
         x = T[:3, :3] @ p + T[:3, 3]
         return K.fx * x[0] / x[2] + K.cx, K.fy * x[1] / x[2] + K.cy
+
     u, v = project(np.array([0.0, 0.12, 0.0]))  # the vase's middle (0.26 m tall)
     assert img[int(v), int(u)] > 100  # the lit white vase over the dark grey picture
     bright = img > 100
@@ -155,8 +167,12 @@ def test_viewer_receives_the_pipelines_estimates(page, tmp_path):
     stop = threading.Event()
     source = open_source(default_source_url(), cfg)
     done = []
-    t = threading.Thread(target=lambda: done.append(run_loop(source, build_stages(cfg, render=False), [sink],
-                                                             stop_event=stop, max_frames=400)), daemon=True)
+    t = threading.Thread(
+        target=lambda: done.append(
+            run_loop(source, build_stages(cfg, render=False), [sink], stop_event=stop, max_frames=400)
+        ),
+        daemon=True,
+    )
     t.start()
     try:
         deadline = time.monotonic() + 20
@@ -164,8 +180,10 @@ def test_viewer_receives_the_pipelines_estimates(page, tmp_path):
             time.sleep(0.05)
         page.goto(f"http://127.0.0.1:{sink.port}/viewer")
         page.wait_for_function("window.illuminetViewer && illuminetViewer.estimates >= 10", timeout=40000)
-        state = page.evaluate("({n: illuminetViewer.estimates, id: illuminetViewer.frameId, "
-                              "method: illuminetViewer.last.method, loaded: illuminetViewer.modelLoaded})")
+        state = page.evaluate(
+            "({n: illuminetViewer.estimates, id: illuminetViewer.frameId, "
+            "method: illuminetViewer.last.method, loaded: illuminetViewer.modelLoaded})"
+        )
     finally:
         stop.set()
         t.join(20)
@@ -188,12 +206,15 @@ def test_h264_mp4_plays_in_a_video_element(page, tmp_path):
     threading.Thread(target=server.serve_forever, daemon=True).start()
     try:
         base = f"http://127.0.0.1:{server.server_address[1]}"
-        (tmp_path / "v.html").write_text('<!doctype html><link rel="icon" href="data:,">'
-                                         '<video id="v" src="clip.mp4" muted playsinline></video>')
+        (tmp_path / "v.html").write_text(
+            '<!doctype html><link rel="icon" href="data:,"><video id="v" src="clip.mp4" muted playsinline></video>'
+        )
         page.goto(base + "/v.html")
         page.wait_for_function("document.getElementById('v').readyState >= 1", timeout=10000)
-        size = page.evaluate("[document.getElementById('v').videoWidth, document.getElementById('v').videoHeight,"
-                             " document.getElementById('v').duration]")
+        size = page.evaluate(
+            "[document.getElementById('v').videoWidth, document.getElementById('v').videoHeight,"
+            " document.getElementById('v').duration]"
+        )
         # it decodes, not only parses: playing advances the clock
         page.evaluate("document.getElementById('v').play()")
         page.wait_for_function("document.getElementById('v').currentTime > 0.2", timeout=10000)

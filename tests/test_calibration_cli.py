@@ -20,8 +20,9 @@ from illuminet.runtime.frame import Frame, Intrinsics
 from illuminet.runtime.stage import Source
 
 SPEC = BoardSpec(9, 6, 30.0, 22.0, "DICT_4X4_50")
-CAM = CameraCalib(640, 400, np.array([[450.0, 0, 322.3], [0, 451.0, 197.6], [0, 0, 1]]),
-                  np.array([-0.12, 0.05, 0.0005, -0.0003, 0.0]))
+CAM = CameraCalib(
+    640, 400, np.array([[450.0, 0, 322.3], [0, 451.0, 197.6], [0, 0, 1]]), np.array([-0.12, 0.05, 0.0005, -0.0003, 0.0])
+)
 
 
 def _write_views(folder, n, seed=0):
@@ -35,8 +36,27 @@ def _write_views(folder, n, seed=0):
 
 def test_board_png_and_pdf(tmp_path, capsys):
     png = tmp_path / "b.png"
-    assert main(["calibrate", "board", "--squares", "9x6", "--square-mm", "30", "--marker-mm", "22",
-                 "--dictionary", "DICT_4X4_50", "--dpi", "100", "-o", str(png)]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "board",
+                "--squares",
+                "9x6",
+                "--square-mm",
+                "30",
+                "--marker-mm",
+                "22",
+                "--dictionary",
+                "DICT_4X4_50",
+                "--dpi",
+                "100",
+                "-o",
+                str(png),
+            ]
+        )
+        == 0
+    )
     img = cv2.imread(str(png), cv2.IMREAD_GRAYSCALE)
     sq = round(30 * 100 / 25.4)
     assert img.shape == (6 * sq, 9 * sq)
@@ -55,16 +75,18 @@ def test_board_png_and_pdf(tmp_path, capsys):
     assert m and float(m.group(1)) == pytest.approx(220 / 25.4 * 72, abs=1e-3)
     assert float(m.group(2)) == pytest.approx(160 / 25.4 * 72, abs=1e-3)
     # a well-formed file: every xref offset points at its object, and the embedded image is the board
-    xref_at = int(data[data.rindex(b"startxref") + 9:].split()[0])
-    rows = data[xref_at:].split(b"\n")[3:3 + 6]
+    xref_at = int(data[data.rindex(b"startxref") + 9 :].split()[0])
+    rows = data[xref_at:].split(b"\n")[3 : 3 + 6]
     for k, row in enumerate(rows, start=1):
         off = int(row.split()[0])
         assert data[off:].startswith(f"{k} 0 obj".encode())
     im = re.search(rb"/Width (\d+) /Height (\d+) .*?/Length (\d+) >>\nstream\n", data, re.S)
     w, h, n = (int(g) for g in im.groups())
-    pixels = np.frombuffer(zlib.decompress(data[im.end():im.end() + n]), np.uint8).reshape(h, w)
-    assert len(detect(cv2.copyMakeBorder(pixels, 40, 40, 40, 40, cv2.BORDER_CONSTANT, value=255),
-                      BoardSpec())) == BoardSpec().n_corners
+    pixels = np.frombuffer(zlib.decompress(data[im.end() : im.end() + n]), np.uint8).reshape(h, w)
+    assert (
+        len(detect(cv2.copyMakeBorder(pixels, 40, 40, 40, 40, cv2.BORDER_CONSTANT, value=255), BoardSpec()))
+        == BoardSpec().n_corners
+    )
     assert main(["calibrate", "board", "--square-mm", "40", "--marker-mm", "30", "-o", str(pdf)]) == 2
     assert "does not fit on a4" in capsys.readouterr().err
 
@@ -72,8 +94,23 @@ def test_board_png_and_pdf(tmp_path, capsys):
 def test_intrinsics_cli_writes_calibration(tmp_path, capsys):
     _write_views(tmp_path / "views", 8)
     out = tmp_path / "cam.json"
-    rc = main(["calibrate", "intrinsics", str(tmp_path / "views"), "--squares", "9x6", "--square-mm", "30",
-               "--marker-mm", "22", "--dictionary", "DICT_4X4_50", "-o", str(out)])
+    rc = main(
+        [
+            "calibrate",
+            "intrinsics",
+            str(tmp_path / "views"),
+            "--squares",
+            "9x6",
+            "--square-mm",
+            "30",
+            "--marker-mm",
+            "22",
+            "--dictionary",
+            "DICT_4X4_50",
+            "-o",
+            str(out),
+        ]
+    )
     assert rc == 0, capsys.readouterr().err
     c = load_calibration(out)
     assert abs(c.camera("left").K[0, 0] / 450.0 - 1) < 0.01
@@ -98,10 +135,28 @@ def test_import_depthai_cli(tmp_path, capsys):
     cam = {"width": 1280, "height": 800, "intrinsicMatrix": K, "distortionCoeff": [0.0] * 14, "cameraType": 0}
     data = {
         "cameraData": [
-            [1, cam | {"extrinsics": {"rotationMatrix": np.eye(3).tolist(), "toCameraSocket": 2,
-                                       "translation": {"x": -7.5, "y": 0.0, "z": 0.0}}}],
-            [2, cam | {"extrinsics": {"rotationMatrix": [[0.0] * 3] * 3, "toCameraSocket": -1,
-                                       "translation": {"x": 0, "y": 0, "z": 0}}}],
+            [
+                1,
+                cam
+                | {
+                    "extrinsics": {
+                        "rotationMatrix": np.eye(3).tolist(),
+                        "toCameraSocket": 2,
+                        "translation": {"x": -7.5, "y": 0.0, "z": 0.0},
+                    }
+                },
+            ],
+            [
+                2,
+                cam
+                | {
+                    "extrinsics": {
+                        "rotationMatrix": [[0.0] * 3] * 3,
+                        "toCameraSocket": -1,
+                        "translation": {"x": 0, "y": 0, "z": 0},
+                    }
+                },
+            ],
         ],
         "stereoRectificationData": {"leftCameraSocket": 1, "rightCameraSocket": 2},
     }
@@ -130,8 +185,14 @@ class _BoardSource(Source):
         img, _ = render(CAM, R, t, [self._plane], background=128, rays=self._rays)
         bgr = degrade(img, 0.7, 2.0, self._i)
         self._i += 1
-        return Frame(self._i, self._i * 33_000_000, self._i * 33_000_000, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), None,
-                     Intrinsics(450, 451, 322.3, 197.6, 640, 400))
+        return Frame(
+            self._i,
+            self._i * 33_000_000,
+            self._i * 33_000_000,
+            cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB),
+            None,
+            Intrinsics(450, 451, 322.3, 197.6, 640, 400),
+        )
 
 
 def test_capture_keeps_diverse_views(tmp_path):
@@ -156,8 +217,14 @@ def test_capture_without_board_fails_clearly(tmp_path):
             self.n += 1
             if self.n > 3:
                 return None
-            return Frame(self.n, self.n, self.n, np.full((400, 640, 3), 100, np.uint8), None,
-                         Intrinsics(450, 451, 320, 200, 640, 400))
+            return Frame(
+                self.n,
+                self.n,
+                self.n,
+                np.full((400, 640, 3), 100, np.uint8),
+                None,
+                Intrinsics(450, 451, 320, 200, 640, 400),
+            )
 
     with pytest.raises(CalibrationError, match=r"no usable board view in 3 frame\(s\)"):
         capture_views(Blank(), tmp_path / "cap", SPEC)
@@ -205,8 +272,14 @@ class _SbsBoardSource(Source):
         right, _ = render(CAM, self.R @ Rb, self.R @ tb + self.T, [self._plane], background=128, rays=self._rays)
         sbs = degrade(np.hstack([left, right]), 0.7, 2.0, self._i)
         self._i += 1
-        return Frame(self._i, self._i, self._i, cv2.cvtColor(sbs, cv2.COLOR_BGR2RGB), None,
-                     Intrinsics(450, 451, 322.3, 197.6, 1280, 400))
+        return Frame(
+            self._i,
+            self._i,
+            self._i,
+            cv2.cvtColor(sbs, cv2.COLOR_BGR2RGB),
+            None,
+            Intrinsics(450, 451, 322.3, 197.6, 1280, 400),
+        )
 
 
 def test_sbs_capture_then_stereo_cli(tmp_path, capsys):
@@ -217,9 +290,24 @@ def test_sbs_capture_then_stereo_cli(tmp_path, capsys):
     assert len(left) == len(right) >= 8 and [p.name for p in left] == [p.name for p in right]
     assert len(res.files) == 2 * len(left)
     out = tmp_path / "rig.json"
-    rc = main(["calibrate", "stereo", str(tmp_path / "cap" / "left"), str(tmp_path / "cap" / "right"),
-               "--squares", "9x6", "--square-mm", "30", "--marker-mm", "22", "--dictionary", "DICT_4X4_50",
-               "-o", str(out)])
+    rc = main(
+        [
+            "calibrate",
+            "stereo",
+            str(tmp_path / "cap" / "left"),
+            str(tmp_path / "cap" / "right"),
+            "--squares",
+            "9x6",
+            "--square-mm",
+            "30",
+            "--marker-mm",
+            "22",
+            "--dictionary",
+            "DICT_4X4_50",
+            "-o",
+            str(out),
+        ]
+    )
     assert rc == 0, capsys.readouterr().err
     c = load_calibration(out)
     assert abs(c.stereo.baseline_m / np.linalg.norm(_SbsBoardSource.T) - 1) < 0.01

@@ -24,8 +24,9 @@ def _calib() -> Calibration:
     K = np.array([[400.0, 0, 319.5], [0, 401.0, 199.5], [0, 0, 1]])
     left = CameraCalib(640, 400, K, np.array([-0.05, 0.01, 0, 0, 0]), rms_px=0.2)
     right = CameraCalib(640, 400, K.copy(), np.array([-0.04, 0.01, 0, 0, 0]))
-    return Calibration({"left": left, "right": right},
-                       StereoCalib("left", "right", np.eye(3), np.array([-0.075, 0, 0]), rms_px=0.3))
+    return Calibration(
+        {"left": left, "right": right}, StereoCalib("left", "right", np.eye(3), np.array([-0.075, 0, 0]), rms_px=0.3)
+    )
 
 
 def test_round_trip(tmp_path):
@@ -42,18 +43,21 @@ def test_round_trip(tmp_path):
     assert (intr.fx, intr.width, intr.height) == (400.0, 640, 400)
 
 
-@pytest.mark.parametrize("mutate, message", [
-    (lambda d: d.pop("format"), "format: expected 'illuminet-calibration'"),
-    (lambda d: d.update(version=99), "version: this build reads version 1"),
-    (lambda d: d["cameras"]["left"].pop("K"), "missing key 'cameras.left.K'"),
-    (lambda d: d["cameras"]["left"].update(K=[[1, 0], [0, 1]]), "cameras.left.K: expected shape (3, 3)"),
-    (lambda d: d["cameras"]["left"].update(dist=[0.1, 0.2, 0.3]), "cameras.left.dist: model 'pinhole' takes"),
-    (lambda d: d["cameras"]["left"].update(model="orthographic"), "cameras.left.model: expected one of"),
-    (lambda d: d["cameras"]["left"].update(width="640"), "cameras.left.width: expected int"),
-    (lambda d: d["stereo"].update(right="nope"), "stereo.right names camera 'nope'"),
-    (lambda d: d["stereo"].update(R=[[1, 0, 0], [0, 1, 0], [0, 0, 2]]), "stereo.R: expected a rotation"),
-    (lambda d: d["stereo"].update(baseline_m=0.2), "stereo.baseline_m 0.2 disagrees"),
-])
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (lambda d: d.pop("format"), "format: expected 'illuminet-calibration'"),
+        (lambda d: d.update(version=99), "version: this build reads version 1"),
+        (lambda d: d["cameras"]["left"].pop("K"), "missing key 'cameras.left.K'"),
+        (lambda d: d["cameras"]["left"].update(K=[[1, 0], [0, 1]]), "cameras.left.K: expected shape (3, 3)"),
+        (lambda d: d["cameras"]["left"].update(dist=[0.1, 0.2, 0.3]), "cameras.left.dist: model 'pinhole' takes"),
+        (lambda d: d["cameras"]["left"].update(model="orthographic"), "cameras.left.model: expected one of"),
+        (lambda d: d["cameras"]["left"].update(width="640"), "cameras.left.width: expected int"),
+        (lambda d: d["stereo"].update(right="nope"), "stereo.right names camera 'nope'"),
+        (lambda d: d["stereo"].update(R=[[1, 0, 0], [0, 1, 0], [0, 0, 2]]), "stereo.R: expected a rotation"),
+        (lambda d: d["stereo"].update(baseline_m=0.2), "stereo.baseline_m 0.2 disagrees"),
+    ],
+)
 def test_bad_file_names_key(tmp_path, mutate, message):
     d = _calib().to_dict()
     mutate(d)

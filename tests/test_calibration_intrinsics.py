@@ -13,10 +13,16 @@ from illuminet.calibration.intrinsics import calibrate_intrinsics, evaluate_intr
 from illuminet.calibration.synthview import board_plane, board_poses, degrade, pixel_rays, render
 
 SPEC = BoardSpec(9, 6, 30.0, 22.0, "DICT_4X4_50")
-PINHOLE = CameraCalib(640, 400, np.array([[450.0, 0, 322.3], [0, 451.0, 197.6], [0, 0, 1]]),
-                      np.array([-0.12, 0.05, 0.0005, -0.0003, 0.0]))
-FISHEYE = CameraCalib(640, 400, np.array([[300.0, 0, 322.3], [0, 300.5, 197.6], [0, 0, 1]]),
-                      np.array([-0.02, -0.008, 0.008, -0.004]), "fisheye")
+PINHOLE = CameraCalib(
+    640, 400, np.array([[450.0, 0, 322.3], [0, 451.0, 197.6], [0, 0, 1]]), np.array([-0.12, 0.05, 0.0005, -0.0003, 0.0])
+)
+FISHEYE = CameraCalib(
+    640,
+    400,
+    np.array([[300.0, 0, 322.3], [0, 300.5, 197.6], [0, 0, 1]]),
+    np.array([-0.02, -0.008, 0.008, -0.004]),
+    "fisheye",
+)
 
 
 def _views(cam: CameraCalib, n: int, seed: int = 0, distance=(0.35, 0.6)) -> list:
@@ -57,8 +63,9 @@ def test_fisheye_synthetic_meets_targets():
 
 def test_fisheye_fixed_distortion_recovers_focal():
     dets = _views(FISHEYE, 3, seed=2, distance=(0.19, 0.3))
-    guess = CameraCalib(640, 400, FISHEYE.K * np.array([[1.03, 1, 1], [1, 1.03, 1], [1, 1, 1]]), FISHEYE.dist,
-                        "fisheye")
+    guess = CameraCalib(
+        640, 400, FISHEYE.K * np.array([[1.03, 1, 1], [1, 1.03, 1], [1, 1, 1]]), FISHEYE.dist, "fisheye"
+    )
     r = calibrate_intrinsics(dets, SPEC, "fisheye", guess=guess, fix=("principal_point", "distortion"))
     assert np.allclose(r.camera.dist, FISHEYE.dist)
     assert abs(r.camera.K[0, 0] / FISHEYE.K[0, 0] - 1) < 0.005

@@ -91,8 +91,10 @@ def test_exposure_and_white_balance_normalisation():
     # the camera boosted red x2 (AWB under a blue-ish light): undoing it restores the light's colour
     wb = undo_white_balance(np.array([[[0.4, 0.2, 0.2]]], np.float32), (2.0, 1.0, 1.0))
     assert np.allclose(wb, [0.2, 0.2, 0.2])
-    out, _ = normalize_exposure(np.array([[[0.4, 0.2, 0.2]]], np.float32),
-                                Exposure(exposure_us=REFERENCE.exposure_us, iso=100, wb_gains=(4.0, 2.0, 2.0)))
+    out, _ = normalize_exposure(
+        np.array([[[0.4, 0.2, 0.2]]], np.float32),
+        Exposure(exposure_us=REFERENCE.exposure_us, iso=100, wb_gains=(4.0, 2.0, 2.0)),
+    )
     assert np.allclose(out, [0.2, 0.2, 0.2])
     with pytest.raises(ValueError, match="wb_gains must be 3 positive numbers"):
         undo_white_balance(lin, (1.0, 0.0, 1.0))

@@ -65,8 +65,23 @@ def test_import_errors(tmp_path):
     with pytest.raises(CalibrationError, match=r"cameraData\[0\]: missing key 'intrinsicMatrix'"):
         parse_depthai({"cameraData": [[1, {"width": 10, "height": 10, "distortionCoeff": []}]]}, "x.json")
     with pytest.raises(CalibrationError, match="cameraType: expected 0 .* or 1"):
-        parse_depthai({"cameraData": [[1, {"width": 10, "height": 10, "intrinsicMatrix": np.eye(3).tolist(),
-                                           "distortionCoeff": [0] * 14, "cameraType": 5}]]}, "x.json")
+        parse_depthai(
+            {
+                "cameraData": [
+                    [
+                        1,
+                        {
+                            "width": 10,
+                            "height": 10,
+                            "intrinsicMatrix": np.eye(3).tolist(),
+                            "distortionCoeff": [0] * 14,
+                            "cameraType": 5,
+                        },
+                    ]
+                ]
+            },
+            "x.json",
+        )
     p = tmp_path / "d.json"
     p.write_text("[1, 2")
     with pytest.raises(CalibrationError, match="d.json: not valid JSON"):
@@ -84,8 +99,9 @@ def test_factory_intrinsics_fit_and_identify_cameras(rig):
     calib, dets = rig
     for folder, sock in CAMS.items():
         own = evaluate_intrinsics(dets[folder], RIG_BOARD, calib.camera(sock)).rms_px
-        others = [evaluate_intrinsics(dets[folder], RIG_BOARD, calib.camera(s)).rms_px
-                  for s in CAMS.values() if s != sock]
+        others = [
+            evaluate_intrinsics(dets[folder], RIG_BOARD, calib.camera(s)).rms_px for s in CAMS.values() if s != sock
+        ]
         print(f"{folder}: factory {sock} RMS {own:.3f} px; other cameras' intrinsics {[round(o, 3) for o in others]}")
         assert own < 0.35
         assert own < min(others)  # the folder names match the sockets
@@ -97,23 +113,28 @@ def test_focal_length_vs_factory(rig):
         ref = calib.camera(sock)
         r = calibrate_intrinsics(dets[folder], RIG_BOARD, "fisheye", guess=ref, fix=("principal_point", "distortion"))
         rel = r.camera.K[0, 0] / ref.K[0, 0] - 1
-        print(f"{folder}: fx {r.camera.K[0, 0]:.2f} vs factory {ref.K[0, 0]:.2f} ({100 * rel:+.2f} %), "
-              f"rms {r.rms_px:.3f} px")
+        print(
+            f"{folder}: fx {r.camera.K[0, 0]:.2f} vs factory {ref.K[0, 0]:.2f} ({100 * rel:+.2f} %), "
+            f"rms {r.rms_px:.3f} px"
+        )
         assert abs(rel) < 0.01
         assert r.rms_px < 0.35
 
 
 def test_stereo_pose_vs_factory(rig):
     calib, dets = rig
-    res = calibrate_stereo(dets["left"], dets["right"], RIG_BOARD, calib.camera("CAM_B"), calib.camera("CAM_C"),
-                           min_pairs=1)
+    res = calibrate_stereo(
+        dets["left"], dets["right"], RIG_BOARD, calib.camera("CAM_B"), calib.camera("CAM_C"), min_pairs=1
+    )
     ang = np.degrees(np.linalg.norm(cv2.Rodrigues(res.stereo.R.T @ calib.stereo.R)[0]))
     t_ours = res.stereo.T / np.linalg.norm(res.stereo.T)
     t_ref = calib.stereo.T / np.linalg.norm(calib.stereo.T)
     dir_deg = np.degrees(np.arccos(np.clip(t_ours @ t_ref, -1, 1)))
     square_mm = RIG_BOARD.square_mm * calib.stereo.baseline_m / res.stereo.baseline_m
-    print(f"stereo vs factory: rotation differs {ang:.3f} deg, baseline direction {dir_deg:.3f} deg, "
-          f"implied displayed square {square_mm:.1f} mm, rms {res.rms_px:.3f} px")
+    print(
+        f"stereo vs factory: rotation differs {ang:.3f} deg, baseline direction {dir_deg:.3f} deg, "
+        f"implied displayed square {square_mm:.1f} mm, rms {res.rms_px:.3f} px"
+    )
     assert ang < 0.2 and dir_deg < 0.5
     assert res.rms_px < 0.4
 
@@ -134,8 +155,9 @@ def test_host_stereo_on_real_fisheye_pair(shared_data, rig):
     rv, tv, _ = board_pose(BoardDetector(spec).detect(left), spec, calib.camera("CAM_B"))
     size = (960, 600)
     hs = HostStereo(calib, image_size=size, min_depth_m=0.4)
-    _, depth = hs.compute(cv2.resize(left, size, interpolation=cv2.INTER_AREA),
-                          cv2.resize(right, size, interpolation=cv2.INTER_AREA))
+    _, depth = hs.compute(
+        cv2.resize(left, size, interpolation=cv2.INTER_AREA), cv2.resize(right, size, interpolation=cv2.INTER_AREA)
+    )
     R1, P1 = hs.rectification.R1, hs.rectification.P1
     Rb = cv2.Rodrigues(rv)[0]
     n, p0 = R1 @ Rb[:, 2], R1 @ tv
@@ -149,8 +171,10 @@ def test_host_stereo_on_real_fisheye_pair(shared_data, rig):
     cv2.fillConvexPoly(mask, hull, 1)
     ok = (mask > 0) & (depth > 0)
     rel = np.abs(depth[ok] - z_true[ok]) / z_true[ok]
-    print(f"real fisheye pair: board at {np.median(z_true[mask > 0]):.3f} m, "
-          f"{100 * ok.sum() / mask.sum():.1f} % valid, "
-          f"depth error median {100 * np.median(rel):.2f} %, p90 {100 * np.percentile(rel, 90):.2f} %")
+    print(
+        f"real fisheye pair: board at {np.median(z_true[mask > 0]):.3f} m, "
+        f"{100 * ok.sum() / mask.sum():.1f} % valid, "
+        f"depth error median {100 * np.median(rel):.2f} %, p90 {100 * np.percentile(rel, 90):.2f} %"
+    )
     assert ok.sum() / mask.sum() > 0.8
     assert np.median(rel) < 0.03

@@ -52,9 +52,11 @@ def test_stereo_calibration_synthetic_baseline_within_1_percent():
     res = calibrate_stereo(dl, dr, SPEC, cl, cr)
     err = abs(res.stereo.baseline_m / 0.075 - 1)
     ang = np.degrees(np.linalg.norm(cv2.Rodrigues(res.stereo.R.T @ R)[0]))
-    print(f"stereo: baseline {1000 * res.stereo.baseline_m:.2f} mm (error {100 * err:.3f} %), "
-          f"rotation error {ang:.3f} deg, "
-          f"rms {res.rms_px:.3f} px")
+    print(
+        f"stereo: baseline {1000 * res.stereo.baseline_m:.2f} mm (error {100 * err:.3f} %), "
+        f"rotation error {ang:.3f} deg, "
+        f"rms {res.rms_px:.3f} px"
+    )
     assert err < 0.01
     assert ang < 0.2
     assert res.rms_px < 0.5

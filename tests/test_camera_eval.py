@@ -13,10 +13,13 @@ from illuminet.runtime.config import ConfigError
 
 
 def test_variants_parse_with_toml_values():
-    v = parse_variant("pinned:anchor.point=[0.1, 0.3, 1.5],model.shading=\"sh\", plane_light.extra_planes=2")
+    v = parse_variant('pinned:anchor.point=[0.1, 0.3, 1.5],model.shading="sh", plane_light.extra_planes=2')
     assert v.name == "pinned"
-    assert v.overrides == [("anchor", "point", [0.1, 0.3, 1.5]), ("model", "shading", "sh"),
-                           ("plane_light", "extra_planes", 2)]
+    assert v.overrides == [
+        ("anchor", "point", [0.1, 0.3, 1.5]),
+        ("model", "shading", "sh"),
+        ("plane_light", "extra_planes", 2),
+    ]
     for bad in ("nocolon", ":model.shading=sh", "x:model_shading=sh"):
         with pytest.raises(ConfigError):
             parse_variant(bad)
@@ -33,8 +36,25 @@ def test_metrics_are_blind_to_scale_only_where_they_say_so():
 def ci_run(tmp_path_factory):
     """The CI-sized run: 1 scene per suite, 3 frames, 300 vertices, one extra variant."""
     out = tmp_path_factory.mktemp("eval")
-    rc = main(["eval", "--bundle", "builtin:bowl", "--cases", "0", "--camera-scenes", "1", "--camera-frames", "3",
-               "--vertices", "300", "--out", str(out), "--variant", "nosmooth:model.temporal_smoothing=0"])
+    rc = main(
+        [
+            "eval",
+            "--bundle",
+            "builtin:bowl",
+            "--cases",
+            "0",
+            "--camera-scenes",
+            "1",
+            "--camera-frames",
+            "3",
+            "--vertices",
+            "300",
+            "--out",
+            str(out),
+            "--variant",
+            "nosmooth:model.temporal_smoothing=0",
+        ]
+    )
     assert rc == 0
     return json.loads((out / "eval.json").read_text()), (out / "eval.md").read_text()
 

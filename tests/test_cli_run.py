@@ -19,12 +19,32 @@ from illuminet.runtime.stream.session import SessionReader
 from ._sessions import cli, make_session, same_frame, spawn, wait_for_lines
 
 
-@pytest.mark.parametrize("cmd, flags", [
-    ("run", ["--timing", "--loop", "--max-frames", "--video", "--png-dir", "--record", "--mjpeg", "--listen",
-             "--port", "--strict", "--stats-json"]),
-    ("replay", ["--check", "--timing", "--loop", "--max-frames", "--video", "--png-dir", "--record", "--stats-json"]),
-    ("record", ["SOURCE_URL", "OUT", "--color", "--jpeg-quality", "--no-fsync", "--max-frames", "--timing"]),
-])
+@pytest.mark.parametrize(
+    "cmd, flags",
+    [
+        (
+            "run",
+            [
+                "--timing",
+                "--loop",
+                "--max-frames",
+                "--video",
+                "--png-dir",
+                "--record",
+                "--mjpeg",
+                "--listen",
+                "--port",
+                "--strict",
+                "--stats-json",
+            ],
+        ),
+        (
+            "replay",
+            ["--check", "--timing", "--loop", "--max-frames", "--video", "--png-dir", "--record", "--stats-json"],
+        ),
+        ("record", ["SOURCE_URL", "OUT", "--color", "--jpeg-quality", "--no-fsync", "--max-frames", "--timing"]),
+    ],
+)
 def test_help(capsys, cmd, flags):
     with pytest.raises(SystemExit) as e:
         main([cmd, "--help"])
@@ -35,8 +55,24 @@ def test_help(capsys, cmd, flags):
 
 
 def test_flags_override_the_config():
-    args = build_parser().parse_args(["run", "replay://x", "--timing", "asap", "--no-loop", "--max-frames", "5",
-                                      "--png-dir", "p", "--port", "9000", "--strict", "--stats-json", "s.json"])
+    args = build_parser().parse_args(
+        [
+            "run",
+            "replay://x",
+            "--timing",
+            "asap",
+            "--no-loop",
+            "--max-frames",
+            "5",
+            "--png-dir",
+            "p",
+            "--port",
+            "9000",
+            "--strict",
+            "--stats-json",
+            "s.json",
+        ]
+    )
     cfg = config_with_flags(args, defaults())
     assert cfg.source.timing == "asap" and cfg.source.loop is False and cfg.source.max_frames == 5
     assert cfg.output.png_dir == "p" and cfg.output.port == 9000 and cfg.output.video == ""
@@ -48,8 +84,16 @@ def test_flags_override_the_config():
 def test_record_then_replay_end_to_end(tmp_path, capsys):
     src = make_session(tmp_path / "src", 9)
     rec = tmp_path / "rec"
-    rc = main(["record", f"replay://{tmp_path}/src?timing=asap", str(rec), "--no-fsync",
-               "--stats-json", str(tmp_path / "rec.json")])
+    rc = main(
+        [
+            "record",
+            f"replay://{tmp_path}/src?timing=asap",
+            str(rec),
+            "--no-fsync",
+            "--stats-json",
+            str(tmp_path / "rec.json"),
+        ]
+    )
     assert rc == 0
     out = capsys.readouterr().out
     assert "sink:record" in out and "9 frames in" in out
@@ -60,8 +104,18 @@ def test_record_then_replay_end_to_end(tmp_path, capsys):
     st = json.loads((tmp_path / "rec.json").read_text())
     assert st["frames"] == 9 and "sink:record" in st["steps"]
 
-    p = cli("replay", str(rec), "--timing", "asap", "--png-dir", str(tmp_path / "png"),
-            "--video", str(tmp_path / "out.avi"), "--stats-json", str(tmp_path / "replay.json"))
+    p = cli(
+        "replay",
+        str(rec),
+        "--timing",
+        "asap",
+        "--png-dir",
+        str(tmp_path / "png"),
+        "--video",
+        str(tmp_path / "out.avi"),
+        "--stats-json",
+        str(tmp_path / "replay.json"),
+    )
     assert p.returncode == 0, p.stderr
     pngs = sorted((tmp_path / "png").glob("*.png"))
     assert [p.name for p in pngs] == [f"frame_{k:06d}.png" for k in range(9)]
@@ -90,16 +144,35 @@ def test_run_records_its_input_while_processing(tmp_path):
 
 def test_run_with_loop_and_max_frames(tmp_path, capsys):
     make_session(tmp_path / "s", 4)
-    p = cli("run", f"replay://{tmp_path}/s", "--timing", "asap", "--loop", "--max-frames", "10",
-            "--stats-json", str(tmp_path / "st.json"))
+    p = cli(
+        "run",
+        f"replay://{tmp_path}/s",
+        "--timing",
+        "asap",
+        "--loop",
+        "--max-frames",
+        "10",
+        "--stats-json",
+        str(tmp_path / "st.json"),
+    )
     assert p.returncode == 0, p.stderr
     st = json.loads((tmp_path / "st.json").read_text())
     assert st["frames"] == 10
 
 
 def test_record_from_synthetic(tmp_path):
-    rc = main(["record", "synthetic://indoor?seed=0", str(tmp_path / "rec"), "--max-frames", "3", "--timing", "asap",
-               "--no-fsync"])
+    rc = main(
+        [
+            "record",
+            "synthetic://indoor?seed=0",
+            str(tmp_path / "rec"),
+            "--max-frames",
+            "3",
+            "--timing",
+            "asap",
+            "--no-fsync",
+        ]
+    )
     assert rc == 0
     r = SessionReader(tmp_path / "rec", strict=True)
     assert len(r) == 3 and r.has_depth
@@ -161,6 +234,7 @@ def test_cli_record_killed_with_sigkill_replays_complete_frames(tmp_path):
 
 def test_bench_replay_reports_its_figures(capsys):
     from illuminet.bench.replay import measure
+
     d = measure(12, 2, defaults(), width=64, height=48, colors=("png", "raw"))  # the real path, small frames
     out = capsys.readouterr().out
     assert "median" in out and "frames/s" in out and "CPU time" in out and "source" in out

@@ -18,8 +18,11 @@ def test_config_toml_documents_every_key_with_its_default():
         for key in keys:
             # every key is preceded by a comment line
             lines = text.splitlines()
-            i = next(i for i, line in enumerate(lines)
-                     if line.startswith(f"{key} =") and f"[{section}]" in "\n".join(lines[:i]))
+            i = next(
+                i
+                for i, line in enumerate(lines)
+                if line.startswith(f"{key} =") and f"[{section}]" in "\n".join(lines[:i])
+            )
             assert lines[i - 1].startswith("#"), f"[{section}] {key} has no comment"
 
 

@@ -18,8 +18,14 @@ from .conftest import REPO
 
 
 def _frame(seq=0):
-    return Frame(seq=seq, t_device_ns=seq, t_host_ns=seq, color=np.zeros((4, 4, 3), np.uint8), depth=None,
-                 intrinsics=Intrinsics(1, 1, 1, 1, 4, 4))
+    return Frame(
+        seq=seq,
+        t_device_ns=seq,
+        t_host_ns=seq,
+        color=np.zeros((4, 4, 3), np.uint8),
+        depth=None,
+        intrinsics=Intrinsics(1, 1, 1, 1, 4, 4),
+    )
 
 
 class _Producer(Stage):
@@ -63,8 +69,11 @@ def test_default_chain_is_wired_and_every_key_is_declared():
 def test_missing_producer_names_both_stages():
     with pytest.raises(PipelineError, match=r"stage 'consumer' requires results\['planes'\].*before 'consumer'"):
         check_chain([_Consumer()])
-    with pytest.raises(PipelineError, match=r"stage 'consumer' reads results\['planes'\], which stage 'producer' "
-                                            r"provides only after it: put 'producer' before 'consumer'"):
+    with pytest.raises(
+        PipelineError,
+        match=r"stage 'consumer' reads results\['planes'\], which stage 'producer' "
+        r"provides only after it: put 'producer' before 'consumer'",
+    ):
         check_chain([_Consumer(), _Producer()])
     with pytest.raises(PipelineError, match=r"requires results\[.plane_light.\]"):
         StageChain([s for s in build_stages(defaults(), render=False) if s.name != "plane_light"])
@@ -129,9 +138,13 @@ def test_keys_are_not_spelled_as_strings_outside_the_contracts():
                 continue
             tree = ast.parse(py.read_text())
             for node in ast.walk(tree):
-                if isinstance(node, ast.Call) and getattr(node.func, "attr", "") in ("with_result", "get") \
-                        and node.args and isinstance(node.args[0], ast.Constant) \
-                        and node.args[0].value in RESULT_KEYS:
+                if (
+                    isinstance(node, ast.Call)
+                    and getattr(node.func, "attr", "") in ("with_result", "get")
+                    and node.args
+                    and isinstance(node.args[0], ast.Constant)
+                    and node.args[0].value in RESULT_KEYS
+                ):
                     if getattr(node.func, "attr", "") == "get" and "results" not in ast.unparse(node.func):
                         continue
                     bad.append(f"{py.relative_to(REPO)}:{node.lineno} {ast.unparse(node)}")

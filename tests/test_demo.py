@@ -51,8 +51,21 @@ def test_demo_writes_video_still_and_reports(tmp_path, capsys):
 def test_demo_composites_the_object_into_the_picture(tmp_path, capsys):
     pngs = tmp_path / "png"
     src = "synthetic://indoor?seed=0&frames=2&size=640x400"
-    rc = main(["demo", "--frames", "2", "--no-video", "--png-dir", str(pngs), "--source", src,
-               "--still", str(tmp_path / "s.png"), "--strict"])
+    rc = main(
+        [
+            "demo",
+            "--frames",
+            "2",
+            "--no-video",
+            "--png-dir",
+            str(pngs),
+            "--source",
+            src,
+            "--still",
+            str(tmp_path / "s.png"),
+            "--strict",
+        ]
+    )
     assert rc == 0, capsys.readouterr().out
     files = sorted(pngs.glob("*.png"))
     assert len(files) == 2
@@ -74,8 +87,9 @@ def test_demo_frames_and_live_config():
 
     args = build_parser().parse_args(["demo"])
     assert demo_frames(args) == 90 and demo_config(args, defaults()).source.timing == "asap"
-    args = build_parser().parse_args(["demo", "--mjpeg", "--port", "0", "--estimates", "e.jsonl",
-                                      "--viewer-model", "builtin:bowl"])
+    args = build_parser().parse_args(
+        ["demo", "--mjpeg", "--port", "0", "--estimates", "e.jsonl", "--viewer-model", "builtin:bowl"]
+    )
     cfg = demo_config(args, defaults())
     # serving: real time, until Ctrl-C
     assert demo_frames(args) == 0 and cfg.source.timing == "recorded" and cfg.source.max_frames == 0

@@ -71,8 +71,8 @@ def test_default_session_vase_is_lit_tinted_and_shadowed_by_the_lamp(gl):
         pc = anchor.R @ p_obj + anchor.t
         u, v, _ = (K @ pc) / pc[2]
         u, v = int(round(u)), int(round(v))
-        a = comp[v - 3:v + 4, u - 3:u + 4].mean()
-        b = f.color[v - 3:v + 4, u - 3:u + 4].astype(np.float64).mean()
+        a = comp[v - 3 : v + 4, u - 3 : u + 4].mean()
+        b = f.color[v - 3 : v + 4, u - 3 : u + 4].astype(np.float64).mean()
         return a / max(b, 1e-6)
 
     shadow_side = darkening(-0.2 * h)

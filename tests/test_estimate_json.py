@@ -17,7 +17,11 @@ from illuminet.runtime.frame import Frame, Intrinsics
 from illuminet.runtime.scene import LIGHT, LightEstimate
 from illuminet.runtime.sh import sh9
 from illuminet.runtime.stream.estimate_json import (
-    estimate_dict, estimate_from_dict, frame_estimate, load_schema, to_line,
+    estimate_dict,
+    estimate_from_dict,
+    frame_estimate,
+    load_schema,
+    to_line,
 )
 from illuminet.runtime.stream.mjpeg import MjpegSink
 from illuminet.runtime.stream.session import ESTIMATES, SessionReader, SessionWriter
@@ -36,12 +40,23 @@ def _estimate(direction=(0.6, 0.8, 0.0), primary=(2.0, 1.5, 1.0), k=0.05, pos=No
     T = np.eye(4)
     T[:3, 3] = [0.1, 0.4, 2.0]
     return LightEstimate(
-        sh9=sh, primary_dir=None if direction is None else np.array(direction) / np.linalg.norm(direction),
-        primary_rgb=np.array(primary), primary_pos=None if pos is None else np.array(pos),
+        sh9=sh,
+        primary_dir=None if direction is None else np.array(direction) / np.linalg.norm(direction),
+        primary_rgb=np.array(primary),
+        primary_pos=None if pos is None else np.array(pos),
         confidence={"ambient": 0.8, "direction": 0.7, "intensity": 0.5, "colour": 0.9, "position": 0.0},
-        observed={"planes": np.int64(2), "plane_labels": ["floor", "wall"], "shadow": None,
-                  "env_coverage": np.float32(0.4), "emitters": 1, "cues": ["near_light"]},
-        exposure_scale=k, method="scene", T_cam_obj=T)
+        observed={
+            "planes": np.int64(2),
+            "plane_labels": ["floor", "wall"],
+            "shadow": None,
+            "env_coverage": np.float32(0.4),
+            "emitters": 1,
+            "cues": ["near_light"],
+        },
+        exposure_scale=k,
+        method="scene",
+        T_cam_obj=T,
+    )
 
 
 def _three_irradiance(coeffs27: list[float], n: np.ndarray) -> np.ndarray:
@@ -49,9 +64,17 @@ def _three_irradiance(coeffs27: list[float], n: np.ndarray) -> np.ndarray:
     LightProbe with these coefficients gives a surface with normal n."""
     c = np.asarray(coeffs27).reshape(9, 3)
     x, y, z = n
-    return (c[0] * 0.886227 + c[1] * 2.0 * 0.511664 * y + c[2] * 2.0 * 0.511664 * z + c[3] * 2.0 * 0.511664 * x
-            + c[4] * 2.0 * 0.429043 * x * y + c[5] * 2.0 * 0.429043 * y * z + c[6] * (0.743125 * z * z - 0.247708)
-            + c[7] * 2.0 * 0.429043 * x * z + c[8] * 0.429043 * (x * x - y * y))
+    return (
+        c[0] * 0.886227
+        + c[1] * 2.0 * 0.511664 * y
+        + c[2] * 2.0 * 0.511664 * z
+        + c[3] * 2.0 * 0.511664 * x
+        + c[4] * 2.0 * 0.429043 * x * y
+        + c[5] * 2.0 * 0.429043 * y * z
+        + c[6] * (0.743125 * z * z - 0.247708)
+        + c[7] * 2.0 * 0.429043 * x * z
+        + c[8] * 0.429043 * (x * x - y * y)
+    )
 
 
 def test_sh_is_threejs_lightprobe_radiance_in_camera_linear_units():
@@ -98,8 +121,12 @@ def test_no_primary_light_near_light_position_and_round_trip():
 
 def test_schema_rejects_what_it_should():
     d = estimate_dict(_estimate(), seq=1, t_device_ns=0)
-    for bad in ({"sphericalHarmonicsCoefficients": [0.0] * 26}, {"primaryLightDirection": {"x": 0, "y": 1, "z": 0, "w": 1}},
-                {"confidence": dict(d["confidence"], ambient=1.5)}, {"extra": 1}):
+    for bad in (
+        {"sphericalHarmonicsCoefficients": [0.0] * 26},
+        {"primaryLightDirection": {"x": 0, "y": 1, "z": 0, "w": 1}},
+        {"confidence": dict(d["confidence"], ambient=1.5)},
+        {"extra": 1},
+    ):
         with pytest.raises(jsonschema.ValidationError):
             jsonschema.validate(dict(d, **bad), SCHEMA)
     nan = _estimate()
@@ -260,14 +287,26 @@ def test_pages_static_files_and_model_are_served_and_traversal_is_refused():
         status, head, body = _get(sink.port, "/viewer")
         assert status == 200 and head["content-type"].startswith("text/html")
         assert b'"three": "/static/three/three.module.js"' in body and b"/static/viewer.js" in body
-        for rel in ("viewer.js", "three/three.module.js", "three/three.core.js", "three/addons/loaders/GLTFLoader.js",
-                    "three/addons/controls/OrbitControls.js", "three/LICENSE", "three/VERSION"):
+        for rel in (
+            "viewer.js",
+            "three/three.module.js",
+            "three/three.core.js",
+            "three/addons/loaders/GLTFLoader.js",
+            "three/addons/controls/OrbitControls.js",
+            "three/LICENSE",
+            "three/VERSION",
+        ):
             status, head, body = _get(sink.port, "/static/" + rel)
             assert status == 200 and len(body) > 100, rel
             if rel.endswith(".js"):
                 assert head["content-type"].startswith("text/javascript"), rel
-        for bad in ("/static/../mjpeg.py", "/static/three/../../viewer.py", "/static/%2e%2e/mjpeg.py",
-                    "/static/.hidden", "/static//etc/passwd"):
+        for bad in (
+            "/static/../mjpeg.py",
+            "/static/three/../../viewer.py",
+            "/static/%2e%2e/mjpeg.py",
+            "/static/.hidden",
+            "/static//etc/passwd",
+        ):
             assert _get(sink.port, bad)[0] == 404, bad
         status, head, body = _get(sink.port, "/model.glb")
         assert status == 200 and head["content-type"] == "model/gltf-binary" and body[:4] == b"glTF"
@@ -280,7 +319,7 @@ def test_pages_static_files_and_model_are_served_and_traversal_is_refused():
         assert abs(lo[1]) < 1e-6 and 0.05 < hi[1] < 0.5  # standing on y = 0, +Y up, metres
         # smooth normals are in the file (without them glTF viewers shade flat)
         n = int.from_bytes(body[12:16], "little")
-        gltf = json.loads(body[20:20 + n])
+        gltf = json.loads(body[20 : 20 + n])
         assert "NORMAL" in gltf["meshes"][0]["primitives"][0]["attributes"]
 
 
@@ -299,7 +338,7 @@ def test_camera_stream_is_the_picture_without_the_object():
             data = b""
             while data.count(b"\xff\xd9") < 1:
                 data += r.fp.read1(65536)
-            jpg = data[data.index(b"\xff\xd8"):data.index(b"\xff\xd9") + 2]
+            jpg = data[data.index(b"\xff\xd8") : data.index(b"\xff\xd9") + 2]
             out[src] = cv2.imdecode(np.frombuffer(jpg, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
             conn.close()
         assert _get(sink.port, "/stream.mjpg?source=nope")[0] == 400
@@ -325,11 +364,35 @@ def test_replay_reproduces_the_recorded_estimates(tmp_path, gl, capsys):
     from illuminet.commands.demo import DEFAULT_SESSION
 
     src = f"replay://{DEFAULT_SESSION}?timing=asap"
-    rc = main(["--log-level", "warning", "--set", "output.record_fsync=false", "run", src, "--max-frames", "6",
-               "--record", str(tmp_path / "rec"), "--estimates", str(tmp_path / "live.jsonl")])
+    rc = main(
+        [
+            "--log-level",
+            "warning",
+            "--set",
+            "output.record_fsync=false",
+            "run",
+            src,
+            "--max-frames",
+            "6",
+            "--record",
+            str(tmp_path / "rec"),
+            "--estimates",
+            str(tmp_path / "live.jsonl"),
+        ]
+    )
     assert rc == 0, capsys.readouterr()
-    rc = main(["--log-level", "warning", "replay", str(tmp_path / "rec"), "--timing", "asap",
-               "--estimates", str(tmp_path / "replay.jsonl")])
+    rc = main(
+        [
+            "--log-level",
+            "warning",
+            "replay",
+            str(tmp_path / "rec"),
+            "--timing",
+            "asap",
+            "--estimates",
+            str(tmp_path / "replay.jsonl"),
+        ]
+    )
     assert rc == 0, capsys.readouterr()
 
     def load(path):

@@ -48,8 +48,14 @@ def test_no_folder_imports_one_that_imports_it_back():
 #: subpackages of runtime that must not import ground truth
 NO_GROUNDTRUTH = ("runtime/stages", "runtime/render", "runtime/stream")
 #: modules of the runtime floor (runtime/*.py) may import only the floor itself
-FLOOR_MAY_IMPORT = ("illuminet.runtime.frame", "illuminet.runtime.scene", "illuminet.runtime.stage",
-                    "illuminet.runtime.physics", "illuminet.runtime.config", "illuminet.runtime.sh")
+FLOOR_MAY_IMPORT = (
+    "illuminet.runtime.frame",
+    "illuminet.runtime.scene",
+    "illuminet.runtime.stage",
+    "illuminet.runtime.physics",
+    "illuminet.runtime.config",
+    "illuminet.runtime.sh",
+)
 
 
 def test_lower_layers_do_not_import_the_entry_package():

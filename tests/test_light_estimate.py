@@ -17,8 +17,9 @@ LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 def _chain(src, *over):
     T0 = src.scene.default_anchor(0)
-    cfg = apply_overrides(defaults(), [("anchor", "mode", "point"), ("anchor", "point", [float(x) for x in T0[:3, 3]]),
-                                       *over])
+    cfg = apply_overrides(
+        defaults(), [("anchor", "mode", "point"), ("anchor", "point", [float(x) for x in T0[:3, 3]]), *over]
+    )
     stages = [s for s in build_stages(cfg, render=False) if s.name != "shading"]
     for s in stages:
         s.open()

@@ -295,8 +295,9 @@ def test_visibility_field_is_close_to_exact_ray_casts():
 def test_glb_scene_is_flattened_with_its_transforms(tmp_path):
     scene = trimesh.Scene()
     scene.add_geometry(trimesh.creation.box([1.0, 1.0, 1.0]))
-    scene.add_geometry(trimesh.creation.icosphere(radius=0.5),
-                       transform=trimesh.transformations.translation_matrix([0.0, 2.0, 0.0]))
+    scene.add_geometry(
+        trimesh.creation.icosphere(radius=0.5), transform=trimesh.transformations.translation_matrix([0.0, 2.0, 0.0])
+    )
     path = tmp_path / "two.glb"
     scene.export(path)
     m = load_object(str(path))

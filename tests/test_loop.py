@@ -106,6 +106,7 @@ def test_each_error_kind_is_logged_once(session, caplog):
             if frame.seq in (5, 6):
                 raise KeyError("b")
             return frame
+
     with caplog.at_level(logging.ERROR):
         st = run_loop(_asap(session), [Two()], [])
     assert st.failures == {"stage:level: ValueError": 2, "stage:level: KeyError": 2}
@@ -132,6 +133,7 @@ def test_stage_returning_no_frame_is_a_failure(session):
 
         def process(self, frame):
             return None
+
     with pytest.raises(TypeError, match="returned NoneType, expected a Frame"):
         run_loop(_asap(session), [Bad()], [], strict=True)
     assert run_loop(_asap(session), [Bad()], []).failed_frames == 10
@@ -259,8 +261,15 @@ def test_snapshot_is_thread_safe_and_on_stats_is_called(session):
     t = threading.Thread(target=reader)
     t.start()
     try:
-        run_loop(_asap(session, loop=True), [SeqStage(delay_s=0.002)], [HandOver()], max_frames=60,
-                 stats=stats, on_stats=reports.append, stats_interval_s=0.0)
+        run_loop(
+            _asap(session, loop=True),
+            [SeqStage(delay_s=0.002)],
+            [HandOver()],
+            max_frames=60,
+            stats=stats,
+            on_stats=reports.append,
+            stats_interval_s=0.0,
+        )
     finally:
         done.set()
         turn.set()
@@ -280,6 +289,7 @@ def test_snapshot_is_thread_safe_and_on_stats_is_called(session):
 def test_failing_stats_callback_does_not_stop_the_stream(session, caplog):
     def bad(snapshot):
         raise RuntimeError("status page gone")
+
     with caplog.at_level(logging.ERROR):
         st = run_loop(_asap(session), [], [], on_stats=bad, stats_interval_s=0.0)
     assert st.frames == 10 and "status page gone" in caplog.text
@@ -320,6 +330,7 @@ def test_sink_that_cannot_open_closes_what_was_opened(session):
 
         def write(self, frame):
             pass
+
     stage, src = SeqStage(), _asap(session)
     with pytest.raises(OSError, match="cannot open output"):
         run_loop(src, [stage], [NoOpen()])

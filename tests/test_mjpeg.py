@@ -232,6 +232,7 @@ def test_bench_mjpeg_quick_runs_and_reports_a_ratio(capsys):
     import argparse
 
     from illuminet.bench.mjpeg import run
+
     res = run(argparse.Namespace(quick=True), None)
     assert res["2 clients"]["median_client_frames"] >= 1 and not res["2 clients"]["client_errors"]
     assert 0 < res["ratio_2_clients_vs_none"] < 10

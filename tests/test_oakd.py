@@ -37,23 +37,28 @@ def test_parse_url_defaults_and_options():
     o = oakd.parse_url("oakd://")
     assert o.device == "" and o.size == (640, 400) and o.queue == 2 and o.fps == 30
     assert o.sync_threshold == datetime.timedelta(milliseconds=500 / 30)
-    o = oakd.parse_url("oakd://18443010F116631200?fps=15&size=1280x800&queue=1&imu=0&preset=high_detail"
-                       "&mono=1280x800&exposure_us=8000&iso=400&reconnect=0")
+    o = oakd.parse_url(
+        "oakd://18443010F116631200?fps=15&size=1280x800&queue=1&imu=0&preset=high_detail"
+        "&mono=1280x800&exposure_us=8000&iso=400&reconnect=0"
+    )
     assert o.device == "18443010F116631200" and o.fps == 15 and o.size == (1280, 800)
     assert o.queue == 1 and o.imu is False and o.preset == "high_detail" and o.mono_size == (1280, 800)
     assert (o.exposure_us, o.iso, o.reconnect) == (8000, 400, False)
     assert oakd.parse_url("oakd://192.168.1.44").device == "192.168.1.44"
 
 
-@pytest.mark.parametrize("url, msg", [
-    ("oakd://?queue=9", "queue=9: expected 1..4"),
-    ("oakd://?size=640", "expected WIDTHxHEIGHT"),
-    ("oakd://?fps=fast", "expected a number"),
-    ("oakd://?color=1", "unknown parameter 'color'"),
-    ("oakd://?preset=magic", "preset='magic'"),
-    ("oakd://?exposure_us=1000", "needs both exposure_us and iso"),
-    ("oakd://?imu=maybe", "expected 0/1"),
-])
+@pytest.mark.parametrize(
+    "url, msg",
+    [
+        ("oakd://?queue=9", "queue=9: expected 1..4"),
+        ("oakd://?size=640", "expected WIDTHxHEIGHT"),
+        ("oakd://?fps=fast", "expected a number"),
+        ("oakd://?color=1", "unknown parameter 'color'"),
+        ("oakd://?preset=magic", "preset='magic'"),
+        ("oakd://?exposure_us=1000", "needs both exposure_us and iso"),
+        ("oakd://?imu=maybe", "expected 0/1"),
+    ],
+)
 def test_parse_url_refuses_bad_values(url, msg):
     with pytest.raises(ValueError, match=msg.replace("(", r"\(").replace(")", r"\)")):
         oakd.parse_url(url)
@@ -204,6 +209,7 @@ def _imu(t_s: float, acc):
 
 def test_device_imu_gives_gravity_in_colour_camera_axes():
     from illuminet.hw.serial_imu import ImuMatcher
+
     # an IMU whose x axis points along the camera's y (down): R maps IMU x -> camera y
     R = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
     conv = oakd.FrameConverter(Intrinsics(50, 50, 32, 20, 64, 40), imu=ImuMatcher(max_skew_ms=20, rotation=R))
@@ -242,6 +248,7 @@ def test_no_device_gives_a_clear_error(monkeypatch):
 def test_lost_device_reconnects_with_backoff_until_closed(monkeypatch):
     """With reconnect on, a device that cannot be opened is retried with growing delays; close() ends it."""
     import threading
+
     if oakd.list_devices():
         pytest.skip("an OAK device is connected")
     monkeypatch.setenv("DEPTHAI_SEARCH_TIMEOUT", "200")
@@ -292,9 +299,12 @@ class _HostRig:
         sync, queue = oakd.build_sync(pipeline, opts)
         self.inputs = (sync.inputs["color"].createInputQueue(), sync.inputs["depth"].createInputQueue())
         pipeline.start()
-        s = oakd.OakdSession(pipeline=pipeline, queues={"sync_queue": queue, "imu_queue": None},
-                             converter=oakd.FrameConverter(Intrinsics(50, 50, 32, 20, 64, 40)),
-                             device_id=f"host-rig-{len(self.sessions)}")
+        s = oakd.OakdSession(
+            pipeline=pipeline,
+            queues={"sync_queue": queue, "imu_queue": None},
+            converter=oakd.FrameConverter(Intrinsics(50, 50, 32, 20, 64, 40)),
+            device_id=f"host-rig-{len(self.sessions)}",
+        )
         self.sessions.append(s)
         return s
 
@@ -320,6 +330,7 @@ def test_source_reads_newest_and_reconnects_after_a_stall():
         # the device stalls: after timeout_s the source reconnects and goes on with the new session
         out = {}
         import threading
+
         t = threading.Thread(target=lambda: out.setdefault("f", src.read()))
         t.start()
         deadline = time.time() + 5

@@ -67,6 +67,7 @@ def _drift(poses, ref=0):
 
 # ------------------------------------------------------------------------------------ the fits
 
+
 def test_kabsch_recovers_a_rigid_motion():
     rng = np.random.default_rng(1)
     P = rng.normal(size=(50, 3))
@@ -116,6 +117,7 @@ def test_snap_keeps_yaw_and_puts_the_origin_on_the_plane():
 
 
 # ------------------------------------------------------------------- the world-locked anchor
+
 
 def test_world_locked_anchor_stays_put_over_the_orbit(orbit):
     poses, outs, an, pl = _run(orbit)
@@ -258,8 +260,9 @@ def test_tracking_holds_on_real_oakd_frames(shared_data):
         for d in sorted(p for p in dev.iterdir() if (p / "depth.png").is_file()):
             depth = depth_from_mm(cv2.imread(str(d / "depth.png"), cv2.IMREAD_UNCHANGED))
             color = cv2.cvtColor(cv2.imread(str(d / "color.png")), cv2.COLOR_BGR2RGB)
-            f = an.process(ps.process(Frame(seq=0, t_device_ns=0, t_host_ns=0, color=color, depth=depth,
-                                             intrinsics=intr)))
+            f = an.process(
+                ps.process(Frame(seq=0, t_device_ns=0, t_host_ns=0, color=color, depth=depth, intrinsics=intr))
+            )
             o = f.results["odometry"]
             assert o.state == "ok", f"{dev.name}/{d.name}: {o.reason}"
             assert o.inliers >= 100 or o.tracked == 0
@@ -291,8 +294,11 @@ def test_odometry_reports_unusable_frames_once_and_holds_the_pose(static, caplog
     f = static[0]
     assert od.update(f).state == "ok"
     with caplog.at_level(logging.WARNING):
-        bad = [f.replace(depth=None), f.replace(depth=None),
-               f.replace(color=f.color[:20, :20], depth=f.depth[:20, :20])]
+        bad = [
+            f.replace(depth=None),
+            f.replace(depth=None),
+            f.replace(color=f.color[:20, :20], depth=f.depth[:20, :20]),
+        ]
         res = [od.update(b) for b in bad]
     assert all(r.state == "lost" and r.reason for r in res)
     assert all(np.array_equal(r.T_cam_world, np.eye(4)) for r in res)

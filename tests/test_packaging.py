@@ -20,7 +20,7 @@ def _declared():
 def _folder(pkg: str, package_dir: dict[str, str]) -> str:
     """The source folder of ``pkg`` under the package-dir mapping (longest mapped prefix wins)."""
     best = max((p for p in package_dir if pkg == p or pkg.startswith(p + ".")), key=len)
-    rest = pkg[len(best):].lstrip(".")
+    rest = pkg[len(best) :].lstrip(".")
     return "/".join([package_dir[best]] + ([rest.replace(".", "/")] if rest else []))
 
 
@@ -44,8 +44,23 @@ def test_built_wheel_imports_every_package(tmp_path):
     """Build the wheel (no network: the build backend is already installed), install it into a fresh
     target folder and import every declared package from there."""
     packages, _ = _declared()
-    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
-                        "-w", str(tmp_path / "dist"), str(REPO)], capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "--no-deps",
+            "--no-build-isolation",
+            "-q",
+            "-w",
+            str(tmp_path / "dist"),
+            str(REPO),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     whl = next((tmp_path / "dist").glob("illuminet-*.whl"))
     names = zipfile.ZipFile(whl).namelist()
@@ -54,12 +69,26 @@ def test_built_wheel_imports_every_package(tmp_path):
     assert any(n.startswith("illuminet/models/bundles/") for n in names), "the shipped bundles are not in the wheel"
     # the browser pages work offline: pages, three.js (module build + addons + licence) and the schema ship
     stream = "illuminet/runtime/stream/"
-    for f in ("light_estimate.schema.json", "static/index.html", "static/viewer.html", "static/viewer.js",
-              "static/three/three.module.js", "static/three/three.core.js", "static/three/LICENSE",
-              "static/three/addons/loaders/GLTFLoader.js", "static/three/addons/utils/BufferGeometryUtils.js"):
+    for f in (
+        "light_estimate.schema.json",
+        "static/index.html",
+        "static/viewer.html",
+        "static/viewer.js",
+        "static/three/three.module.js",
+        "static/three/three.core.js",
+        "static/three/LICENSE",
+        "static/three/addons/loaders/GLTFLoader.js",
+        "static/three/addons/utils/BufferGeometryUtils.js",
+    ):
         assert stream + f in names, f"{f} is not in the wheel (pyproject package-data)"
     zipfile.ZipFile(whl).extractall(tmp_path / "site")
     code = "import importlib,sys; [importlib.import_module(p) for p in sys.argv[1:]]; import illuminet.cli"
-    r = subprocess.run([sys.executable, "-c", code, *packages], capture_output=True, text=True, timeout=120,
-                       cwd=tmp_path, env={"PYTHONPATH": str(tmp_path / "site"), "PATH": "/usr/bin:/bin"})
+    r = subprocess.run(
+        [sys.executable, "-c", code, *packages],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=tmp_path,
+        env={"PYTHONPATH": str(tmp_path / "site"), "PATH": "/usr/bin:/bin"},
+    )
     assert r.returncode == 0, r.stderr[-2000:]

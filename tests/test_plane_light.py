@@ -215,8 +215,11 @@ def test_moving_the_anchor_resets_the_fused_grid(scene):
     a = out.results["anchor"]
     T = a.T_cam_obj.copy()
     T[:3, 3] += 0.2 * T[:3, 0]  # 20 cm sideways on the plane
-    f = scene.frame(1).with_result("planes", out.results["planes"]).with_result(
-        "anchor", Anchor(T_cam_obj=T, plane_id=a.plane_id))
+    f = (
+        scene.frame(1)
+        .with_result("planes", out.results["planes"])
+        .with_result("anchor", Anchor(T_cam_obj=T, plane_id=a.plane_id))
+    )
     out2 = chain.light.process(f)
     assert chain.light.stats()["anchor_moved_resets"] == 1
     assert np.median(rel_err(out2.results["plane_light"], true_irradiance(scene, out2))) < 0.05
@@ -263,8 +266,14 @@ def test_done_when_on_the_synthetic_camera(url):
         floor = [p for p in sc.planes if p.label == "floor"][0]
         alb = np.asarray(floor.albedo_mean, float)
         pt = sc.default_anchor(0)[:3, 3]
-        cfg = apply_overrides(defaults(), [("plane_light", "assumed_albedo", float(alb.mean())),
-                                           ("anchor", "mode", "point"), ("anchor", "point", [float(x) for x in pt])])
+        cfg = apply_overrides(
+            defaults(),
+            [
+                ("plane_light", "assumed_albedo", float(alb.mean())),
+                ("anchor", "mode", "point"),
+                ("anchor", "point", [float(x) for x in pt]),
+            ],
+        )
         chain = Chain(cfg)
         for _ in range(6):
             out = chain(src.read())
@@ -315,7 +324,10 @@ def test_slow_anchor_drift_restarts_the_grid_once_it_adds_up(scene):
     for k in range(1, 6):  # 0.2 cell per frame: each step is small, the sum is a cell
         T = a.T_cam_obj.copy()
         T[:3, 3] += 0.2 * h * k * T[:3, 0]
-        f = scene.frame(k).with_result("planes", out.results["planes"]).with_result(
-            "anchor", Anchor(T_cam_obj=T, plane_id=a.plane_id))
+        f = (
+            scene.frame(k)
+            .with_result("planes", out.results["planes"])
+            .with_result("anchor", Anchor(T_cam_obj=T, plane_id=a.plane_id))
+        )
         chain.light.process(f)
     assert chain.light.stats()["anchor_moved_resets"] == 1

@@ -43,6 +43,7 @@ def _angle(a, b) -> float:
 
 # ---------------------------------------------------------------------------------------- fitting
 
+
 def test_disparity_fit_is_exact_on_a_noise_free_plane():
     n_true = np.array([0.1, -0.8, -0.5])
     n_true /= np.linalg.norm(n_true)
@@ -64,7 +65,7 @@ def test_each_method_finds_floor_and_table_within_1deg_1cm_at_1_5m(scene, method
         f = scene.frame(k)
         fits = detect_planes(make_cloud(f.depth, f.intrinsics), params, method, np.random.default_rng(k))
         errs = plane_errors(fits, truth)
-        for (label, ang, doff) in [e for e in errs[:2]]:  # floor (offset 1.5 m) and table
+        for label, ang, doff in [e for e in errs[:2]]:  # floor (offset 1.5 m) and table
             assert ang <= 1.0, (method, label, ang)
             assert doff <= 0.01, (method, label, doff)
 
@@ -96,6 +97,7 @@ def test_plane_geometry_area_extent_and_masks(scene):
 
 # ---------------------------------------------------------------------------------------- labels
 
+
 def test_labels_with_gravity(scene):
     out = PlaneStage(defaults()).process(scene.frame(0))
     labels = sorted(p.label for p in out.results["planes"])
@@ -120,11 +122,15 @@ def test_estimate_up_fallbacks():
     assert src == "largest-up-facing" and up[1] < -0.8  # floor-like beats the larger frontal wall
     up, src = estimate_up([], np.array([0, 2.0, 0]))
     assert src == "gravity" and np.allclose(up, [0, -1, 0])
-    assert label_planes([np.array([0, -1.0, 0]), np.array([0, -1.0, 0]), np.array([0, 0, -1.0])],
-                        [1.4, 0.7, 3.0], np.array([0, -1.0, 0])) == ["floor", "table", "wall"]
+    assert label_planes(
+        [np.array([0, -1.0, 0]), np.array([0, -1.0, 0]), np.array([0, 0, -1.0])],
+        [1.4, 0.7, 3.0],
+        np.array([0, -1.0, 0]),
+    ) == ["floor", "table", "wall"]
 
 
 # ---------------------------------------------------------------------------------------- tracking
+
 
 def test_tracking_keeps_ids_and_detects_only_every_n_frames(scene):
     stage = PlaneStage(_cfg(redetect_every=5))
@@ -161,18 +167,28 @@ def test_lost_track_triggers_redetection():
 
 # ---------------------------------------------------------------------------------------- bad depth
 
+
 def _frame_with_depth(depth, seq=0, size=(640, 400)):
     w, h = size
-    return Frame(seq=seq, t_device_ns=seq, t_host_ns=seq, color=np.zeros((h, w, 3), np.uint8), depth=depth,
-                 intrinsics=Intrinsics(450, 450, (w - 1) / 2, (h - 1) / 2, w, h))
+    return Frame(
+        seq=seq,
+        t_device_ns=seq,
+        t_host_ns=seq,
+        color=np.zeros((h, w, 3), np.uint8),
+        depth=depth,
+        intrinsics=Intrinsics(450, 450, (w - 1) / 2, (h - 1) / 2, w, h),
+    )
 
 
-@pytest.mark.parametrize("kind,depth", [
-    ("invalid", np.zeros((400, 640), np.float32)),
-    ("invalid", np.full((400, 640), np.nan, np.float32)),
-    ("units_mm", np.full((400, 640), 1500.0, np.float32)),
-    ("units_small", np.full((400, 640), 0.0015, np.float32)),
-])
+@pytest.mark.parametrize(
+    "kind,depth",
+    [
+        ("invalid", np.zeros((400, 640), np.float32)),
+        ("invalid", np.full((400, 640), np.nan, np.float32)),
+        ("units_mm", np.full((400, 640), 1500.0, np.float32)),
+        ("units_small", np.full((400, 640), 0.0015, np.float32)),
+    ],
+)
 def test_bad_depth_is_reported_once_and_the_stream_continues(scene, caplog, kind, depth):
     stage = PlaneStage(defaults())
     good = stage.process(scene.frame(0)).results["planes"]
@@ -219,6 +235,7 @@ def test_check_depth_messages():
 
 
 # ---------------------------------------------------------------------------------------- anchor
+
 
 def _anchor_chain(cfg, frame):
     f = PlaneStage(cfg).process(frame)
@@ -309,8 +326,9 @@ def test_object_frame_when_looking_straight_down():
 
 @pytest.mark.parametrize("lock", ["camera", "world"])
 def test_pixel_outside_the_image_falls_back_to_the_centre_once(scene, caplog, lock):
-    cfg = apply_overrides(defaults(), [("anchor", "mode", "pixel"), ("anchor", "pixel", [5000, 20]),
-                                       ("anchor", "lock", lock)])
+    cfg = apply_overrides(
+        defaults(), [("anchor", "mode", "pixel"), ("anchor", "pixel", [5000, 20]), ("anchor", "lock", lock)]
+    )
     ps, an = PlaneStage(cfg), AnchorStage(cfg)
     caplog.set_level(logging.WARNING)
     for k in range(3):

@@ -33,13 +33,16 @@ def _frames(root: Path):
             if (d / "depth.png").is_file():
                 depth = cv2.imread(str(d / "depth.png"), cv2.IMREAD_UNCHANGED)
                 color = cv2.cvtColor(cv2.imread(str(d / "color.png")), cv2.COLOR_BGR2RGB)
-                yield f"{dev.name}/{k}", Frame(seq=0, t_device_ns=0, t_host_ns=0, color=color,
-                                               depth=depth_from_mm(depth), intrinsics=INTR)
+                yield (
+                    f"{dev.name}/{k}",
+                    Frame(seq=0, t_device_ns=0, t_host_ns=0, color=color, depth=depth_from_mm(depth), intrinsics=INTR),
+                )
 
 
 def _cfg(**planes):
-    return apply_overrides(defaults(), [("planes", "inlier_threshold_m", 0.045)]
-                           + [("planes", k, v) for k, v in planes.items()])
+    return apply_overrides(
+        defaults(), [("planes", "inlier_threshold_m", 0.045)] + [("planes", k, v) for k, v in planes.items()]
+    )
 
 
 def _ground_and_plate(planes):
@@ -63,8 +66,10 @@ def test_ground_and_plate_are_two_parallel_planes(shared_data, capsys):
         print("\n  frame                        angle(deg)  plate above ground (m)")
         for name, ang, sep, *_ in rows:
             print(f"  {name:28s} {ang:8.2f}   {sep:8.4f}")
-        print(f"  angle median {np.median(a):.2f} max {a.max():.2f} deg; "
-              f"offset median {np.median(s) * 1000:.1f} mm (range {s.min() * 1000:.1f}-{s.max() * 1000:.1f})")
+        print(
+            f"  angle median {np.median(a):.2f} max {a.max():.2f} deg; "
+            f"offset median {np.median(s) * 1000:.1f} mm (range {s.min() * 1000:.1f}-{s.max() * 1000:.1f})"
+        )
     assert len(rows) == 18
     # Both found in every frame and one above the other by the same amount on every device.
     assert np.all((s > 0.10) & (s < 0.20)) and s.max() - s.min() < 0.015
@@ -77,8 +82,15 @@ def test_ground_and_plate_are_two_parallel_planes(shared_data, capsys):
 
 def test_plane_light_samples_the_real_plate(shared_data):
     """An 8x8 grid over the middle of the real plate: observed, finite, near-uniform."""
-    cfg = apply_overrides(_cfg(), [("anchor", "mode", "pixel"), ("anchor", "pixel", [290, 175]),
-                                   ("plane_light", "grid", 8), ("plane_light", "extent_m", 0.09)])
+    cfg = apply_overrides(
+        _cfg(),
+        [
+            ("anchor", "mode", "pixel"),
+            ("anchor", "pixel", [290, 175]),
+            ("plane_light", "grid", 8),
+            ("plane_light", "extent_m", 0.09),
+        ],
+    )
     name, frame = next(_frames(shared_data))
     out = PlaneLightStage(cfg).process(AnchorStage(cfg).process(PlaneStage(cfg).process(frame)))
     a, pl = out.results["anchor"], out.results["plane_light"]

@@ -14,8 +14,15 @@ from illuminet.progress import StatusLine
 
 from ._sessions import env, make_session
 
-SNAP = {"frames": 12, "fps": 30.2, "fps_recent": 29.5, "dropped": 1, "failed_frames": 0, "sink_failures": 0,
-        "elapsed_s": 0.4}
+SNAP = {
+    "frames": 12,
+    "fps": 30.2,
+    "fps_recent": 29.5,
+    "dropped": 1,
+    "failed_frames": 0,
+    "sink_failures": 0,
+    "elapsed_s": 0.4,
+}
 
 
 def test_status_line_draws_only_when_enabled_and_clears_for_log_records():
@@ -51,13 +58,18 @@ def test_status_line_draws_only_when_enabled_and_clears_for_log_records():
 def _run(args, tty: bool) -> str:
     """``python -m illuminet ARGS`` with stderr on a pseudo-terminal or a pipe; returns stderr."""
     if not tty:
-        p = subprocess.run([sys.executable, "-m", "illuminet", *args], env=env(), capture_output=True, text=True,
-                           timeout=120)
+        p = subprocess.run(
+            [sys.executable, "-m", "illuminet", *args], env=env(), capture_output=True, text=True, timeout=120
+        )
         assert p.returncode == 0, p.stderr
         return p.stderr
     master, slave = pty.openpty()
-    p = subprocess.Popen([sys.executable, "-m", "illuminet", *args], env=dict(env(), TERM="xterm"),
-                         stdout=subprocess.DEVNULL, stderr=slave)
+    p = subprocess.Popen(
+        [sys.executable, "-m", "illuminet", *args],
+        env=dict(env(), TERM="xterm"),
+        stdout=subprocess.DEVNULL,
+        stderr=slave,
+    )
     os.close(slave)
     chunks = []
     while True:

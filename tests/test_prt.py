@@ -8,6 +8,8 @@ import json
 import numpy as np
 import pytest
 import trimesh
+
+from illuminet.cli import main
 from illuminet.models.prt import compute_prt, interreflection
 from illuminet.runtime.assets.bundle import BundleError, TransferChain, load_bundle
 from illuminet.runtime.assets.objects import builtin_object
@@ -18,8 +20,6 @@ from illuminet.runtime.prt import prt_irradiance, unoccluded_transfer
 from illuminet.runtime.scene import LIGHT, PLANE_LIGHT, SHADING, LightEstimate
 from illuminet.runtime.sh import SH_A_HAT, sh9
 from illuminet.runtime.stages.shading import ShadingStage
-
-from illuminet.cli import main
 
 from ._learn_helpers import plane_light
 
@@ -81,8 +81,10 @@ def test_concave_bowl_has_less_transfer_inside(bowl):
     assert ao[inside].mean() < ao[outside].mean() - 0.15
     assert (ao <= 1.0 + 1e-4).all() and (ao > 0).all()
     # every transfer is at most the unoccluded one in the DC term, the band-1 vectors shrink too
-    assert np.linalg.norm(res.transfer[inside, 1:4], axis=1).mean() < \
-        np.linalg.norm(unoccluded_transfer(n)[inside, 1:4], axis=1).mean()
+    assert (
+        np.linalg.norm(res.transfer[inside, 1:4], axis=1).mean()
+        < np.linalg.norm(unoccluded_transfer(n)[inside, 1:4], axis=1).mean()
+    )
 
 
 def test_primary_visibility_table(bowl):
@@ -171,8 +173,24 @@ def prt_bundle(tmp_path_factory):
     d = tmp_path_factory.mktemp("prtb")
     mesh = _write_mesh(d / "thing.ply")
     out = d / "bundle"
-    rc = main(["bundle", "--object", str(mesh), "--out", str(out), "--height", "0.15", "--n-proxy", "120",
-               "--transfer-rays", "512", "--directions", "256", "--quiet"])
+    rc = main(
+        [
+            "bundle",
+            "--object",
+            str(mesh),
+            "--out",
+            str(out),
+            "--height",
+            "0.15",
+            "--n-proxy",
+            "120",
+            "--transfer-rays",
+            "512",
+            "--directions",
+            "256",
+            "--quiet",
+        ]
+    )
     assert rc == 0
     return out
 
@@ -185,8 +203,14 @@ def _stage(bundle, **model):
 
 
 def _frame(pl=None, light=None):
-    f = Frame(seq=0, t_device_ns=0, t_host_ns=0, color=np.zeros((4, 4, 3), np.uint8), depth=None,
-              intrinsics=Intrinsics(1, 1, 1, 1, 4, 4))
+    f = Frame(
+        seq=0,
+        t_device_ns=0,
+        t_host_ns=0,
+        color=np.zeros((4, 4, 3), np.uint8),
+        depth=None,
+        intrinsics=Intrinsics(1, 1, 1, 1, 4, 4),
+    )
     if pl is not None:
         f = f.with_result(PLANE_LIGHT, pl)
     if light is not None:
@@ -287,8 +311,11 @@ def test_shipped_bundles_have_prt_made_by_the_command(name):
 def test_bundle_command_errors_are_one_line(tmp_path, capsys):
     (tmp_path / "garbage.ply").write_text("not a mesh")
     (tmp_path / "empty.obj").write_text("")
-    cases = [(tmp_path / "missing.glb", "no such file"), (tmp_path / "garbage.ply", "cannot read as a mesh"),
-             (tmp_path / "empty.obj", "no geometry")]
+    cases = [
+        (tmp_path / "missing.glb", "no such file"),
+        (tmp_path / "garbage.ply", "cannot read as a mesh"),
+        (tmp_path / "empty.obj", "no geometry"),
+    ]
     for path, msg in cases:
         assert main(["bundle", "--object", str(path), "--out", str(tmp_path / "out")]) == 2
         err = capsys.readouterr().err.strip()

@@ -14,9 +14,23 @@ from illuminet.runtime.relight import relight
 
 from ._learn_helpers import floor_rgbd
 
-NPZ_KEYS = {"vertices", "normals", "faces", "radiance", "irradiance", "proxy_irradiance", "oi", "T_cam_obj",
-            "exposure_scale", "dominant_dir", "dominant_share", "method", "bundle", "plane_observed",
-            "format"}
+NPZ_KEYS = {
+    "vertices",
+    "normals",
+    "faces",
+    "radiance",
+    "irradiance",
+    "proxy_irradiance",
+    "oi",
+    "T_cam_obj",
+    "exposure_scale",
+    "dominant_dir",
+    "dominant_share",
+    "method",
+    "bundle",
+    "plane_observed",
+    "format",
+}
 
 
 def test_relight_places_object_on_the_floor():
@@ -69,9 +83,23 @@ def test_relight_cli_writes_documented_npz(tmp_path):
     cv2.imwrite(str(tmp_path / "d.png"), depth_to_mm(depth))
     (tmp_path / "k.json").write_text(json.dumps({"fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy}))
     out = tmp_path / "r.npz"
-    rc = main(["relight", "--color", str(tmp_path / "c.png"), "--depth", str(tmp_path / "d.png"),
-               "--intrinsics", str(tmp_path / "k.json"), "--anchor", "160,130", "--bundle", "builtin:bowl",
-               "--out", str(out)])
+    rc = main(
+        [
+            "relight",
+            "--color",
+            str(tmp_path / "c.png"),
+            "--depth",
+            str(tmp_path / "d.png"),
+            "--intrinsics",
+            str(tmp_path / "k.json"),
+            "--anchor",
+            "160,130",
+            "--bundle",
+            "builtin:bowl",
+            "--out",
+            str(out),
+        ]
+    )
     assert rc == 0
     z = np.load(out, allow_pickle=False)
     assert NPZ_KEYS <= set(z.files)
@@ -84,8 +112,19 @@ def test_relight_cli_errors(tmp_path, capsys):
     color, depth, K = floor_rgbd()
     cv2.imwrite(str(tmp_path / "c.png"), color[..., ::-1])
     cv2.imwrite(str(tmp_path / "d.png"), depth_to_mm(depth)[:-10])
-    args = ["relight", "--color", str(tmp_path / "c.png"), "--depth", str(tmp_path / "d.png"),
-            "--intrinsics", "256,256,160,100", "--anchor", "160,130", "--out", str(tmp_path / "r.npz")]
+    args = [
+        "relight",
+        "--color",
+        str(tmp_path / "c.png"),
+        "--depth",
+        str(tmp_path / "d.png"),
+        "--intrinsics",
+        "256,256,160,100",
+        "--anchor",
+        "160,130",
+        "--out",
+        str(tmp_path / "r.npz"),
+    ]
     assert main(args) == 2
     assert "must be aligned to colour" in capsys.readouterr().err
     cv2.imwrite(str(tmp_path / "d.png"), depth_to_mm(depth))

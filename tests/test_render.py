@@ -77,8 +77,15 @@ def make_frame(T, shading, color=None, depth="floor", exposure_scale=0.5) -> Fra
     depth = floor_depth(T) if isinstance(depth, str) else depth
     f = Frame(seq=0, t_device_ns=0, t_host_ns=0, color=color, depth=depth, intrinsics=INTR)
     f = f.with_result("anchor", Anchor(T_cam_obj=T, plane_id=0))
-    pl = PlaneLight(vertices=np.zeros((1, 3)), normals=np.zeros((1, 3)), irradiance=np.zeros((1, 3)),
-                    mask=np.ones(1, bool), confidence=np.ones(1), grid=1, exposure_scale=exposure_scale)
+    pl = PlaneLight(
+        vertices=np.zeros((1, 3)),
+        normals=np.zeros((1, 3)),
+        irradiance=np.zeros((1, 3)),
+        mask=np.ones(1, bool),
+        confidence=np.ones(1),
+        grid=1,
+        exposure_scale=exposure_scale,
+    )
     f = f.with_result("plane_light", pl)
     if shading is not None:
         f = f.with_result("shading", shading)
@@ -103,6 +110,7 @@ def lum(img):
 
 # ------------------------------------------------------------------------------------------ images
 
+
 def test_light_from_the_left_lights_the_left_and_throws_the_shadow_right(gl):
     mesh = sphere_mesh()
     T = camera_pose()
@@ -115,15 +123,15 @@ def test_light_from_the_left_lights_the_left_and_throws_the_shadow_right(gl):
     L = lum(out)
     cu, cv = project(T, [0.0, 0.1, 0.0])  # the sphere's centre
     r_px = 0.1 * INTR.fx / 1.2
-    left = L[int(cv) - 5:int(cv) + 5, int(cu - 0.6 * r_px):int(cu - 0.4 * r_px)].mean()
-    right = L[int(cv) - 5:int(cv) + 5, int(cu + 0.4 * r_px):int(cu + 0.6 * r_px)].mean()
+    left = L[int(cv) - 5 : int(cv) + 5, int(cu - 0.6 * r_px) : int(cu - 0.4 * r_px)].mean()
+    right = L[int(cv) - 5 : int(cv) + 5, int(cu + 0.4 * r_px) : int(cu + 0.6 * r_px)].mean()
     assert left > 2.0 * right, (left, right)
     # the shadow: on the floor to the right of the sphere's foot, not to its left
     bg = lum(np.full((1, 1, 3), BG, np.uint8))[0, 0]
     fu, fv = project(T, [0.2, 0.0, 0.0])
     gu, gv = project(T, [-0.2, 0.0, 0.0])
-    shadow_right = L[int(fv) - 3:int(fv) + 3, int(fu) - 3:int(fu) + 3].mean()
-    floor_left = L[int(gv) - 3:int(gv) + 3, int(gu) - 3:int(gu) + 3].mean()
+    shadow_right = L[int(fv) - 3 : int(fv) + 3, int(fu) - 3 : int(fu) + 3].mean()
+    floor_left = L[int(gv) - 3 : int(gv) + 3, int(gu) - 3 : int(gu) + 3].mean()
     assert shadow_right < 0.5 * bg, (shadow_right, bg)
     assert abs(floor_left - bg) < 0.01 * bg + 1e-3
     # far from the object the picture is untouched, bit for bit
@@ -168,7 +176,7 @@ def test_real_geometry_in_front_hides_the_object(gl):
     finally:
         st.close()
     assert (out[y0:y1, x0:x1] == (200, 30, 30)).all(), "the occluder must stay in front, unchanged"
-    right = out[int(cv) - 5:int(cv) + 5, int(cu) + 10:int(cu) + 30]
+    right = out[int(cv) - 5 : int(cv) + 5, int(cu) + 10 : int(cu) + 30]
     assert np.abs(right.astype(int) - BG).max() > 10, "the visible half of the object must be drawn"
     # with occlusion off the object covers the occluder
     st = stage(gl, mesh, occlusion=False)
@@ -176,7 +184,7 @@ def test_real_geometry_in_front_hides_the_object(gl):
         out2 = st.process(make_frame(T, sh, color=color, depth=depth)).results["composite"]
     finally:
         st.close()
-    assert (out2[int(cv) - 5:int(cv) + 5, int(cu) - 30:int(cu) - 10] != (200, 30, 30)).any(axis=-1).all()
+    assert (out2[int(cv) - 5 : int(cv) + 5, int(cu) - 30 : int(cu) - 10] != (200, 30, 30)).any(axis=-1).all()
 
 
 def test_doubling_the_exposure_doubles_the_objects_linear_value(gl):
@@ -225,7 +233,7 @@ def test_object_colour_follows_texture_and_vertex_colours(gl, tmp_path):
     finally:
         st.close()
     cu, cv = project(T, [0.0, 0.1, 0.0])
-    px = out[int(cv) - 3:int(cv) + 3, int(cu) - 3:int(cu) + 3].reshape(-1, 3).mean(axis=0)
+    px = out[int(cv) - 3 : int(cv) + 3, int(cu) - 3 : int(cu) + 3].reshape(-1, 3).mean(axis=0)
     assert px[2] > px[1] > px[0], px
 
     # vertex colours (a PLY scan's convention: sRGB codes): red
@@ -240,7 +248,7 @@ def test_object_colour_follows_texture_and_vertex_colours(gl, tmp_path):
         out = st.process(make_frame(T, sh)).results["composite"]
     finally:
         st.close()
-    px = out[int(cv) - 3:int(cv) + 3, int(cu) - 3:int(cu) + 3].reshape(-1, 3).mean(axis=0)
+    px = out[int(cv) - 3 : int(cv) + 3, int(cu) - 3 : int(cu) + 3].reshape(-1, 3).mean(axis=0)
     assert px[0] > 3 * px[1] and px[0] > 3 * px[2], px
 
 
@@ -249,7 +257,8 @@ def test_glb_base_colour_is_the_albedo(gl, tmp_path):
     s.apply_translation([0, 0.1, 0])
     s.visual = trimesh.visual.TextureVisuals(
         uv=np.zeros((len(s.vertices), 2)),
-        material=trimesh.visual.material.PBRMaterial(baseColorFactor=[0.1, 0.8, 0.1, 1.0]))
+        material=trimesh.visual.material.PBRMaterial(baseColorFactor=[0.1, 0.8, 0.1, 1.0]),
+    )
     p = tmp_path / "green.glb"
     s.export(p)
     mesh = load_render_mesh(p)
@@ -296,6 +305,7 @@ def test_depthless_frame_still_renders(gl):
 
 # ----------------------------------------------------------------------------------- bad inputs
 
+
 def test_wrong_irradiance_shape_is_a_clear_error(gl):
     mesh = sphere_mesh()
     comp = Compositor(gl, mesh, msaa=0, shadow=False)
@@ -340,6 +350,7 @@ def test_gl_context_is_shared_and_bad_backend_refused(gl):
 
 # ------------------------------------------------------------------------------ pieces in numpy
 
+
 def test_dominant_light_from_oi_and_from_irradiance():
     mesh = sphere_mesh()
     d = np.array([-1.0, 1.0, 0.3]) / np.linalg.norm([-1.0, 1.0, 0.3])
@@ -360,8 +371,13 @@ def test_dominant_light_from_oi_and_from_irradiance():
 
 
 def test_shadow_patch_reaches_along_the_light():
-    p = shadow_patch(np.array([-1.0, 1.0, 0.0]) / np.sqrt(2), np.array([-0.1, 0, -0.1]), np.array([0.1, 0.2, 0.1]),
-                     margin=0.0, max_length=10.0)
+    p = shadow_patch(
+        np.array([-1.0, 1.0, 0.0]) / np.sqrt(2),
+        np.array([-0.1, 0, -0.1]),
+        np.array([0.1, 0.2, 0.1]),
+        margin=0.0,
+        max_length=10.0,
+    )
     assert p[2] == pytest.approx(0.3)  # the top at 0.2 m casts 0.2 m to the right of the right edge
     assert p[0] == pytest.approx(-0.1)
 
@@ -422,9 +438,14 @@ def test_shading_on_a_proxy_is_carried_to_the_render_mesh(gl):
     nearest = np.argmin(((render.vertices[:, None, :] - pv[None]) ** 2).sum(-1), axis=1)
 
     # duck-typed like illuminet.runtime.assets.bundle.Bundle: geometry arrays, metadata, carry()
-    bundle = SimpleNamespace(vertices=render.vertices, normals=render.normals, faces=render.faces,
-                             name="test", meta={"object": "builtin:sphere"},
-                             carry=lambda values: np.asarray(values)[nearest])
+    bundle = SimpleNamespace(
+        vertices=render.vertices,
+        normals=render.normals,
+        faces=render.faces,
+        name="test",
+        meta={"object": "builtin:sphere"},
+        carry=lambda values: np.asarray(values)[nearest],
+    )
     mesh = mesh_from_bundle(bundle)
     assert mesh.n_vertices == render.n_vertices and mesh.parts[0].texture is None
     cfg = C.defaults()

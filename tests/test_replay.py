@@ -74,6 +74,7 @@ def test_max_frames_without_loop(tmp_path):
 
 def test_close_interrupts_a_recorded_wait(tmp_path):
     import threading
+
     make_session(tmp_path / "s", 3, fps=0.5)  # 2 s between frames
     src = ReplaySource(tmp_path / "s", timing="recorded")
     src.open()
@@ -86,8 +87,9 @@ def test_close_interrupts_a_recorded_wait(tmp_path):
 
 def test_url_query_overrides_config(tmp_path, monkeypatch):
     make_session(tmp_path / "s", 4)
-    cfg = apply_overrides(defaults(), [("source", "timing", "asap"), ("source", "loop", True),
-                                       ("source", "max_frames", 7)])
+    cfg = apply_overrides(
+        defaults(), [("source", "timing", "asap"), ("source", "loop", True), ("source", "max_frames", 7)]
+    )
     src = open_source(f"replay://{tmp_path}/s", cfg)
     assert isinstance(src, ReplaySource)
     assert (src.timing, src.loop, src.max_frames) == ("asap", True, 7)
@@ -98,12 +100,15 @@ def test_url_query_overrides_config(tmp_path, monkeypatch):
     assert len(got) == 4
 
 
-@pytest.mark.parametrize("query, expect", [
-    ("timing=fast", r"timing='fast': expected one of recorded, asap"),
-    ("loop=maybe", r"loop='maybe': expected 0/1"),
-    ("max_frames=-1", r"max_frames='-1': expected an integer >= 0"),
-    ("speed=2", r"unknown parameter 'speed'; known: timing, loop, max_frames"),
-])
+@pytest.mark.parametrize(
+    "query, expect",
+    [
+        ("timing=fast", r"timing='fast': expected one of recorded, asap"),
+        ("loop=maybe", r"loop='maybe': expected 0/1"),
+        ("max_frames=-1", r"max_frames='-1': expected an integer >= 0"),
+        ("speed=2", r"unknown parameter 'speed'; known: timing, loop, max_frames"),
+    ],
+)
 def test_bad_url_queries_are_named(tmp_path, query, expect):
     with pytest.raises(SourceError, match=expect):
         open_url(f"replay://{tmp_path}?{query}", defaults())

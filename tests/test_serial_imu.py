@@ -30,8 +30,15 @@ G = 9.80665
 
 
 def _frame(t_host_ns: int, gravity=None) -> Frame:
-    return Frame(seq=0, t_device_ns=t_host_ns, t_host_ns=t_host_ns, color=np.zeros((4, 4, 3), np.uint8),
-                 depth=None, intrinsics=Intrinsics(4, 4, 2, 2, 4, 4), gravity=gravity)
+    return Frame(
+        seq=0,
+        t_device_ns=t_host_ns,
+        t_host_ns=t_host_ns,
+        color=np.zeros((4, 4, 3), np.uint8),
+        depth=None,
+        intrinsics=Intrinsics(4, 4, 2, 2, 4, 4),
+        gravity=gravity,
+    )
 
 
 def test_line_round_trip_and_checksum():
@@ -48,15 +55,18 @@ def test_line_round_trip_and_checksum():
     assert parse_line(line.replace(cs[:2], cs[:2].lower()).rstrip(b"\r\n") + b"\n").t_ns == 123456789
 
 
-@pytest.mark.parametrize("bad, why", [
-    (b"IMU,1,0,0,9*00", "start with '\\$'"),
-    (b"$IMU,1,0,0,9", "no '\\*XX' checksum"),
-    (b"$IMU,1,0,0,9*ZZ", "not two hex digits"),
-    (b"$GGA,1,0,0,9*" + f"{checksum(b'GGA,1,0,0,9'):02X}".encode(), "unknown sentence"),
-    (b"$IMU,1,0,0*" + f"{checksum(b'IMU,1,0,0'):02X}".encode(), "expected 4 fields"),
-    (b"$IMU,1,0,x,9*" + f"{checksum(b'IMU,1,0,x,9'):02X}".encode(), "not a number"),
-    (b"$IMU,1,0,nan,9*" + f"{checksum(b'IMU,1,0,nan,9'):02X}".encode(), "non-finite"),
-])
+@pytest.mark.parametrize(
+    "bad, why",
+    [
+        (b"IMU,1,0,0,9*00", "start with '\\$'"),
+        (b"$IMU,1,0,0,9", "no '\\*XX' checksum"),
+        (b"$IMU,1,0,0,9*ZZ", "not two hex digits"),
+        (b"$GGA,1,0,0,9*" + f"{checksum(b'GGA,1,0,0,9'):02X}".encode(), "unknown sentence"),
+        (b"$IMU,1,0,0*" + f"{checksum(b'IMU,1,0,0'):02X}".encode(), "expected 4 fields"),
+        (b"$IMU,1,0,x,9*" + f"{checksum(b'IMU,1,0,x,9'):02X}".encode(), "not a number"),
+        (b"$IMU,1,0,nan,9*" + f"{checksum(b'IMU,1,0,nan,9'):02X}".encode(), "non-finite"),
+    ],
+)
 def test_bad_lines_say_what_is_wrong(bad, why):
     with pytest.raises(ImuProtocolError, match=why):
         parse_line(bad)
@@ -73,15 +83,23 @@ def test_parser_resyncs_after_garbage_cut_lines_and_split_reads():
     good = [format_line(i * 1000, (0.0, 0.0, G)) for i in range(6)]
     bad_cs = bytearray(good[2])
     bad_cs[-4] = ord("0") if bad_cs[-4] != ord("0") else ord("1")  # break the checksum digits
-    stream = (b"\x00\xff noise before the first line\r\n" + good[0]
-              + good[1][:12]            # a line cut off mid-way (sender reset): no newline
-              + bytes(bad_cs)
-              + b"$" + b"A" * 400 + b"\r\n"  # overlong junk
-              + good[3] + b"garbage\n" + good[4] + good[5])
+    stream = (
+        b"\x00\xff noise before the first line\r\n"
+        + good[0]
+        + good[1][:12]  # a line cut off mid-way (sender reset): no newline
+        + bytes(bad_cs)
+        + b"$"
+        + b"A" * 400
+        + b"\r\n"  # overlong junk
+        + good[3]
+        + b"garbage\n"
+        + good[4]
+        + good[5]
+    )
     p = LineParser()
     got = []
     for i in range(0, len(stream), 7):  # arrives in small, arbitrary pieces
-        got += p.feed(stream[i:i + 7])
+        got += p.feed(stream[i : i + 7])
     assert [s.t_ns for s in got] == [0, 3000, 4000, 5000]
     c = p.counters()
     assert c["good"] == 4 and c["bad_checksum"] == 1
@@ -95,11 +113,11 @@ def test_loop_url_reader_end_to_end_with_errors():
     t0 = time.monotonic_ns()
     samples = [ImuSample(t0 + i * 2_000_000, (0.0, 0.0, G), (0.0, 0.0, 0.1)) for i in range(300)]
     with SerialImu("loop://", matcher=matcher, clock="host", port=port) as imu:
-        write_samples(port, samples[:100])           # > 4096 bytes in total: written in chunks
+        write_samples(port, samples[:100])  # > 4096 bytes in total: written in chunks
         port.write(b"\x13\x37garbage$IMU,broken\r\n")
         bad = bytearray(format_line(samples[100].t_ns, samples[100].accel))
         bad[-4] = ord("0") if bad[-4] != ord("0") else ord("1")
-        port.write(bytes(bad))                       # checksum error: skipped, counted
+        port.write(bytes(bad))  # checksum error: skipped, counted
         write_samples(port, samples[101:])
         deadline = time.time() + 5
         while imu.parser.good < 299 and time.time() < deadline:

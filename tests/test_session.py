@@ -51,10 +51,13 @@ def _set_manifest(path, **changes):
 
 def test_round_trip_is_bit_exact_with_all_metadata(tmp_path):
     fs = frames(4)
-    imu = (ImuSample(t_ns=5, accel=(0.1, -9.8, 0.2), gyro=(0.01, 0.0, -0.02)),
-           ImuSample(t_ns=6, accel=(0.0, -9.7, 0.1)))
-    fs[1] = fs[1].replace(imu=imu, exposure=Exposure(exposure_us=1000.0, iso=200.0, wb_gains=(1.9, 1.0, 1.6),
-                                                     color_temperature_k=4200.0))
+    imu = (
+        ImuSample(t_ns=5, accel=(0.1, -9.8, 0.2), gyro=(0.01, 0.0, -0.02)),
+        ImuSample(t_ns=6, accel=(0.0, -9.7, 0.1)),
+    )
+    fs[1] = fs[1].replace(
+        imu=imu, exposure=Exposure(exposure_us=1000.0, iso=200.0, wb_gains=(1.9, 1.0, 1.6), color_temperature_k=4200.0)
+    )
     fs[2] = fs[2].replace(depth=None, gravity=None)
     with SessionWriter(tmp_path / "s", source="test://x", color="png") as w:
         for f in fs:
@@ -172,6 +175,7 @@ def test_kill_9_at_many_random_moments(tmp_path):
     """Stress: 25 SIGKILLs at random moments (with fsync on); every complete frame always replays."""
     import random
     import time
+
     rnd = random.Random(1)
     for k in range(25):
         path = tmp_path / f"s{k}"
@@ -225,13 +229,16 @@ def test_wrong_format_name(tmp_path):
         SessionReader(tmp_path / "s")
 
 
-@pytest.mark.parametrize("key, value, expect", [
-    ("width", "640", r"key 'width': expected int, got str"),
-    ("height", 0, r"key 'height': expected a positive int"),
-    ("intrinsics", {"fx": 1}, r"key 'intrinsics'"),
-    ("color", {"encoding": "webp"}, r"color.encoding': expected one of"),
-    ("depth", {"encoding": "float32"}, r"key 'depth': expected encoding 'png16'"),
-])
+@pytest.mark.parametrize(
+    "key, value, expect",
+    [
+        ("width", "640", r"key 'width': expected int, got str"),
+        ("height", 0, r"key 'height': expected a positive int"),
+        ("intrinsics", {"fx": 1}, r"key 'intrinsics'"),
+        ("color", {"encoding": "webp"}, r"color.encoding': expected one of"),
+        ("depth", {"encoding": "float32"}, r"key 'depth': expected encoding 'png16'"),
+    ],
+)
 def test_bad_manifest_keys(tmp_path, key, value, expect):
     make_session(tmp_path / "s", 2)
     _set_manifest(tmp_path / "s", **{key: value})
@@ -336,16 +343,20 @@ def test_missing_key_in_index_line(tmp_path):
     _check_skips(tmp_path / "s", 1, "missing key 't_device_ns'")
 
 
-@pytest.mark.parametrize("key, value, expect", [
-    ("exposure", [1, 2], "key 'exposure'"),
-    ("exposure", {"iso": "high"}, "key 'exposure'"),
-    ("gravity", [0, 1], "key 'gravity': expected a list of 3 numbers"),
-    ("imu", [{"t_ns": 1, "accel": [0, 0]}], r"imu\[0\].accel: expected a list of 3 numbers"),
-    ("intrinsics", [1, 2], "key 'intrinsics'"),
-    ("color_bytes", "big", "key 'color_bytes': expected int, got str"),
-])
+@pytest.mark.parametrize(
+    "key, value, expect",
+    [
+        ("exposure", [1, 2], "key 'exposure'"),
+        ("exposure", {"iso": "high"}, "key 'exposure'"),
+        ("gravity", [0, 1], "key 'gravity': expected a list of 3 numbers"),
+        ("imu", [{"t_ns": 1, "accel": [0, 0]}], r"imu\[0\].accel: expected a list of 3 numbers"),
+        ("intrinsics", [1, 2], "key 'intrinsics'"),
+        ("color_bytes", "big", "key 'color_bytes': expected int, got str"),
+    ],
+)
 def test_bad_metadata_in_an_index_line(tmp_path, key, value, expect):
     import re
+
     make_session(tmp_path / "s", 6)
     _rewrite_line(tmp_path / "s", 4, **{key: value})
     r = SessionReader(tmp_path / "s")
@@ -366,8 +377,9 @@ def test_frame_count_disagrees_with_index(tmp_path):
     assert len(r) == 6 and any("frame_count is 9" in p for p in r.problems)
 
 
-@pytest.mark.parametrize("bad", ["../outside.png", "frames/../../outside.png", "/etc/hostname", "C:/x.png",
-                                 "frames\\..\\..\\x.png"])
+@pytest.mark.parametrize(
+    "bad", ["../outside.png", "frames/../../outside.png", "/etc/hostname", "C:/x.png", "frames\\..\\..\\x.png"]
+)
 def test_frame_path_escaping_the_folder_is_refused(tmp_path, bad):
     make_session(tmp_path / "s", 6)
     outside = tmp_path / "outside.png"
@@ -403,6 +415,7 @@ def test_safe_relpath_accepts_plain_relative_paths(tmp_path):
 
 def test_no_pickle_in_the_format():
     import illuminet.runtime.stream.session as S
+
     src = open(S.__file__).read()
     assert "pickle" not in src.replace("no pickle", "").replace("No pickle", "")
     assert "allow_pickle" not in src and "np.load(" not in src

@@ -76,13 +76,16 @@ def test_writer_refuses_bad_depth_compression_and_meta(tmp_path):
         SessionWriter(tmp_path / "b", meta={"x": object()})
 
 
-@pytest.mark.parametrize("scale, version, message", [
-    (3, 2, r"'depth.scale': 3 does not divide the image size 64x48"),
-    (0, 2, r"'depth.scale': expected an int >= 1, got 0"),
-    (2.0, 2, r"'depth.scale': expected an int >= 1, got 2.0"),
-    ("2", 2, r"'depth.scale': expected an int >= 1, got '2'"),
-    (2, 1, r"'depth.scale' needs format version 2, the manifest says version 1"),
-])
+@pytest.mark.parametrize(
+    "scale, version, message",
+    [
+        (3, 2, r"'depth.scale': 3 does not divide the image size 64x48"),
+        (0, 2, r"'depth.scale': expected an int >= 1, got 0"),
+        (2.0, 2, r"'depth.scale': expected an int >= 1, got 2.0"),
+        ("2", 2, r"'depth.scale': expected an int >= 1, got '2'"),
+        (2, 1, r"'depth.scale' needs format version 2, the manifest says version 1"),
+    ],
+)
 def test_reader_names_a_bad_depth_scale(tmp_path, scale, version, message):
     make_session(tmp_path / "s", n=2, depth_scale=2)
     m = json.loads((tmp_path / "s" / "manifest.json").read_text())
@@ -103,8 +106,9 @@ def test_depth_file_at_the_wrong_scale_is_a_corrupt_frame(tmp_path):
     lines[1] = json.dumps(d)
     (tmp_path / "s" / "frames.jsonl").write_text("\n".join(lines) + "\n")
     r = SessionReader(tmp_path / "s")
-    with pytest.raises(CorruptFrame,
-                       match=r"size mismatch: image is 64x48, the manifest says 64x48 / depth.scale 2 = 32x24"):
+    with pytest.raises(
+        CorruptFrame, match=r"size mismatch: image is 64x48, the manifest says 64x48 / depth.scale 2 = 32x24"
+    ):
         r.read(1)
     assert len(r.check()) == 1
 

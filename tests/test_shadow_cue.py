@@ -144,8 +144,13 @@ def test_no_casters_and_depth_holes_give_none():
 # ------------------------------------------------------------------------------ ray-cast scene
 
 
-def raycast_scene(sun_elev_deg: float, sun_az_deg: float, sun: float = 6.0, seed: int = 0,
-                  boxes=((-0.5, 1.8, 0.3, 0.5), (0.6, 2.3, 0.25, 0.35), (0.0, 3.0, 0.3, 0.6))) -> Case:
+def raycast_scene(
+    sun_elev_deg: float,
+    sun_az_deg: float,
+    sun: float = 6.0,
+    seed: int = 0,
+    boxes=((-0.5, 1.8, 0.3, 0.5), (0.6, 2.3, 0.25, 0.35), (0.0, 3.0, 0.3, 0.6)),
+) -> Case:
     """A textured floor (y = 0) with boxes (x, z, half width, height), lit by ambient 1 and a sun of
     irradiance ``sun`` from (elevation, azimuth atan2(x, z)); a 640x400 camera 1.4 m high looking
     down 35 deg along +z. World = object frame (the anchor at the origin under the camera)."""
@@ -189,8 +194,11 @@ def raycast_scene(sun_elev_deg: float, sun_az_deg: float, sun: float = 6.0, seed
         tn, tf, _ = slab(P + 1e-4 * normal, np.broadcast_to(s, P.shape), a, b)
         lit &= ~((tf >= tn) & (tf > 0))
     E = 1.0 + sun * np.maximum(normal @ s, 0) * lit
-    tex = 0.35 * (1 + 0.1 * np.sin(7 * P[:, 0]) * np.sin(5 * P[:, 2])) * (1 - 0.4 * ((np.mod(P[:, 0], 0.6) < 0.01)
-                                                                                 | (np.mod(P[:, 2], 0.6) < 0.01)))
+    tex = (
+        0.35
+        * (1 + 0.1 * np.sin(7 * P[:, 0]) * np.sin(5 * P[:, 2]))
+        * (1 - 0.4 * ((np.mod(P[:, 0], 0.6) < 0.01) | (np.mod(P[:, 2], 0.6) < 0.01)))
+    )
     alb = np.where(on_box, 0.5, tex)
     lin = (alb * E / np.pi * 0.12)[:, None] * np.array([1.0, 0.95, 0.9])
     lin = np.clip(lin * (1 + 0.01 * rng.standard_normal(lin.shape)), 0, 1)
@@ -198,8 +206,9 @@ def raycast_scene(sun_elev_deg: float, sun_az_deg: float, sun: float = 6.0, seed
     z = (t * (d @ f)).reshape(H, W)  # depth = distance along the optical axis
     z = np.where(np.isfinite(z) & (z < 12), z + 0.003 * z * z * rng.standard_normal(z.shape), 0).astype(np.float32)
     n_c = R_wc.T @ np.array([0.0, 1.0, 0.0])
-    floor = Plane(id=0, normal=n_c, offset=1.4, centroid=R_wc.T @ (np.array([0, 0, 2.0]) - C), area_m2=10.0,
-                  label="floor")
+    floor = Plane(
+        id=0, normal=n_c, offset=1.4, centroid=R_wc.T @ (np.array([0, 0, 2.0]) - C), area_m2=10.0, label="floor"
+    )
     T = np.eye(4)
     T[:3, :3] = R_wc.T
     T[:3, 3] = R_wc.T @ (np.array([0.0, 0.0, 2.0]) - C)
@@ -275,8 +284,10 @@ def test_real_oakd_frames_point_to_the_lamp_or_stay_unconfident(shared_data, cap
     with capsys.disabled():
         print("\n  device               azimuth from picture-up (deg)  confidence  elevation")
         for name, az, conf, el in rows:
-            print(f"  {name:20s} {'-' if az is None else f'{az:6.1f}':>10s} {conf:18.2f}  "
-                  f"{'-' if el is None else f'{el:5.1f}'}")
+            print(
+                f"  {name:20s} {'-' if az is None else f'{az:6.1f}':>10s} {conf:18.2f}  "
+                f"{'-' if el is None else f'{el:5.1f}'}"
+            )
     assert len(rows) == 6
     for name, az, conf, _ in rows:
         assert conf < 0.3 or (az is not None and az < 45.0), name

@@ -155,6 +155,7 @@ def test_recorder_records_input_frames_not_results(tmp_path):
 
 def _session(tmp_path, fs):
     from illuminet.runtime.stream.session import SessionWriter
+
     with SessionWriter(tmp_path / "src") as w:
         for f in fs:
             w.append(f)
@@ -187,11 +188,16 @@ def test_null_sink_counts():
 
 def test_build_sinks_from_config(tmp_path):
     assert build_sinks(defaults()) == []
-    cfg = apply_overrides(defaults(), [
-        ("output", "video", str(tmp_path / "a.mp4")), ("output", "png_dir", str(tmp_path / "p")),
-        ("output", "record", str(tmp_path / "r")), ("output", "record_color", "raw"),
-        ("output", "fps", 12.0),
-    ])
+    cfg = apply_overrides(
+        defaults(),
+        [
+            ("output", "video", str(tmp_path / "a.mp4")),
+            ("output", "png_dir", str(tmp_path / "p")),
+            ("output", "record", str(tmp_path / "r")),
+            ("output", "record_color", "raw"),
+            ("output", "fps", 12.0),
+        ],
+    )
     sinks = build_sinks(cfg, source_url="replay://x")
     kinds = {type(s) for s in sinks}
     assert kinds == {VideoSink, PngSequenceSink, SessionRecorderSink}
@@ -217,8 +223,9 @@ def test_mjpeg_status_page_shows_the_loop_snapshot(tmp_path):
     (sink,) = build_sinks(cfg, stats=stats.snapshot)
     stop = threading.Event()
     src = ReplaySource(src_path, timing="recorded", loop=True)
-    t = threading.Thread(target=run_loop, args=(src, [Composite()], [sink]),
-                         kwargs={"stats": stats, "stop_event": stop})
+    t = threading.Thread(
+        target=run_loop, args=(src, [Composite()], [sink]), kwargs={"stats": stats, "stop_event": stop}
+    )
     t.start()
     try:
         deadline = time.monotonic() + 10
@@ -235,7 +242,7 @@ def test_mjpeg_status_page_shows_the_loop_snapshot(tmp_path):
     assert loop["running"] is True and loop["frames"] >= 5 and "stage:composite" in loop["stages_ms"]
     assert loop["dropped"] >= 0 and "fps_recent" in loop
     start = head.index(b"\xff\xd8")
-    jpg = cv2.imdecode(np.frombuffer(head[start:head.index(b"\xff\xd9", start) + 2], np.uint8), cv2.IMREAD_COLOR)
+    jpg = cv2.imdecode(np.frombuffer(head[start : head.index(b"\xff\xd9", start) + 2], np.uint8), cv2.IMREAD_COLOR)
     assert jpg.shape == (H, W, 3)
 
 
@@ -243,8 +250,10 @@ def test_build_sinks_estimates_and_viewer_model(tmp_path):
     from illuminet.runtime.stream.mjpeg import MjpegSink
     from illuminet.runtime.stream.sinks import EstimateSink
 
-    cfg = apply_overrides(defaults(), [("output", "estimates", str(tmp_path / "e.jsonl")), ("output", "mjpeg", True),
-                                       ("output", "port", 0)])
+    cfg = apply_overrides(
+        defaults(),
+        [("output", "estimates", str(tmp_path / "e.jsonl")), ("output", "mjpeg", True), ("output", "port", 0)],
+    )
     est, mj = build_sinks(cfg)
     assert isinstance(est, EstimateSink) and est.path == str(tmp_path / "e.jsonl")
     assert isinstance(mj, MjpegSink) and mj.viewer_model == "builtin:vase"  # the [model] bundle's object

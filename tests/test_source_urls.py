@@ -10,18 +10,29 @@ from illuminet.hw.synthetic import open_url as synthetic_url
 
 
 def test_values_are_parsed_and_the_last_repeat_wins():
-    q = parse_query("x://dev?n=3&on=Yes&size=64x40&mode=b&n=4&f=1.5",
-                    {"n": query_int(0, 9), "on": query_bool, "size": query_size(even=True),
-                     "mode": query_choice("a", "b"), "f": query_float, "unused": str})
+    q = parse_query(
+        "x://dev?n=3&on=Yes&size=64x40&mode=b&n=4&f=1.5",
+        {
+            "n": query_int(0, 9),
+            "on": query_bool,
+            "size": query_size(even=True),
+            "mode": query_choice("a", "b"),
+            "f": query_float,
+            "unused": str,
+        },
+    )
     assert q == {"n": 4, "on": True, "size": (64, 40), "mode": "b", "f": 1.5}
 
 
-@pytest.mark.parametrize("query, message", [
-    ("color=1", "x://d?color=1: unknown parameter 'color'; known: n, on"),
-    ("n=12", "x://d?n=12: n='12': expected an integer in 0..9"),
-    ("n=two", "x://d?n=two: n='two': expected an integer in 0..9"),
-    ("on=maybe", "x://d?on=maybe: on='maybe': expected 0/1"),
-])
+@pytest.mark.parametrize(
+    "query, message",
+    [
+        ("color=1", "x://d?color=1: unknown parameter 'color'; known: n, on"),
+        ("n=12", "x://d?n=12: n='12': expected an integer in 0..9"),
+        ("n=two", "x://d?n=two: n='two': expected an integer in 0..9"),
+        ("on=maybe", "x://d?on=maybe: on='maybe': expected 0/1"),
+    ],
+)
 def test_bad_keys_and_values_name_the_url_key_and_value(query, message):
     with pytest.raises(SourceError) as e:
         parse_query(f"x://d?{query}", {"n": query_int(0, 9), "on": query_bool}, error=SourceError)

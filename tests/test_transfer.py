@@ -23,8 +23,14 @@ def _stage(**model):
 
 
 def _frame(pl):
-    f = Frame(seq=0, t_device_ns=0, t_host_ns=0, color=np.zeros((4, 4, 3), np.uint8), depth=None,
-              intrinsics=Intrinsics(1, 1, 1, 1, 4, 4))
+    f = Frame(
+        seq=0,
+        t_device_ns=0,
+        t_host_ns=0,
+        color=np.zeros((4, 4, 3), np.uint8),
+        depth=None,
+        intrinsics=Intrinsics(1, 1, 1, 1, 4, 4),
+    )
     return f.with_result("plane_light", pl)
 
 
@@ -107,8 +113,14 @@ def test_baseline_modes(mode):
 
 def test_missing_plane_light_and_wrong_grid_are_frame_errors():
     st = _stage()
-    f = Frame(seq=0, t_device_ns=0, t_host_ns=0, color=np.zeros((4, 4, 3), np.uint8), depth=None,
-              intrinsics=Intrinsics(1, 1, 1, 1, 4, 4))
+    f = Frame(
+        seq=0,
+        t_device_ns=0,
+        t_host_ns=0,
+        color=np.zeros((4, 4, 3), np.uint8),
+        depth=None,
+        intrinsics=Intrinsics(1, 1, 1, 1, 4, 4),
+    )
     with pytest.raises(FrameError, match="plane_light"):
         st.process(f)
     with pytest.raises(FrameError, match=r"\[plane_light\] grid = 32"):

@@ -60,7 +60,7 @@ def _pair(seed=0):
     """Rectified pair of a textured fronto-parallel plane at Z: right(x) = left(x + d)."""
     t = _texture(seed)
     left = np.ascontiguousarray(t[:, :W])
-    right = np.ascontiguousarray(t[:, DISP:DISP + W])
+    right = np.ascontiguousarray(t[:, DISP : DISP + W])
     return left, right
 
 
@@ -68,9 +68,12 @@ def _pair(seed=0):
 def calib_file(tmp_path_factory):
     K = [[F, 0.0, (W - 1) / 2], [0.0, F, (H - 1) / 2], [0.0, 0.0, 1.0]]
     d = {
-        "format": "illuminet-calibration", "version": 1,
-        "cameras": {"left": {"width": W, "height": H, "model": "pinhole", "K": K, "dist": [0, 0, 0, 0, 0]},
-                    "right": {"width": W, "height": H, "model": "pinhole", "K": K, "dist": [0, 0, 0, 0, 0]}},
+        "format": "illuminet-calibration",
+        "version": 1,
+        "cameras": {
+            "left": {"width": W, "height": H, "model": "pinhole", "K": K, "dist": [0, 0, 0, 0, 0]},
+            "right": {"width": W, "height": H, "model": "pinhole", "K": K, "dist": [0, 0, 0, 0, 0]},
+        },
         "stereo": {"left": "left", "right": "right", "R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "T": [-B, 0, 0]},
     }
     p = tmp_path_factory.mktemp("calib") / "rig.json"
@@ -81,21 +84,31 @@ def calib_file(tmp_path_factory):
 def test_parse_url():
     o = v4l2.parse_url("v4l2:///dev/video0?stereo=sbs&size=2560x720&fps=30&fourcc=mjpg&swap=1&calib=a.json")
     assert (o.device, o.stereo, o.size, o.fps, o.fourcc, o.swap, o.calib) == (
-        "/dev/video0", "sbs", (2560, 720), 30.0, "MJPG", True, "a.json")
+        "/dev/video0",
+        "sbs",
+        (2560, 720),
+        30.0,
+        "MJPG",
+        True,
+        "a.json",
+    )
     o = v4l2.parse_url("v4l2:///dev/video0?right=/dev/video2")
     assert o.stereo == "pair" and o.right == "/dev/video2"
     assert v4l2.parse_url("v4l2:///dev/video4").stereo == ""
 
 
-@pytest.mark.parametrize("url, msg", [
-    ("v4l2://", "no device"),
-    ("v4l2:///dev/video0?stereo=3d", "stereo='3d'"),
-    ("v4l2:///dev/video0?stereo=pair", "needs right="),
-    ("v4l2:///dev/video0?stereo=sbs&right=/dev/video2", "contradicts"),
-    ("v4l2:///dev/video0?size=big", "WIDTHxHEIGHT"),
-    ("v4l2:///dev/video0?gain=3", "unknown parameter 'gain'"),
-    ("v4l2:///dev/video0?fourcc=MJPEG", "four characters"),
-])
+@pytest.mark.parametrize(
+    "url, msg",
+    [
+        ("v4l2://", "no device"),
+        ("v4l2:///dev/video0?stereo=3d", "stereo='3d'"),
+        ("v4l2:///dev/video0?stereo=pair", "needs right="),
+        ("v4l2:///dev/video0?stereo=sbs&right=/dev/video2", "contradicts"),
+        ("v4l2:///dev/video0?size=big", "WIDTHxHEIGHT"),
+        ("v4l2:///dev/video0?gain=3", "unknown parameter 'gain'"),
+        ("v4l2:///dev/video0?fourcc=MJPEG", "four characters"),
+    ],
+)
 def test_parse_url_refuses(url, msg):
     with pytest.raises(ValueError, match=msg):
         v4l2.parse_url(url)

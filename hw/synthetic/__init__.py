@@ -20,7 +20,8 @@ URL
     frames    frames before the end of the stream (default 60)
     path      ``static`` (default: a fixed camera, frames differ only by noise) or ``orbit``
               (the camera swings +-25 deg around the object and bobs 5 cm, one period per run)
-    boxes     ``N`` boxes (0-12; default 2-4 in ``cluttered``, else 0) standing on the floor 0.5-1.8 m around the object, in view,
+    boxes     ``N`` boxes (0-12; default 2-4 in ``cluttered``, else 0) standing on the floor 0.5-1.8 m
+              around the object, in view,
               never hiding it: real objects casting shadows (``scene.info["boxes"]`` lists them)
 
 What a frame holds
@@ -46,15 +47,24 @@ drawing a million Gaussians per frame). With the static path the geometry is cac
 """
 
 from illuminet.hw.synthetic.scene import (
-           OAKD_INTRINSICS_1280,
-           PATHS,
-           SCENES,
-           SyntheticError,
-           SyntheticScene,
-           build_scene,
+    OAKD_INTRINSICS_1280,
+    PATHS,
+    SCENES,
+    SyntheticError,
+    SyntheticScene,
+    build_scene,
 )
 from illuminet.hw.synthetic.source import SyntheticSource, open_url
 from illuminet.hw.synthetic.textures import make_albedo_tile
 
-__all__ = ["PATHS", "SCENES", "OAKD_INTRINSICS_1280", "SyntheticError", "SyntheticScene", "SyntheticSource",
-           "build_scene", "make_albedo_tile", "open_url"]
+__all__ = [
+    "PATHS",
+    "SCENES",
+    "OAKD_INTRINSICS_1280",
+    "SyntheticError",
+    "SyntheticScene",
+    "SyntheticSource",
+    "build_scene",
+    "make_albedo_tile",
+    "open_url",
+]

@@ -11,7 +11,8 @@ block of the plane's 1-2 cm direct-light grid, averaged). From every patch centr
 find the first plane they hit; that table of hits is the whole transport, computed once per scene.
 Bounce ``k``'s irradiance is the mean radiance of bounce ``k - 1`` over a patch's rays times pi
 (the cosine-weighted integral; patches are piecewise constant, as in classic radiosity): the
-table of (receiving patch, source patch) pairs is built once, and ``N`` bounces cost ``N`` sums. The sum of bounces ``1..N``,
+table of (receiving patch, source patch) pairs is built once, and ``N`` bounces cost ``N`` sums. The sum of
+bounces ``1..N``,
 bilinearly interpolated to the plane's fine grid, is added to its baked irradiance: the camera's
 picture shows it at no cost per frame.
 
@@ -212,8 +213,11 @@ def bake(scene, bounces: int, n_directions: int = PLANE_DIRECTIONS) -> None:
             for i, p in enumerate(planes):
                 p.lattice.bounce_prev = total[offsets[i] : offsets[i + 1]].reshape(*p.lattice.shape, 3).copy()
         rad = (e_prev * rho)[src]
-        e_new = np.pi / n_directions * np.stack(
-            [np.bincount(recv, weights=rad[:, c], minlength=S) for c in range(3)], axis=1)
+        e_new = (
+            np.pi
+            / n_directions
+            * np.stack([np.bincount(recv, weights=rad[:, c], minlength=S) for c in range(3)], axis=1)
+        )
         total += e_new
         e_prev = e_new
     for i, p in enumerate(planes):
@@ -223,8 +227,13 @@ def bake(scene, bounces: int, n_directions: int = PLANE_DIRECTIONS) -> None:
         # fine node j sits at lattice coordinate (j + 0.5) / m - 0.5
         mu = np.broadcast_to(((np.arange(nu, dtype=np.float32) + 0.5) / lat.m - 0.5)[:, None], (nu, nv))
         mv = np.broadcast_to(((np.arange(nv, dtype=np.float32) + 0.5) / lat.m - 0.5)[None, :], (nu, nv))
-        up = cv2.remap(lat.bounce.astype(np.float32), np.ascontiguousarray(mv), np.ascontiguousarray(mu),
-                       cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        up = cv2.remap(
+            lat.bounce.astype(np.float32),
+            np.ascontiguousarray(mv),
+            np.ascontiguousarray(mu),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
         p.irradiance_grid = (p.direct_grid + up.reshape(nu, nv, 3)).astype(np.float32)
 
 
@@ -253,8 +262,9 @@ class SupportShadow:
         return delta, share
 
 
-def support_shadow(scene, mesh, T_world_obj: np.ndarray, cells: int = 64, share: float = 0.0,
-                   n_directions: int = 32) -> SupportShadow | None:
+def support_shadow(
+    scene, mesh, T_world_obj: np.ndarray, cells: int = 64, share: float = 0.0, n_directions: int = 32
+) -> SupportShadow | None:
     """The shadow ``mesh`` (object frame, standing at ``T_world_obj``) casts on its supporting plane.
 
     The supporting plane is the up-facing plane through the object's origin. Lights giving more than
@@ -312,8 +322,9 @@ def _per_light(point: np.ndarray, lights: L.PointLights, vis: np.ndarray) -> np.
     return cos / r2 * vis * (lights.intensities @ L._LUMA)
 
 
-def object_radiance(scene, origins: np.ndarray, directions: np.ndarray, shadow: SupportShadow | None = None,
-                    chunk: int = 1 << 18) -> np.ndarray:
+def object_radiance(
+    scene, origins: np.ndarray, directions: np.ndarray, shadow: SupportShadow | None = None, chunk: int = 1 << 18
+) -> np.ndarray:
     """Radiance (V, n, 3) the scene's planes send along rays (world frame) towards an object.
 
     Parameters

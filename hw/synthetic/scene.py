@@ -29,7 +29,6 @@ class SyntheticError(ValueError):
     """A ``synthetic://`` URL is invalid; the message names the parameter and what was expected."""
 
 
-
 @dataclass
 class SyntheticPlane:
     """An axis-aligned textured rectangle in the world frame (floor y = 0, +Y up, metres).
@@ -54,7 +53,7 @@ class SyntheticPlane:
     grid_lo: np.ndarray | None = None
     grid_cell_m: float = 0.01
     direct_grid: np.ndarray | None = None  # (nu, nv, 3) direct light alone when bounces were added
-    lattice: "object | None" = None  # bounce.Lattice: radiosity patches (when bounces were baked)
+    lattice: object | None = None  # bounce.Lattice: radiosity patches (when bounces were baked)
 
     @property
     def normal(self) -> np.ndarray:
@@ -70,8 +69,12 @@ class SyntheticPlane:
     def contains(self, p: np.ndarray) -> np.ndarray:
         """Mask of world points (on the plane) inside the rectangle."""
         a, b = self.axes
-        return ((p[..., a] >= self.lo[0]) & (p[..., a] <= self.hi[0])
-                & (p[..., b] >= self.lo[1]) & (p[..., b] <= self.hi[1]))
+        return (
+            (p[..., a] >= self.lo[0])
+            & (p[..., a] <= self.hi[0])
+            & (p[..., b] >= self.lo[1])
+            & (p[..., b] <= self.hi[1])
+        )
 
 
 @dataclass
@@ -139,10 +142,22 @@ def _room_planes(rng, lo, hi, floor_kind):
     for name, axis, side in (("wall_x0", 0, 0), ("wall_x1", 0, 1), ("wall_z0", 2, 0), ("wall_z1", 2, 1)):
         others = (1, 2) if axis == 0 else (0, 1)
         coord = lo[axis] if side == 0 else hi[axis]
-        planes.append(SyntheticPlane(name, "wall", axis, coord, +1.0 if side == 0 else -1.0, others,
-                                     lo[list(others)], hi[list(others)], *paint))
-    planes.append(SyntheticPlane("ceiling", "ceiling", 1, hi[1], -1.0, (0, 2), lo[[0, 2]], hi[[0, 2]],
-                                 *mk("ceiling", rng)))
+        planes.append(
+            SyntheticPlane(
+                name,
+                "wall",
+                axis,
+                coord,
+                +1.0 if side == 0 else -1.0,
+                others,
+                lo[list(others)],
+                hi[list(others)],
+                *paint,
+            )
+        )
+    planes.append(
+        SyntheticPlane("ceiling", "ceiling", 1, hi[1], -1.0, (0, 2), lo[[0, 2]], hi[[0, 2]], *mk("ceiling", rng))
+    )
     return planes
 
 
@@ -231,9 +246,18 @@ class SyntheticScene:
             if off < 0:  # the camera is behind it
                 continue
             area = float(np.prod(np.minimum(p.hi - p.lo, 1e3)))
-            out.append(Plane(id=i, normal=n, offset=off, centroid=c, area_m2=area,
-                             label=_CAM_LABELS.get(p.label, p.label) if p.label != "box" else
-                             ("table" if p.axis == 1 else "wall")))
+            out.append(
+                Plane(
+                    id=i,
+                    normal=n,
+                    offset=off,
+                    centroid=c,
+                    area_m2=area,
+                    label=_CAM_LABELS.get(p.label, p.label)
+                    if p.label != "box"
+                    else ("table" if p.axis == 1 else "wall"),
+                )
+            )
         return out
 
     # ------------------------------------------------------------------ ground truth
@@ -246,8 +270,9 @@ class SyntheticScene:
             vis[occ.blocks(p[:, None, :] + 1e-6 * np.array([0, 1.0, 0]), lp[None, :, :])] = 0.0
         return vis
 
-    def true_plane_irradiance(self, points_cam: np.ndarray, normal_cam: np.ndarray, frame: int = 0,
-                              indirect: bool = True) -> np.ndarray:
+    def true_plane_irradiance(
+        self, points_cam: np.ndarray, normal_cam: np.ndarray, frame: int = 0, indirect: bool = True
+    ) -> np.ndarray:
         """Irradiance (P, 3) at camera-frame points with a camera-frame normal (one (3,) or (P, 3)).
 
         Direct light exactly, plus (``indirect`` and ``bounces > 0``) the baked inter-reflection: read
@@ -270,8 +295,9 @@ class SyntheticScene:
                 e[off] += self.indirect_irradiance(pw[off], nw[off])
         return e
 
-    def indirect_irradiance(self, points_world: np.ndarray, normals_world: np.ndarray,
-                            n_directions: int | None = None) -> np.ndarray:
+    def indirect_irradiance(
+        self, points_world: np.ndarray, normals_world: np.ndarray, n_directions: int | None = None
+    ) -> np.ndarray:
         """Irradiance (P, 3) that the planes' inter-reflected light gives world points with world
         normals (nothing blocks but the planes; bounces 1..``bounces``); zeros when ``bounces == 0``."""
         from illuminet.hw.synthetic import bounce as B
@@ -321,9 +347,16 @@ class SyntheticScene:
         T_obj_world = invert(self.poses[frame % len(self.poses)] @ np.asarray(T_cam_obj, float))
         return self.lights.transformed(T_obj_world[:3, :3], T_obj_world[:3, 3])
 
-    def true_object_oi(self, mesh, T_cam_obj: np.ndarray, visibility: bool = True, frame: int = 0,
-                       points: np.ndarray | None = None, normals: np.ndarray | None = None,
-                       indirect: bool = True) -> np.ndarray:
+    def true_object_oi(
+        self,
+        mesh,
+        T_cam_obj: np.ndarray,
+        visibility: bool = True,
+        frame: int = 0,
+        points: np.ndarray | None = None,
+        normals: np.ndarray | None = None,
+        indirect: bool = True,
+    ) -> np.ndarray:
         """Ground-truth OI (V, 3, 3) in the object frame; see :meth:`true_object_shading`.
 
         The indirect light's share is its vector irradiance ``integral L(w) w dw`` (so that the OI's
@@ -335,9 +368,16 @@ class SyntheticScene:
             oi = oi + hv.vector_irradiance(rad)
         return oi
 
-    def true_object_shading(self, mesh, T_cam_obj: np.ndarray, visibility: bool = True, frame: int = 0,
-                            points: np.ndarray | None = None, normals: np.ndarray | None = None,
-                            indirect: bool = True) -> np.ndarray:
+    def true_object_shading(
+        self,
+        mesh,
+        T_cam_obj: np.ndarray,
+        visibility: bool = True,
+        frame: int = 0,
+        points: np.ndarray | None = None,
+        normals: np.ndarray | None = None,
+        indirect: bool = True,
+    ) -> np.ndarray:
         """Ground-truth irradiance (V, 3) on the mesh's vertices, scene-referred linear RGB.
 
         Parameters
@@ -444,8 +484,11 @@ def _camera_poses(rng, kind, target, n_frames, path, room):
             break
         lo, hi = room
         margin = 0.45  # the orbit swings up to +-25 deg: keep it inside the room
-        if (np.all(eye[[0, 2]] > lo[[0, 2]] + margin) and np.all(eye[[0, 2]] < hi[[0, 2]] - margin)
-                and eye[1] < hi[1] - 0.2):
+        if (
+            np.all(eye[[0, 2]] > lo[[0, 2]] + margin)
+            and np.all(eye[[0, 2]] < hi[[0, 2]] - margin)
+            and eye[1] < hi[1] - 0.2
+        ):
             break
     else:
         raise RuntimeError("could not place the camera inside the room")
@@ -494,9 +537,18 @@ def _cluttered_lights(rng, n_lights):
     return key.scaled(rng.uniform(10, 40) / e0).concatenated(ambient), lo, hi
 
 
-def build_scene(kind: str, seed: int, size: tuple[int, int] = (640, 400), frames: int = 60,
-                path: str = "static", hdr: str | None = None, table: bool | None = None,
-                n_lights: int = 32, bounce: int = DEFAULT_BOUNCES, boxes: int | None = None) -> SyntheticScene:
+def build_scene(
+    kind: str,
+    seed: int,
+    size: tuple[int, int] = (640, 400),
+    frames: int = 60,
+    path: str = "static",
+    hdr: str | None = None,
+    table: bool | None = None,
+    n_lights: int = 32,
+    bounce: int = DEFAULT_BOUNCES,
+    boxes: int | None = None,
+) -> SyntheticScene:
     """Create a synthetic scene (deterministic in ``seed``); see the module docstring for kinds.
 
     ``bounce`` diffuse inter-reflections are baked (0 = direct light only). ``boxes`` closed boxes stand
@@ -542,8 +594,14 @@ def build_scene(kind: str, seed: int, size: tuple[int, int] = (640, 400), frames
             lights = L.sample_lights("outdoor", rng, n_lights)
             sky_e = lights.intensities[1:].sum(0) / L.OUTDOOR_DISTANCE**2
             base = sky_e / np.pi  # radiance of a uniform sky giving that irradiance
-            sky = _Sky(None, 0.0, 1.0, (base * [0.6, 0.8, 1.3]).astype(np.float32),
-                       (base * [1.3, 1.3, 1.2]).astype(np.float32), (base * 0.3).astype(np.float32))
+            sky = _Sky(
+                None,
+                0.0,
+                1.0,
+                (base * [0.6, 0.8, 1.3]).astype(np.float32),
+                (base * [1.3, 1.3, 1.2]).astype(np.float32),
+                (base * 0.3).astype(np.float32),
+            )
         ground = rng.choice(["concrete", "grass"])
         inf = np.array([np.inf, np.inf])
         planes = [SyntheticPlane("ground", "ground", 1, 0.0, +1.0, (0, 2), -inf, inf, *make_albedo_tile(ground, rng))]
@@ -564,8 +622,9 @@ def build_scene(kind: str, seed: int, size: tuple[int, int] = (640, 400), frames
         w = rng.uniform(6.0, 12.0)
         lo2 = np.array([0.0, -w / 2]) if axis == 0 else np.array([-w / 2, 0.0])
         hi2 = np.array([rng.uniform(4, 8), w / 2]) if axis == 0 else np.array([w / 2, rng.uniform(4, 8)])
-        planes.append(SyntheticPlane("facade", "wall", axis, coord, sign, others, lo2, hi2,
-                                     *make_albedo_tile("brick", rng)))
+        planes.append(
+            SyntheticPlane("facade", "wall", axis, coord, sign, others, lo2, hi2, *make_albedo_tile("brick", rng))
+        )
         occluders.append(Occluder(axis, coord, others, lo2, hi2))
     if n_boxes > 0:
         _add_boxes(box_rng, n_boxes, intr, room, positions, poses, planes, occluders, info)
@@ -591,8 +650,9 @@ def _add_table(rng, room, positions, poses, planes, occluders, info) -> None:
     else:
         info["table_centre"] = None  # no place found: the room goes without a table
         return
-    planes.append(SyntheticPlane("table", "table", 1, 0.72, +1.0, (0, 2), occ.lo, occ.hi,
-                                 *make_albedo_tile("tabletop", rng)))
+    planes.append(
+        SyntheticPlane("table", "table", 1, 0.72, +1.0, (0, 2), occ.lo, occ.hi, *make_albedo_tile("tabletop", rng))
+    )
     occluders.append(occ)
     info["table_centre"] = c.tolist()
 
@@ -617,7 +677,9 @@ def _add_boxes(rng, n, intr, room, positions, poses, planes, occluders, info) ->
         r, a = rng.uniform(0.5, 1.8), rng.uniform(0, 2 * np.pi)
         c = positions[0, [0, 2]] + r * np.array([np.cos(a), np.sin(a)])
         lo, hi = np.array([c[0] - half[0], 0.0, c[1] - half[1]]), np.array([c[0] + half[0], h, c[1] + half[1]])
-        if room is not None and (np.any(lo[[0, 2]] < room[0][[0, 2]] + 0.2) or np.any(hi[[0, 2]] > room[1][[0, 2]] - 0.2)):
+        if room is not None and (
+            np.any(lo[[0, 2]] < room[0][[0, 2]] + 0.2) or np.any(hi[[0, 2]] > room[1][[0, 2]] - 0.2)
+        ):
             continue
         # clear of the objects (30 cm) and of the other boxes (10 cm)
         if np.any(np.max(np.abs(c - positions[:, [0, 2]]) - half, axis=1) < 0.3):
@@ -626,8 +688,9 @@ def _add_boxes(rng, n, intr, room, positions, poses, planes, occluders, info) ->
             continue
         # in view of the first camera: its top centre projects inside the picture
         pc = T_cw[:3, :3] @ np.array([c[0], h, c[1]]) + T_cw[:3, 3]
-        if pc[2] <= 0.4 or not (0 <= intr.fx * pc[0] / pc[2] + intr.cx < intr.width
-                                and 0 <= intr.fy * pc[1] / pc[2] + intr.cy < intr.height):
+        if pc[2] <= 0.4 or not (
+            0 <= intr.fx * pc[0] / pc[2] + intr.cx < intr.width and 0 <= intr.fy * pc[1] / pc[2] + intr.cy < intr.height
+        ):
             continue
         faces = _box_faces(lo, hi)
         if any(f.blocks(eyes[:, None, :], targets[None, :, :]).any() for f in faces):
@@ -635,17 +698,32 @@ def _add_boxes(rng, n, intr, room, positions, poses, planes, occluders, info) ->
         boxes.append((lo, hi))
         tile = make_albedo_tile(kinds[int(rng.integers(len(kinds)))], rng)
         for k, f in enumerate(faces):
-            planes.append(SyntheticPlane(f"box{len(boxes) - 1}_{k}", "box", f.axis, f.coord, -1.0 if k % 2 else 1.0,
-                                         f.axes, f.lo, f.hi, *tile))
+            planes.append(
+                SyntheticPlane(
+                    f"box{len(boxes) - 1}_{k}",
+                    "box",
+                    f.axis,
+                    f.coord,
+                    -1.0 if k % 2 else 1.0,
+                    f.axes,
+                    f.lo,
+                    f.hi,
+                    *tile,
+                )
+            )
         occluders.append(BoxOccluder(lo, hi))  # one solid: a slab test instead of five faces
     info["boxes"] = [(lo.tolist(), hi.tolist()) for lo, hi in boxes]
 
 
 def _box_faces(lo: np.ndarray, hi: np.ndarray) -> list[Occluder]:
     """The five faces of a box on the floor: top, then -x, +x, -z, +z sides (outward sign: +, -, +, -, +)."""
-    return [Occluder(1, hi[1], (0, 2), lo[[0, 2]], hi[[0, 2]]),
-            Occluder(0, lo[0], (1, 2), lo[[1, 2]], hi[[1, 2]]), Occluder(0, hi[0], (1, 2), lo[[1, 2]], hi[[1, 2]]),
-            Occluder(2, lo[2], (0, 1), lo[[0, 1]], hi[[0, 1]]), Occluder(2, hi[2], (0, 1), lo[[0, 1]], hi[[0, 1]])]
+    return [
+        Occluder(1, hi[1], (0, 2), lo[[0, 2]], hi[[0, 2]]),
+        Occluder(0, lo[0], (1, 2), lo[[1, 2]], hi[[1, 2]]),
+        Occluder(0, hi[0], (1, 2), lo[[1, 2]], hi[[1, 2]]),
+        Occluder(2, lo[2], (0, 1), lo[[0, 1]], hi[[0, 1]]),
+        Occluder(2, hi[2], (0, 1), lo[[0, 1]], hi[[0, 1]]),
+    ]
 
 
 def _bake_irradiance(scene: SyntheticScene, p: SyntheticPlane, poses) -> None:
@@ -678,8 +756,13 @@ def _bake_irradiance(scene: SyntheticScene, p: SyntheticPlane, poses) -> None:
     # cell j of the fine grid lies at lattice coordinate j / step (exact, unlike cv2.resize's centres)
     mu = np.broadcast_to((np.arange(nu, dtype=np.float32) / step)[:, None], (nu, nv))
     mv = np.broadcast_to((np.arange(nv, dtype=np.float32) / step)[None, :], (nu, nv))
-    big = cv2.remap(e.astype(np.float32), np.ascontiguousarray(mv), np.ascontiguousarray(mu), cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_REPLICATE)
+    big = cv2.remap(
+        e.astype(np.float32),
+        np.ascontiguousarray(mv),
+        np.ascontiguousarray(mu),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
     # shadow edges are not smooth: where the visibility of a light that matters (> 5 % of the
     # plane's brightest irradiance) changes between lattice nodes, evaluate every fine cell exactly
     # (only a band along those edges, so it stays cheap)

@@ -10,7 +10,13 @@ import numpy as np
 
 from illuminet.hw import parse_query, query_bool, query_choice, query_int, query_size
 from illuminet.hw.synthetic.scene import (
-    DEFAULT_BOUNCES, MAX_BOUNCES, PATHS, ROOM_LABELS, SyntheticError, SyntheticScene, build_scene,
+    DEFAULT_BOUNCES,
+    MAX_BOUNCES,
+    PATHS,
+    ROOM_LABELS,
+    SyntheticError,
+    SyntheticScene,
+    build_scene,
 )
 from illuminet.runtime.frame import Exposure, Frame
 from illuminet.runtime.groundtruth import lighting as L
@@ -48,27 +54,40 @@ class _Renderer:
         intr = scene.intrinsics
         u, v = np.meshgrid(np.arange(intr.width, dtype=np.float32), np.arange(intr.height, dtype=np.float32))
         self.rays_cam = np.ascontiguousarray(
-            np.stack([((u - intr.cx) / intr.fx).ravel(), ((v - intr.cy) / intr.fy).ravel(),
-                      np.ones(u.size, np.float32)])
+            np.stack(
+                [((u - intr.cx) / intr.fx).ravel(), ((v - intr.cy) / intr.fy).ravel(), np.ones(u.size, np.float32)]
+            )
         )  # (3, N)
         self.planes = []
         for p in scene.planes:
             S = p.albedo_tile.shape[0]
             if S & (S - 1):
                 raise ValueError(f"albedo tiles must be a power of two in size, got {S}")
-            self.planes.append(dict(
-                axis=p.axis, coord=np.float32(p.coord), sign=p.sign, axes=p.axes,
-                # a room's own planes close a box: whatever ray meets one inside its bounds
-                bounded=bool(np.isfinite(p.lo).all() and (scene.room is None or p.label not in ROOM_LABELS)),
-                lo=p.lo.astype(np.float32), hi=p.hi.astype(np.float32),
-                S=S, k=np.float32(S / p.albedo_period_m), albedo=p.albedo_tile.reshape(-1, 3),
-                grid=(p.irradiance_grid / np.float32(np.pi)).astype(np.float32).reshape(-1, 3),
-                edge=p.shadow_edge.reshape(-1) if p.shadow_edge is not None and p.shadow_edge.any() else None,
-                strong=L.PointLights(scene.lights.positions[p.strong_lights], scene.lights.intensities[p.strong_lights])
-                if p.strong_lights is not None and len(p.strong_lights) else None,
-                gshape=p.irradiance_grid.shape[:2], glo=p.grid_lo.astype(np.float32),
-                ginv=np.float32(1.0 / p.grid_cell_m),
-            ))
+            self.planes.append(
+                dict(
+                    axis=p.axis,
+                    coord=np.float32(p.coord),
+                    sign=p.sign,
+                    axes=p.axes,
+                    # a room's own planes close a box: whatever ray meets one inside its bounds
+                    bounded=bool(np.isfinite(p.lo).all() and (scene.room is None or p.label not in ROOM_LABELS)),
+                    lo=p.lo.astype(np.float32),
+                    hi=p.hi.astype(np.float32),
+                    S=S,
+                    k=np.float32(S / p.albedo_period_m),
+                    albedo=p.albedo_tile.reshape(-1, 3),
+                    grid=(p.irradiance_grid / np.float32(np.pi)).astype(np.float32).reshape(-1, 3),
+                    edge=p.shadow_edge.reshape(-1) if p.shadow_edge is not None and p.shadow_edge.any() else None,
+                    strong=L.PointLights(
+                        scene.lights.positions[p.strong_lights], scene.lights.intensities[p.strong_lights]
+                    )
+                    if p.strong_lights is not None and len(p.strong_lights)
+                    else None,
+                    gshape=p.irradiance_grid.shape[:2],
+                    glo=p.grid_lo.astype(np.float32),
+                    ginv=np.float32(1.0 / p.grid_cell_m),
+                )
+            )
         self._cache: tuple[bytes, tuple] | None = None
         self._last: tuple[bytes, tuple] | None = None
 
@@ -267,8 +286,9 @@ class SyntheticSource(Source):
         k = np.float32(exp.scale)
         gain = np.float32(exp.iso / 100.0)
         x = rad * k
-        sigma = np.sqrt(np.maximum(x, 0) * (gain / FULL_WELL_E) + (READ_NOISE_E * gain / FULL_WELL_E) ** 2
-                        + ADC_NOISE**2)
+        sigma = np.sqrt(
+            np.maximum(x, 0) * (gain / FULL_WELL_E) + (READ_NOISE_E * gain / FULL_WELL_E) ** 2 + ADC_NOISE**2
+        )
         off = int(rng.integers(0, self._bank.size - x.size))
         x = x + sigma * self._bank[off : off + x.size].reshape(x.shape)
         q = np.clip(x * np.float32(_SRGB_LUT_SIZE - 1) + np.float32(0.5), 0, _SRGB_LUT_SIZE - 1).astype(np.int32)
@@ -337,9 +357,17 @@ def _stereo_depth(z: np.ndarray, fx: float, rng: np.random.Generator, bank: np.n
 
 #: the parameters of ``synthetic://SCENE?...`` and their parsers (sizes: 32..4096 per side)
 _PARAMS = {
-    "seed": query_int(0, 2**31 - 1), "size": query_size(32, 4096), "width": query_int(32, 4096),
-    "height": query_int(32, 4096), "frames": query_int(1, 10_000_000), "path": query_choice(*PATHS), "hdr": str,
-    "table": query_bool, "lights": query_int(1, 1024), "bounce": query_int(0, MAX_BOUNCES), "boxes": query_int(0, 12),
+    "seed": query_int(0, 2**31 - 1),
+    "size": query_size(32, 4096),
+    "width": query_int(32, 4096),
+    "height": query_int(32, 4096),
+    "frames": query_int(1, 10_000_000),
+    "path": query_choice(*PATHS),
+    "hdr": str,
+    "table": query_bool,
+    "lights": query_int(1, 1024),
+    "bounce": query_int(0, MAX_BOUNCES),
+    "boxes": query_int(0, 12),
 }
 
 
@@ -358,6 +386,16 @@ def open_url(url: str, config=None) -> SyntheticSource:
         raise SyntheticError(f"{url!r}: HDR map not found: {hdr}")
     size = q.get("size") or (q.get("width", 640), q.get("height", 400))  # or the width=640&height=400 spelling
     frames = q.get("frames", 60)
-    scene = build_scene(kind, q.get("seed", 0), size, frames, q.get("path", "static"), hdr or None, q.get("table"),
-                        q.get("lights", 32), q.get("bounce", DEFAULT_BOUNCES), boxes)
+    scene = build_scene(
+        kind,
+        q.get("seed", 0),
+        size,
+        frames,
+        q.get("path", "static"),
+        hdr or None,
+        q.get("table"),
+        q.get("lights", 32),
+        q.get("bounce", DEFAULT_BOUNCES),
+        boxes,
+    )
     return SyntheticSource(scene, frames, url)

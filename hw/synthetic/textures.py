@@ -14,8 +14,9 @@ def _periodic_noise(rng: np.random.Generator, size: int, cells: int) -> np.ndarr
     base = rng.random((cells, cells)).astype(np.float32)
     pad = np.pad(base, 2, mode="wrap")
     scale = size / cells
-    big = cv2.resize(pad, (int(round(pad.shape[1] * scale)), int(round(pad.shape[0] * scale))),
-                     interpolation=cv2.INTER_CUBIC)
+    big = cv2.resize(
+        pad, (int(round(pad.shape[1] * scale)), int(round(pad.shape[0] * scale))), interpolation=cv2.INTER_CUBIC
+    )
     o = int(round(2 * scale))
     return big[o : o + size, o : o + size]
 
@@ -40,7 +41,7 @@ def make_albedo_tile(kind: str, rng: np.random.Generator, size: int = 512) -> tu
         grain = np.repeat(_fractal(rng, s, (2, 8, 32))[:1], s, axis=0) * 0.3 + _fractal(rng, s) * 0.15
         base = np.array([0.42, 0.27, 0.15]) * rng.uniform(0.7, 1.4)
         a = base * (tint * (1 + 0.25 * grain))[..., None]
-        gap = (np.mod(yy * planks, 1.0) < 0.02)
+        gap = np.mod(yy * planks, 1.0) < 0.02
         a[gap] *= 0.35
     elif kind == "tiles":
         period, n = 1.0, 4

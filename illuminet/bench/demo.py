@@ -59,14 +59,23 @@ def run(args, cfg) -> dict:
     print(f"shading: {describe_shading(probe.methods, cfg)}")
     fps_wall = float(d["fps"]) if np.isfinite(d["fps"]) else 0.0
     verdict = "meets" if fps_e2e >= FPS_TARGET else "BELOW"
-    print(f"frame rate: end to end {fps_e2e:.1f} fps (median total {total:.1f} ms, replay decoding included; "
-          f"{fps_wall:.1f} fps from frames / wall time) {verdict} the target >= {FPS_TARGET:.0f} fps; "
-          f"pipeline alone {fps_pipe:.1f} fps (median total - source {pipe_ms:.1f} ms)")
+    print(
+        f"frame rate: end to end {fps_e2e:.1f} fps (median total {total:.1f} ms, replay decoding included; "
+        f"{fps_wall:.1f} fps from frames / wall time) {verdict} the target >= {FPS_TARGET:.0f} fps; "
+        f"pipeline alone {fps_pipe:.1f} fps (median total - source {pipe_ms:.1f} ms)"
+    )
     print(f"peak resident memory: {rss:.0f} MB (target <= {RSS_TARGET_MB:.0f} MB)")
     return {
-        "source": url, "frames": d["frames"], "steps": steps, "fps_end_to_end": fps_e2e,
-        "fps_pipeline": fps_pipe, "fps_target": FPS_TARGET, "peak_rss_mb": rss, "rss_target_mb": RSS_TARGET_MB,
-        "shading": dict(probe.methods), "failed_frames": d["failed_frames"],
+        "source": url,
+        "frames": d["frames"],
+        "steps": steps,
+        "fps_end_to_end": fps_e2e,
+        "fps_pipeline": fps_pipe,
+        "fps_target": FPS_TARGET,
+        "peak_rss_mb": rss,
+        "rss_target_mb": RSS_TARGET_MB,
+        "shading": dict(probe.methods),
+        "failed_frames": d["failed_frames"],
         "stage_medians_ms": {k: v["median_ms"] for k, v in steps.items()},
         "fps_from_elapsed": fps_wall,
     }

@@ -49,16 +49,24 @@ def run(args: argparse.Namespace, cfg: Config) -> dict:
     out: dict = {}
     for scene in ("lamp", "indoor"):
         url = f"synthetic://{scene}?seed=3&frames={n}&path=orbit"
-        every = _time_light(apply_overrides(cfg, [("light", "rate_hz", 0.0), ("light", "pipelined", False)]),
-                            url, n).summary()
+        every = _time_light(
+            apply_overrides(cfg, [("light", "rate_hz", 0.0), ("light", "pipelined", False)]), url, n
+        ).summary()
         rated_s = _time_light(cfg, url, n)
         rated = rated_s.summary()
         mean = float(np.mean(rated_s._values)) * 1e3
-        out[scene] = {"estimate_median_ms": every["median_ms"], "estimate_p99_ms": every["p99_ms"],
-                      "per_frame_median_ms": rated["median_ms"], "per_frame_p99_ms": rated["p99_ms"],
-                      "per_frame_mean_ms": mean, "rate_hz": cfg.light.rate_hz}
-        print(f"light estimate ({scene}, 640x400, {n} frames): one estimate median {every['median_ms']:.2f} ms, "
-              f"p99 {every['p99_ms']:.2f} ms; per 30 fps frame at {cfg.light.rate_hz:g} Hz: "
-              f"median {rated['median_ms']:.2f} ms, mean {mean:.2f} ms, p99 {rated['p99_ms']:.2f} ms "
-              f"(target: <= 2 ms mean per frame)")
+        out[scene] = {
+            "estimate_median_ms": every["median_ms"],
+            "estimate_p99_ms": every["p99_ms"],
+            "per_frame_median_ms": rated["median_ms"],
+            "per_frame_p99_ms": rated["p99_ms"],
+            "per_frame_mean_ms": mean,
+            "rate_hz": cfg.light.rate_hz,
+        }
+        print(
+            f"light estimate ({scene}, 640x400, {n} frames): one estimate median {every['median_ms']:.2f} ms, "
+            f"p99 {every['p99_ms']:.2f} ms; per 30 fps frame at {cfg.light.rate_hz:g} Hz: "
+            f"median {rated['median_ms']:.2f} ms, mean {mean:.2f} ms, p99 {rated['p99_ms']:.2f} ms "
+            f"(target: <= 2 ms mean per frame)"
+        )
     return out

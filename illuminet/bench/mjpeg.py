@@ -64,8 +64,9 @@ class _MemorySource(Source):
             return None
         color, depth = self._pool[self.i % len(self._pool)]
         t = self.i * 33_333_333
-        f = Frame(seq=self.i, t_device_ns=t, t_host_ns=time.monotonic_ns(), color=color, depth=depth,
-                  intrinsics=self._intr)
+        f = Frame(
+            seq=self.i, t_device_ns=t, t_host_ns=time.monotonic_ns(), color=color, depth=depth, intrinsics=self._intr
+        )
         self.i += 1
         return f
 
@@ -192,8 +193,13 @@ def run(args: argparse.Namespace, cfg) -> dict:
         fps = [x["fps"] for x in runs[m]]
         frame_ms = statistics.median(x["frame_ms"] for x in runs[m])
         med = 1000.0 / frame_ms
-        result[m] = {"median_fps": med, "median_frame_ms": frame_ms, "run_fps_median": statistics.median(fps),
-                     "run_fps_min": min(fps), "run_fps_max": max(fps)}
+        result[m] = {
+            "median_fps": med,
+            "median_frame_ms": frame_ms,
+            "run_fps_median": statistics.median(fps),
+            "run_fps_min": min(fps),
+            "run_fps_max": max(fps),
+        }
         extra = ""
         if m != "no sink":
             enc = [x["encoded"] for x in runs[m]]
@@ -207,15 +213,19 @@ def run(args: argparse.Namespace, cfg) -> dict:
             extra += f"; frames each client received (median) {statistics.median(parts):.0f}"
             if errors:
                 extra += f"; client errors: {errors[:2]}"
-        print(f"  {m:<21} median {frame_ms * 1000:7.1f} us/frame = {med:7.1f} frames/s  (whole runs: median "
-              f"{statistics.median(fps):.0f}, min {min(fps):.0f}, max {max(fps):.0f} frames/s){extra}")
+        print(
+            f"  {m:<21} median {frame_ms * 1000:7.1f} us/frame = {med:7.1f} frames/s  (whole runs: median "
+            f"{statistics.median(fps):.0f}, min {min(fps):.0f}, max {max(fps):.0f} frames/s){extra}"
+        )
     ratio = result["2 clients"]["median_fps"] / result["no sink"]["median_fps"]
     ratio0 = result["2 clients"]["median_fps"] / result["0 clients"]["median_fps"]
     result["ratio_2_clients_vs_none"] = ratio
     result["ratio_2_clients_vs_0_clients"] = ratio0
     ratio_nocap = result["2 clients, no fps cap"]["median_fps"] / result["no sink"]["median_fps"]
     result["ratio_2_clients_no_cap_vs_none"] = ratio_nocap
-    print(f"  ratio 2 clients / no sink: {ratio:.3f}   (2 clients / 0 clients: {ratio0:.3f}); "
-          f"target >= 0.90: {'met' if ratio >= 0.90 else 'NOT met'}")
+    print(
+        f"  ratio 2 clients / no sink: {ratio:.3f}   (2 clients / 0 clients: {ratio0:.3f}); "
+        f"target >= 0.90: {'met' if ratio >= 0.90 else 'NOT met'}"
+    )
     print(f"  without the 30 fps preview cap (a JPEG for every frame the encoder can take): {ratio_nocap:.3f}")
     return result

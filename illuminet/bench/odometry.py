@@ -55,9 +55,16 @@ def anchor_drift(frames, cfg: Config) -> dict:
         yaw.append(float(np.degrees(np.arccos(np.clip(z0 @ z1 / (np.linalg.norm(z0) * np.linalg.norm(z1)), -1, 1)))))
         o = f.results.get(ODOMETRY.name)
         states.append(o.state if o is not None else "-")
-    return {"max_drift_m": max(dist), "final_drift_m": dist[-1], "max_yaw_deg": max(yaw), "final_yaw_deg": yaw[-1],
-            "lost_frames": states.count("lost"), "stage": t_wall.summary(), "stage_cpu": t_cpu.summary(),
-            "stats": an.stats()}
+    return {
+        "max_drift_m": max(dist),
+        "final_drift_m": dist[-1],
+        "max_yaw_deg": max(yaw),
+        "final_yaw_deg": yaw[-1],
+        "lost_frames": states.count("lost"),
+        "stage": t_wall.summary(),
+        "stage_cpu": t_cpu.summary(),
+        "stats": an.stats(),
+    }
 
 
 def load_frames(cfg: Config, url: str = URL) -> list:
@@ -78,8 +85,10 @@ def run(args: argparse.Namespace, cfg: Config) -> dict:
     frames = load_frames(cfg)
     path = frames + frames[-2:0:-1]  # forwards then backwards: a continuous camera path
     reps = 1 if quick else 4
-    print(f"# frames: {URL}, {frames[0].size[0]}x{frames[0].size[1]}, {reps * len(path)} timed frames "
-          f"(CPU shared with other processes: wall figures are upper bounds)")
+    print(
+        f"# frames: {URL}, {frames[0].size[0]}x{frames[0].size[1]}, {reps * len(path)} timed frames "
+        f"(CPU shared with other processes: wall figures are upper bounds)"
+    )
     od = Odometry()
     wall, cpu = Samples("odometry"), Samples("odometry:cpu")
     states = []
@@ -94,15 +103,19 @@ def run(args: argparse.Namespace, cfg: Config) -> dict:
     sw, sc = wall.summary(), cpu.summary()
     out["odometry"], out["odometry_cpu"] = sw, sc
     print(f"{'odometry':20s} median {sw['median_ms']:6.2f} ms   p99 {sw['p99_ms']:6.2f} ms   (target <= 3 ms median)")
-    print(f"{'odometry (CPU)':20s} median {sc['median_ms']:6.2f} ms   p99 {sc['p99_ms']:6.2f} ms   "
-          f"lost {states.count('lost')}/{len(states)}  inliers (last) {od.last.inliers}")
+    print(
+        f"{'odometry (CPU)':20s} median {sc['median_ms']:6.2f} ms   p99 {sc['p99_ms']:6.2f} ms   "
+        f"lost {states.count('lost')}/{len(states)}  inliers (last) {od.last.inliers}"
+    )
     for lock in ("world", "camera"):
         d = anchor_drift(frames, apply_overrides(cfg, [("anchor", "lock", lock)]))
         out[f"anchor_{lock}"] = {k: v for k, v in d.items() if k != "stats"}
         st = d["stage"]
-        print(f"{'anchor (' + lock + ' lock)':20s} median {st['median_ms']:6.2f} ms   p99 {st['p99_ms']:6.2f} ms   "
-              f"(CPU {d['stage_cpu']['median_ms']:.2f} ms)  drift over the orbit: max {100 * d['max_drift_m']:.2f} cm, "
-              f"yaw max {d['max_yaw_deg']:.2f} deg  (world-lock target <= 2 cm, <= 2 deg)  lost {d['lost_frames']}")
+        print(
+            f"{'anchor (' + lock + ' lock)':20s} median {st['median_ms']:6.2f} ms   p99 {st['p99_ms']:6.2f} ms   "
+            f"(CPU {d['stage_cpu']['median_ms']:.2f} ms)  drift over the orbit: max {100 * d['max_drift_m']:.2f} cm, "
+            f"yaw max {d['max_yaw_deg']:.2f} deg  (world-lock target <= 2 cm, <= 2 deg)  lost {d['lost_frames']}"
+        )
     return out
 
 

@@ -54,18 +54,30 @@ class AnalyticScene:
         Whether frames carry exposure metadata (time and ISO).
     """
 
-    def __init__(self, seed: int = 0, width: int = 640, height: int = 400, fx: float = 450.0,
-                 pitch_deg: float = 35.0, cam_height_m: float = 1.5, table: bool = True, wall: bool = True,
-                 depth_noise: float = 0.003, color_noise: float = 0.01, holes: float = 0.03,
-                 exposure_known: bool = True, light_w=(2.0, 2.3, 3.2), light_rgb=(900.0, 800.0, 650.0),
-                 ambient_rgb=(40.0, 45.0, 55.0), gravity: bool = True):
+    def __init__(
+        self,
+        seed: int = 0,
+        width: int = 640,
+        height: int = 400,
+        fx: float = 450.0,
+        pitch_deg: float = 35.0,
+        cam_height_m: float = 1.5,
+        table: bool = True,
+        wall: bool = True,
+        depth_noise: float = 0.003,
+        color_noise: float = 0.01,
+        holes: float = 0.03,
+        exposure_known: bool = True,
+        light_w=(2.0, 2.3, 3.2),
+        light_rgb=(900.0, 800.0, 650.0),
+        ambient_rgb=(40.0, 45.0, 55.0),
+        gravity: bool = True,
+    ):
         self.seed = seed
         self.intr = Intrinsics(fx, fx, (width - 1) / 2.0, (height - 1) / 2.0, width, height)
         th = np.radians(pitch_deg)
         # camera axes in world coordinates (columns): x right, y image-down, z forward
-        self.R_c2w = np.array([[1.0, 0.0, 0.0],
-                               [0.0, -np.cos(th), -np.sin(th)],
-                               [0.0, -np.sin(th), np.cos(th)]]).T
+        self.R_c2w = np.array([[1.0, 0.0, 0.0], [0.0, -np.cos(th), -np.sin(th)], [0.0, -np.sin(th), np.cos(th)]]).T
         self.C = np.array([0.0, cam_height_m, 0.0])
         self.cam_height = cam_height_m
         self.up_c = self.R_c2w.T @ np.array([0.0, 1.0, 0.0])
@@ -168,12 +180,20 @@ class AnalyticScene:
         d[rng.random(z.shape) < self.holes] = 0.0
         for _ in range(3):  # blob holes like textureless stereo gaps
             cy, cx, rr = rng.integers(0, H), rng.integers(0, W), rng.integers(4, 14)
-            d[max(0, cy - rr):cy + rr, max(0, cx - rr):cx + rr] = 0.0
+            d[max(0, cy - rr) : cy + rr, max(0, cx - rr) : cx + rr] = 0.0
         lin = gain * self._lin * (1.0 + self.color_noise * rng.standard_normal(self._lin.shape))
         color = linear_to_srgb8(lin)
         t = int(seq * 33_333_333) if t_ns is None else t_ns
-        return Frame(seq=seq, t_device_ns=t, t_host_ns=t, color=color, depth=d.astype(np.float32),
-                     intrinsics=self.intr, exposure=self.exposure, gravity=self.gravity)
+        return Frame(
+            seq=seq,
+            t_device_ns=t,
+            t_host_ns=t,
+            color=color,
+            depth=d.astype(np.float32),
+            intrinsics=self.intr,
+            exposure=self.exposure,
+            gravity=self.gravity,
+        )
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -214,8 +234,9 @@ def compare_methods(cfg: Config, scene: AnalyticScene, frames: int = 10) -> dict
             fits = detect_planes(cloud, params, m, rng)
             s.add(time.perf_counter() - t0)
             sc.add(time.process_time() - c0)
-            extra += sum(1 for p in fits if not plane_errors([p], truth) or
-                         all(e is None for e in plane_errors([p], truth)))
+            extra += sum(
+                1 for p in fits if not plane_errors([p], truth) or all(e is None for e in plane_errors([p], truth))
+            )
             for e in plane_errors(fits, truth):
                 if e is None:
                     missed += 1
@@ -224,12 +245,16 @@ def compare_methods(cfg: Config, scene: AnalyticScene, frames: int = 10) -> dict
                     errs_d.append(e[2])
         sm = s.summary()
         res[m] = {
-            "median_ms": sm["median_ms"], "p99_ms": sm["p99_ms"], "cpu_median_ms": sc.summary()["median_ms"],
+            "median_ms": sm["median_ms"],
+            "p99_ms": sm["p99_ms"],
+            "cpu_median_ms": sc.summary()["median_ms"],
             "normal_err_deg_median": float(np.median(errs_n)) if errs_n else float("nan"),
             "normal_err_deg_max": float(np.max(errs_n)) if errs_n else float("nan"),
             "offset_err_mm_median": 1e3 * float(np.median(errs_d)) if errs_d else float("nan"),
             "offset_err_mm_max": 1e3 * float(np.max(errs_d)) if errs_d else float("nan"),
-            "missed": missed, "expected": len(truth) * len(fr), "spurious": extra,
+            "missed": missed,
+            "expected": len(truth) * len(fr),
+            "spurious": extra,
         }
     return res
 
@@ -264,8 +289,10 @@ def run(args: argparse.Namespace, cfg: Config) -> dict:
     quick = bool(getattr(args, "quick", False))
     n = 30 if quick else 200
     frames, origin = _source_frames(cfg, min(n, 60))
-    print(f"# frames: {origin}, {frames[0].size[0]}x{frames[0].size[1]}, {n} timed frames "
-          f"(CPU shared with other processes: figures are upper bounds)")
+    print(
+        f"# frames: {origin}, {frames[0].size[0]}x{frames[0].size[1]}, {n} timed frames "
+        f"(CPU shared with other processes: figures are upper bounds)"
+    )
     stages = [PlaneStage(cfg), AnchorStage(cfg), PlaneLightStage(cfg)]
     per = {s.name: Samples(s.name) for s in stages}
     total = Samples("total")
@@ -291,19 +318,23 @@ def run(args: argparse.Namespace, cfg: Config) -> dict:
     print(f"{'total':12s} median {sm['median_ms']:6.2f} ms   p99 {sm['p99_ms']:6.2f} ms   (target <= 8 ms median)")
     sc = cpu.summary()
     out["total_cpu"] = sc
-    print(f"{'total (CPU)':12s} median {sc['median_ms']:6.2f} ms   p99 {sc['p99_ms']:6.2f} ms   "
-          "(process CPU time, all threads; wall time above includes waiting for the CPU)")
+    print(
+        f"{'total (CPU)':12s} median {sc['median_ms']:6.2f} ms   p99 {sc['p99_ms']:6.2f} ms   "
+        "(process CPU time, all threads; wall time above includes waiting for the CPU)"
+    )
     print(f"planes stats: {stages[0].stats()}")
     # full detection alone (what every redetect_every-th frame pays)
     cmp = compare_methods(cfg, AnalyticScene(seed=1), frames=5 if quick else 20)
     print("\nfull detection per method (AnalyticScene, floor + table + wall, depth noise 3 mm x z^2):")
     for m, r in cmp.items():
-        print(f"  {m:7s} median {r['median_ms']:6.2f} ms  p99 {r['p99_ms']:6.2f} ms  (CPU {r['cpu_median_ms']:5.2f} ms)"
-              f"  normal err median "
-              f"{r['normal_err_deg_median']:.3f} deg (max {r['normal_err_deg_max']:.3f})  offset err median "
-              f"{r['offset_err_mm_median']:.2f} mm (max {r['offset_err_mm_max']:.2f})  "
-              f"missed {r['missed']}/{r['expected']}"
-              f"  spurious {r['spurious']}")
+        print(
+            f"  {m:7s} median {r['median_ms']:6.2f} ms  p99 {r['p99_ms']:6.2f} ms  (CPU {r['cpu_median_ms']:5.2f} ms)"
+            f"  normal err median "
+            f"{r['normal_err_deg_median']:.3f} deg (max {r['normal_err_deg_max']:.3f})  offset err median "
+            f"{r['offset_err_mm_median']:.2f} mm (max {r['offset_err_mm_max']:.2f})  "
+            f"missed {r['missed']}/{r['expected']}"
+            f"  spurious {r['spurious']}"
+        )
     out["methods"] = cmp
     return out
 

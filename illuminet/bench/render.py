@@ -62,8 +62,15 @@ def run(args, cfg) -> dict:
     st = RenderStage(cfg, mesh=mesh)
     st.open()
     normals = st.comp.mesh.normals
-    pl = PlaneLight(vertices=np.zeros((1, 3)), normals=np.zeros((1, 3)), irradiance=np.zeros((1, 3)),
-                    mask=np.ones(1, bool), confidence=np.ones(1), grid=1, exposure_scale=0.25)
+    pl = PlaneLight(
+        vertices=np.zeros((1, 3)),
+        normals=np.zeros((1, 3)),
+        irradiance=np.zeros((1, 3)),
+        mask=np.ones(1, bool),
+        confidence=np.ones(1),
+        grid=1,
+        exposure_scale=0.25,
+    )
     frames = []
     rng = np.random.default_rng(1)
     for i in range(16):  # a light whose predicted direction jitters by ~1 degree, as a prediction does
@@ -72,8 +79,9 @@ def run(args, cfg) -> dict:
         irr = (2.0 * np.maximum(normals @ d, 0.0)[:, None] * np.array([1.0, 0.95, 0.85]) + 0.4).astype(np.float32)
         f = Frame(seq=i, t_device_ns=i, t_host_ns=i, color=color, depth=depth, intrinsics=intr)
         f = f.with_result(ANCHOR, Anchor(T_cam_obj=T, plane_id=0)).with_result(PLANE_LIGHT, pl)
-        frames.append(f.with_result(SHADING, ObjectShading(irradiance=irr, method="bench", dominant_dir=d,
-                                                             dominant_share=0.7)))
+        frames.append(
+            f.with_result(SHADING, ObjectShading(irradiance=irr, method="bench", dominant_dir=d, dominant_share=0.7))
+        )
     for f in frames[:3]:
         st.process(f)
     wall, cpu = Samples("wall"), Samples("cpu")
@@ -87,15 +95,26 @@ def run(args, cfg) -> dict:
     stats = st.stats()
     st.close()
     w, c = wall.summary(), cpu.summary()
-    print(f"renderer: {renderer_name(get_context())}; object builtin:vase ({st_vertices(mesh)} vertices), "
-          f"antialias {stats.get('antialias')}, shadow map {cfg.render.shadow_map}, "
-          f"crop {info.crop[2]}x{info.crop[3]} px")
-    print(f"render+composite 1280x800: wall median {w['median_ms']:.2f} ms, p99 {w['p99_ms']:.2f} ms; "
-          f"CPU median {c['median_ms']:.2f} ms, p99 {c['p99_ms']:.2f} ms  (target <= {TARGET_MS:.0f} ms median; "
-          f"{n} frames, shadow redraws {stats.get('shadow_redraws')})")
-    return {"wall": w, "cpu": c, "crop": list(info.crop), "frames": n, "antialias": stats.get("antialias"),
-            "shadow_redraws": stats.get("shadow_redraws"),
-            "shadow_map": cfg.render.shadow_map, "target_ms": TARGET_MS}
+    print(
+        f"renderer: {renderer_name(get_context())}; object builtin:vase ({st_vertices(mesh)} vertices), "
+        f"antialias {stats.get('antialias')}, shadow map {cfg.render.shadow_map}, "
+        f"crop {info.crop[2]}x{info.crop[3]} px"
+    )
+    print(
+        f"render+composite 1280x800: wall median {w['median_ms']:.2f} ms, p99 {w['p99_ms']:.2f} ms; "
+        f"CPU median {c['median_ms']:.2f} ms, p99 {c['p99_ms']:.2f} ms  (target <= {TARGET_MS:.0f} ms median; "
+        f"{n} frames, shadow redraws {stats.get('shadow_redraws')})"
+    )
+    return {
+        "wall": w,
+        "cpu": c,
+        "crop": list(info.crop),
+        "frames": n,
+        "antialias": stats.get("antialias"),
+        "shadow_redraws": stats.get("shadow_redraws"),
+        "shadow_map": cfg.render.shadow_map,
+        "target_ms": TARGET_MS,
+    }
 
 
 def st_vertices(mesh) -> int:

@@ -28,8 +28,9 @@ WIDTH, HEIGHT = 640, 400
 TARGET_FPS = 150.0
 
 
-def numpy_rgbd_frames(n: int, width: int = WIDTH, height: int = HEIGHT, seed: int = 0,
-                      fps: float = 30.0) -> Iterator[Frame]:
+def numpy_rgbd_frames(
+    n: int, width: int = WIDTH, height: int = HEIGHT, seed: int = 0, fps: float = 30.0
+) -> Iterator[Frame]:
     """Camera-like RGB-D frames made with numpy alone (for benchmarks and tests, not for lighting).
 
     Not a renderer: it gives images with the statistics that matter for storage speed -- smooth shading,
@@ -56,10 +57,17 @@ def numpy_rgbd_frames(n: int, width: int = WIDTH, height: int = HEIGHT, seed: in
         noise = rng.normal(0, 1.0, (height, width)).astype(np.float32) * 0.002 * z * z
         mm = np.rint((z + noise) * 1000.0)
         mm[rng.random((height, width)) < 0.05] = 0  # stereo holes
-        depth = (mm.astype(np.uint16).astype(np.float32) * np.float32(1e-3))
-        yield Frame(seq=k, t_device_ns=1_000_000_000 + k * period, t_host_ns=time.monotonic_ns(), color=color,
-                    depth=depth, intrinsics=intr, exposure=Exposure(exposure_us=8000.0, iso=400.0),
-                    gravity=np.array([0.0, 1.0, 0.0]))
+        depth = mm.astype(np.uint16).astype(np.float32) * np.float32(1e-3)
+        yield Frame(
+            seq=k,
+            t_device_ns=1_000_000_000 + k * period,
+            t_host_ns=time.monotonic_ns(),
+            color=color,
+            depth=depth,
+            intrinsics=intr,
+            exposure=Exposure(exposure_us=8000.0, iso=400.0),
+            gravity=np.array([0.0, 1.0, 0.0]),
+        )
 
 
 def _frames(n: int, cfg: Config, width: int, height: int) -> tuple[str, Iterator[Frame]]:
@@ -87,8 +95,9 @@ def _frames(n: int, cfg: Config, width: int, height: int) -> tuple[str, Iterator
     return url, gen()
 
 
-def record_session(path: Path, n: int, cfg: Config, color: str = "raw", width: int = WIDTH,
-                   height: int = HEIGHT) -> dict:
+def record_session(
+    path: Path, n: int, cfg: Config, color: str = "raw", width: int = WIDTH, height: int = HEIGHT
+) -> dict:
     """Write a benchmark session of ``n`` frames at ``path``; returns what was recorded and how fast."""
     origin, frames = _frames(n, cfg, width, height)
     dt = 0.0  # time in the writer only, not in making the frames
@@ -125,8 +134,9 @@ def _replay_runs(path: Path, runs: int) -> tuple[list[float], list[float], Any]:
     return fps, cpu, last
 
 
-def measure(n: int, runs: int, cfg: Config, width: int = WIDTH, height: int = HEIGHT,
-            colors: tuple[str, ...] = ("raw",)) -> dict:
+def measure(
+    n: int, runs: int, cfg: Config, width: int = WIDTH, height: int = HEIGHT, colors: tuple[str, ...] = ("raw",)
+) -> dict:
     """Record ``n`` frames per colour encoding, replay each asap through a null sink ``runs`` times.
 
     Prints and returns the figures; the top-level keys are those of the first encoding, ``by_color``
@@ -138,26 +148,42 @@ def measure(n: int, runs: int, cfg: Config, width: int = WIDTH, height: int = HE
         for color in colors:
             path = tmp / f"session-{color}"
             rec = record_session(path, n, cfg, color=color, width=width, height=height)
-            print(f"  session: {rec['frames']} frames {width}x{height} RGB-D from {rec['origin']}, colour {color}, "
-                  f"depth 16-bit PNG; {rec['bytes_per_frame'] / 1e3:.0f} kB/frame; writer: {rec['write_fps']:.1f} "
-                  f"frames/s (one thread, with fsync)")
+            print(
+                f"  session: {rec['frames']} frames {width}x{height} RGB-D from {rec['origin']}, colour {color}, "
+                f"depth 16-bit PNG; {rec['bytes_per_frame'] / 1e3:.0f} kB/frame; writer: {rec['write_fps']:.1f} "
+                f"frames/s (one thread, with fsync)"
+            )
             fps, cpu, last = _replay_runs(path, runs)
             shutil.rmtree(path, ignore_errors=True)
             med = float(np.median(fps))
             cpu_ms = float(np.median(cpu)) * 1e3
             print(f"  [{color}] replay asap -> null sink, frames/s per run: " + ", ".join(f"{x:.1f}" for x in fps))
-            print(f"  [{color}] median {med:.1f} frames/s (target >= {TARGET_FPS:.0f}): "
-                  f"{'OK' if med >= TARGET_FPS else 'BELOW TARGET'}")
+            print(
+                f"  [{color}] median {med:.1f} frames/s (target >= {TARGET_FPS:.0f}): "
+                f"{'OK' if med >= TARGET_FPS else 'BELOW TARGET'}"
+            )
             # wall-clock figures depend on what else runs on the machine; CPU time per frame does not
-            print(f"  [{color}] CPU time {cpu_ms:.2f} ms/frame (all threads): with the machine to itself that is "
-                  f"~{1e3 / cpu_ms:.0f} frames/s on one core, ~{2e3 / cpu_ms:.0f} on two (decoding runs on 2 threads)")
+            print(
+                f"  [{color}] CPU time {cpu_ms:.2f} ms/frame (all threads): with the machine to itself that is "
+                f"~{1e3 / cpu_ms:.0f} frames/s on one core, ~{2e3 / cpu_ms:.0f} on two (decoding runs on 2 threads)"
+            )
             if color == colors[0]:
                 print("  last run, per step:")
                 print("    " + last.format_stats().replace("\n", "\n    "))
-            out[color] = {"frames": rec["frames"], "width": width, "height": height, "origin": rec["origin"],
-                          "color": color, "replay_fps_runs": fps, "replay_fps_median": med, "target_fps": TARGET_FPS,
-                          "cpu_ms_per_frame": cpu_ms, "record_fps": rec["write_fps"],
-                          "bytes_per_frame": rec["bytes_per_frame"], "steps": last.to_dict()["steps"]}
+            out[color] = {
+                "frames": rec["frames"],
+                "width": width,
+                "height": height,
+                "origin": rec["origin"],
+                "color": color,
+                "replay_fps_runs": fps,
+                "replay_fps_median": med,
+                "target_fps": TARGET_FPS,
+                "cpu_ms_per_frame": cpu_ms,
+                "record_fps": rec["write_fps"],
+                "bytes_per_frame": rec["bytes_per_frame"],
+                "steps": last.to_dict()["steps"],
+            }
         return {**out[colors[0]], "by_color": out}
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -72,8 +72,10 @@ def run(args: argparse.Namespace, cfg: Config) -> dict:
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
     try:
-        print(f"# frames: {URL.format(seed='0..%d' % (len(seeds) - 1))}, 640x400; {reps} full searches and "
-              f"{4 * reps} local refines per scene (CPU shared with other processes: wall figures are upper bounds)")
+        print(
+            f"# frames: {URL.format(seed=f'0..{len(seeds) - 1}')}, 640x400; {reps} full searches and "
+            f"{4 * reps} local refines per scene (CPU shared with other processes: wall figures are upper bounds)"
+        )
         t_full, c_full, t_loc, c_loc = Samples("full"), Samples("full:cpu"), Samples("local"), Samples("local:cpu")
         rows = []
         for seed in seeds:
@@ -91,48 +93,79 @@ def run(args: argparse.Namespace, cfg: Config) -> dict:
                     t_loc.add(time.perf_counter() - t0)
                     c_loc.add(time.process_time() - c0)
             sunny = share >= SUNNY_SHARE
-            row = {"seed": seed, "sunny": sunny, "sun_elevation_deg": float(np.degrees(np.arcsin(sun[1]))),
-                   "found": cue is not None}
+            row = {
+                "seed": seed,
+                "sunny": sunny,
+                "sun_elevation_deg": float(np.degrees(np.arcsin(sun[1]))),
+                "found": cue is not None,
+            }
             if cue is not None:
                 ang, el, az = _errors(cue.direction, sun)
-                row.update(error_deg=ang, elevation_error_deg=el, azimuth_error_deg=az, confidence=cue.confidence,
-                           azimuth_confidence=cue.azimuth_confidence, score=cue.score, shadow_ratio=cue.shadow_ratio)
-                print(f"seed {seed:2d} {'sunny   ' if sunny else 'overcast'} sun elevation {row['sun_elevation_deg']:5.1f}: "
-                      f"error {ang:6.1f} deg (elevation {el:5.1f}, azimuth {az:6.1f})  confidence {cue.confidence:.2f} "
-                      f"(azimuth {cue.azimuth_confidence:.2f})  lit/shadow {cue.shadow_ratio:.2f}")
+                row.update(
+                    error_deg=ang,
+                    elevation_error_deg=el,
+                    azimuth_error_deg=az,
+                    confidence=cue.confidence,
+                    azimuth_confidence=cue.azimuth_confidence,
+                    score=cue.score,
+                    shadow_ratio=cue.shadow_ratio,
+                )
+                print(
+                    f"seed {seed:2d} {'sunny   ' if sunny else 'overcast'} "
+                    f"sun elevation {row['sun_elevation_deg']:5.1f}: "
+                    f"error {ang:6.1f} deg (elevation {el:5.1f}, azimuth {az:6.1f})  confidence {cue.confidence:.2f} "
+                    f"(azimuth {cue.azimuth_confidence:.2f})  lit/shadow {cue.shadow_ratio:.2f}"
+                )
             else:
-                print(f"seed {seed:2d} {'sunny   ' if sunny else 'overcast'} sun elevation "
-                      f"{row['sun_elevation_deg']:5.1f}: no answer")
+                print(
+                    f"seed {seed:2d} {'sunny   ' if sunny else 'overcast'} sun elevation "
+                    f"{row['sun_elevation_deg']:5.1f}: no answer"
+                )
             rows.append(row)
     finally:
         cv2.setNumThreads(threads)
 
     out: dict = {"source": URL, "scenes": rows}
     sunny = [r for r in rows if r["sunny"]]
-    for name, sel in (("sunny", sunny), ("sunny, confident", [r for r in sunny if r.get("confidence", 0) >= CONFIDENT])):
+    for name, sel in (
+        ("sunny", sunny),
+        ("sunny, confident", [r for r in sunny if r.get("confidence", 0) >= CONFIDENT]),
+    ):
         err = np.array([r.get("error_deg", 180.0) for r in sel])
         if not err.size:
             continue
         el = np.array([r.get("elevation_error_deg", 90.0) for r in sel])
         az = np.array([r.get("azimuth_error_deg", 180.0) for r in sel])
         key = name.replace(", ", "_")
-        out[key] = {"n": int(err.size), "median_deg": float(np.median(err)), "max_deg": float(err.max()),
-                    "elevation_median_deg": float(np.median(el)), "elevation_max_deg": float(el.max()),
-                    "azimuth_median_deg": float(np.median(az)), "azimuth_max_deg": float(az.max())}
+        out[key] = {
+            "n": int(err.size),
+            "median_deg": float(np.median(err)),
+            "max_deg": float(err.max()),
+            "elevation_median_deg": float(np.median(el)),
+            "elevation_max_deg": float(el.max()),
+            "azimuth_median_deg": float(np.median(az)),
+            "azimuth_max_deg": float(az.max()),
+        }
         s = out[key]
-        print(f"{name + ':':18s} {s['n']:2d} scenes  error median {s['median_deg']:5.1f} max {s['max_deg']:6.1f} deg; "
-              f"elevation median {s['elevation_median_deg']:4.1f} max {s['elevation_max_deg']:5.1f}; azimuth median "
-              f"{s['azimuth_median_deg']:4.1f} max {s['azimuth_max_deg']:6.1f}")
+        print(
+            f"{name + ':':18s} {s['n']:2d} scenes  error median {s['median_deg']:5.1f} max {s['max_deg']:6.1f} deg; "
+            f"elevation median {s['elevation_median_deg']:4.1f} max {s['elevation_max_deg']:5.1f}; azimuth median "
+            f"{s['azimuth_median_deg']:4.1f} max {s['azimuth_max_deg']:6.1f}"
+        )
     out["sunny_confident_share"] = sum(r.get("confidence", 0) >= CONFIDENT for r in sunny) / max(len(sunny), 1)
     over = [r.get("confidence", 0.0) for r in rows if not r["sunny"]]
     out["overcast_max_confidence"] = max(over) if over else None
-    print(f"confident (>= {CONFIDENT}) on {100 * out['sunny_confident_share']:.0f} % of the sunny scenes; "
-          f"largest confidence on an overcast scene: {out['overcast_max_confidence']}")
+    print(
+        f"confident (>= {CONFIDENT}) on {100 * out['sunny_confident_share']:.0f} % of the sunny scenes; "
+        f"largest confidence on an overcast scene: {out['overcast_max_confidence']}"
+    )
     for name, w, c, target in (("full search", t_full, c_full, 150), ("local refine", t_loc, c_loc, 10)):
         sw, sc = w.summary(), c.summary()
         out[name.replace(" ", "_")], out[name.replace(" ", "_") + "_cpu"] = sw, sc
-        print(f"{name:14s} median {sw['median_ms']:6.1f} ms   p99 {sw['p99_ms']:6.1f} ms   (CPU median "
-              f"{sc['median_ms']:6.1f}, p99 {sc['p99_ms']:6.1f})   target <= {target} ms")
+        print(
+            f"{name:14s} median {sw['median_ms']:6.1f} ms   p99 {sw['p99_ms']:6.1f} ms   (CPU median "
+            f"{sc['median_ms']:6.1f}, p99 {sc['p99_ms']:6.1f})   target <= {target} ms"
+        )
     return out
 
 

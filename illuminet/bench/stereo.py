@@ -36,13 +36,17 @@ def run(args, cfg) -> dict:
         err = depth_error(depth, scene.depth_rectified(hs.rectification.R1, hs.rectification.P1))
         key = f"scale_{scale:g}"
         out[key] = {"time": t, "error": err, "num_disparities": hs.num_disparities}
-        print(f"host stereo 640x400, matching at scale {scale:g} ({hs.num_disparities} disparities): "
-              f"median {t['median_ms']:.1f} ms, p99 {t['p99_ms']:.1f} ms (n={t['n']}), "
-              f"CPU time {t['cpu_median_ms']:.1f} ms; "
-              f"depth error median {100 * err['median_rel']:.2f} %, p90 {100 * err['p90_rel']:.2f} %, "
-              f">5 % off {100 * err['bad_5pct']:.1f} % of valid, valid {100 * err['valid']:.1f} % of pixels")
+        print(
+            f"host stereo 640x400, matching at scale {scale:g} ({hs.num_disparities} disparities): "
+            f"median {t['median_ms']:.1f} ms, p99 {t['p99_ms']:.1f} ms (n={t['n']}), "
+            f"CPU time {t['cpu_median_ms']:.1f} ms; "
+            f"depth error median {100 * err['median_rel']:.2f} %, p90 {100 * err['p90_rel']:.2f} %, "
+            f">5 % off {100 * err['bad_5pct']:.1f} % of valid, valid {100 * err['valid']:.1f} % of pixels"
+        )
     ok = out["scale_0.5"]["time"]["median_ms"] <= 35.0
-    print(f"target <= 35 ms median (default scale 0.5): {'met' if ok else 'NOT met'} on this machine now "
-          f"(CPU time per pair {out['scale_0.5']['time']['cpu_median_ms']:.1f} ms; a loaded machine adds waiting)")
+    print(
+        f"target <= 35 ms median (default scale 0.5): {'met' if ok else 'NOT met'} on this machine now "
+        f"(CPU time per pair {out['scale_0.5']['time']['cpu_median_ms']:.1f} ms; a loaded machine adds waiting)"
+    )
     out["target_met"] = ok
     return out

@@ -5,7 +5,8 @@ other programs does not inflate) to render one RGB-D frame at 640x400 and 1280x8
 path (geometry cached: noise, exposure, encoding and depth every frame) and the orbit path (the
 camera moves: ray-plane intersection and texture lookups every frame too), for a cluttered room
 (27 planes) and for a room without inter-reflection (``bounce=0``: the bounce is baked into the
-planes, so it costs build time, not frame time); the time to build a scene; and the time to precompute a :class:`~illuminet.runtime.groundtruth.visibility.VisibilityField` for a
+planes, so it costs build time, not frame time); the time to build a scene; and the time to precompute a
+:class:`~illuminet.runtime.groundtruth.visibility.VisibilityField` for a
 1000-vertex object with its error against exact ray casts. Targets: <= 50 ms per 640x400 frame,
 <= 10 s for the visibility precomputation. Reads no shared data.
 """
@@ -69,8 +70,10 @@ def run(args, cfg) -> dict:
         flag = ""
         if "640x400" in name:
             flag = "ok" if s["median_ms"] <= FRAME_TARGET_MS else f"over the {FRAME_TARGET_MS:.0f} ms target"
-        print(f"{name:30s} {s['median_ms']:10.1f} {s['p99_ms']:8.1f} {s['cpu_median_ms']:10.1f} "
-              f"{s['build_s']:8.2f}  {flag}")
+        print(
+            f"{name:30s} {s['median_ms']:10.1f} {s['p99_ms']:8.1f} {s['cpu_median_ms']:10.1f} "
+            f"{s['build_s']:8.2f}  {flag}"
+        )
 
     mesh = proxy_mesh(load_object("builtin:vase"), 1000)
     t0 = time.perf_counter()
@@ -86,14 +89,22 @@ def run(args, cfg) -> dict:
     lookup_s = time.perf_counter() - t0
     errs = {k: field.error(L.sample_lights(k, rng)) for k in L.ENVIRONMENT_KINDS}
     out["visibility"] = {
-        "vertices": int(len(mesh.vertices)), "directions": 1024, "precompute_s": pre_s,
-        "exact_32_lights_s": exact_s, "lookup_32_lights_s": lookup_s, "error": errs,
+        "vertices": int(len(mesh.vertices)),
+        "directions": 1024,
+        "precompute_s": pre_s,
+        "exact_32_lights_s": exact_s,
+        "lookup_32_lights_s": lookup_s,
+        "error": errs,
     }
     flag = "ok" if pre_s <= VISIBILITY_TARGET_S else f"over the {VISIBILITY_TARGET_S:.0f} s target"
-    print(f"\nvisibility field, builtin:vase proxy ({len(mesh.vertices)} vertices, 1024 directions): "
-          f"precompute {pre_s:.2f} s  {flag}")
+    print(
+        f"\nvisibility field, builtin:vase proxy ({len(mesh.vertices)} vertices, 1024 directions): "
+        f"precompute {pre_s:.2f} s  {flag}"
+    )
     print(f"  exact ray casts for 32 lights: {exact_s * 1e3:.1f} ms; field lookup: {lookup_s * 1e3:.1f} ms")
     for k, e in errs.items():
-        print(f"  error vs exact, {k:8s}: mean |soft - exact| {e['mae']:.4f}, pairs disagreeing "
-              f"{e['disagree'] * 100:.2f} %, irradiance {e['irradiance_rel'] * 100:.2f} %")
+        print(
+            f"  error vs exact, {k:8s}: mean |soft - exact| {e['mae']:.4f}, pairs disagreeing "
+            f"{e['disagree'] * 100:.2f} %, irradiance {e['irradiance_rel'] * 100:.2f} %"
+        )
     return out

@@ -34,9 +34,17 @@ def _plane_light(grid: int, extent: float, seed: int = 0) -> PlaneLight:
     irr = (0.5 + 0.5 * np.exp(-((xx.ravel() - 0.2) ** 2 + zz.ravel() ** 2) * 4))[:, None] * [1.0, 0.9, 0.8]
     irr = (irr * rng.uniform(0.95, 1.05, irr.shape)).astype(np.float32)
     mask = rng.random(grid * grid) > 0.1
-    return PlaneLight(vertices=v, normals=np.tile([[0, 1, 0]], (grid * grid, 1)).astype(np.float32),
-                      irradiance=irr, mask=mask, confidence=np.ones(grid * grid, np.float32), grid=grid,
-                      exposure_scale=1.0, plane_slices=(slice(0, grid * grid),), labels=("floor",))
+    return PlaneLight(
+        vertices=v,
+        normals=np.tile([[0, 1, 0]], (grid * grid, 1)).astype(np.float32),
+        irradiance=irr,
+        mask=mask,
+        confidence=np.ones(grid * grid, np.float32),
+        grid=grid,
+        exposure_scale=1.0,
+        plane_slices=(slice(0, grid * grid),),
+        labels=("floor",),
+    )
 
 
 def _estimate(near: bool) -> LightEstimate:
@@ -44,8 +52,9 @@ def _estimate(near: bool) -> LightEstimate:
     sh[0] = [1.2, 1.1, 1.0]
     sh[1] = [0.3, 0.3, 0.35]  # brighter above
     d = np.array([0.5, 0.8, 0.3]) / np.linalg.norm([0.5, 0.8, 0.3])
-    return LightEstimate(sh9=sh, primary_dir=d, primary_rgb=np.array([3.0, 2.8, 2.4]),
-                         primary_pos=d * 0.8 if near else None)
+    return LightEstimate(
+        sh9=sh, primary_dir=d, primary_rgb=np.array([3.0, 2.8, 2.4]), primary_pos=d * 0.8 if near else None
+    )
 
 
 def _report(out: dict, keys) -> None:
@@ -77,9 +86,11 @@ def run(args, cfg) -> dict:
         out["int8_speedup_vs_fp32"] = out["chain_fp32"]["median_ms"] / max(out["chain_int8"]["median_ms"], 1e-9)
         out["target_ms"] = TARGET_MS
         out["meets_target"] = out["stage_int8"]["median_ms"] <= TARGET_MS
-        print(f"int8 vs fp32 chain: x{out['int8_speedup_vs_fp32']:.2f}; per-frame stage median "
-              f"{out['stage_int8']['median_ms']:.3f} ms vs target {TARGET_MS} ms: "
-              f"{'OK' if out['meets_target'] else 'MISSED'}")
+        print(
+            f"int8 vs fp32 chain: x{out['int8_speedup_vs_fp32']:.2f}; per-frame stage median "
+            f"{out['stage_int8']['median_ms']:.3f} ms vs target {TARGET_MS} ms: "
+            f"{'OK' if out['meets_target'] else 'MISSED'}"
+        )
         for st in stages.values():
             st.close()
     else:
@@ -95,8 +106,10 @@ def run(args, cfg) -> dict:
         worst = max(out["stage_prt"]["median_ms"], out["stage_prt_near"]["median_ms"])
         out["prt_target_ms"] = TARGET_PRT_MS
         out["prt_meets_target"] = worst <= TARGET_PRT_MS
-        print(f"PRT per-frame stage median (worst of distant/near) {worst:.3f} ms vs target {TARGET_PRT_MS} ms: "
-              f"{'OK' if out['prt_meets_target'] else 'MISSED'}")
+        print(
+            f"PRT per-frame stage median (worst of distant/near) {worst:.3f} ms vs target {TARGET_PRT_MS} ms: "
+            f"{'OK' if out['prt_meets_target'] else 'MISSED'}"
+        )
     else:
         print(f"bundle {bundle.name} has no PRT tables (illuminet bundle adds them): no PRT figures")
     return out

@@ -22,7 +22,8 @@ BENCHES: dict[str, str] = {
     "planes": "plane detection + tracking + plane illumination per 640x400 frame",
     "odometry": "RGB-D camera odometry per 640x400 frame; drift of the world-locked anchor over an orbit",
     "render": "render + composite at 1280x800 (moderngl)",
-    "transfer": "the object's shading per frame: the int8 ONNX chain (plane -> shading) and PRT (light estimate -> shading)",
+    "transfer": "the object's shading per frame: the int8 ONNX chain (plane -> shading) and PRT "
+    "(light estimate -> shading)",
     "light": "the per-frame lighting estimate (one estimate, and per frame at [light] rate_hz)",
     "stereo": "host stereo depth (SGBM + WLS) per 640x400 pair",
     "demo": "the whole demo pipeline end to end, per-stage timing and peak memory",
@@ -33,7 +34,8 @@ BENCHES: dict[str, str] = {
 def register(sub) -> None:
     names = list(BENCHES)
     p = sub.add_parser(
-        "bench", help="run benchmarks and print their figures",
+        "bench",
+        help="run benchmarks and print their figures",
         description="Benchmarks: " + "; ".join(f"{n}: {BENCHES[n]}" for n in names),
     )
     p.add_argument("names", nargs="*", metavar="NAME", help=f"which to run (default: all): {', '.join(names)}")
@@ -46,8 +48,10 @@ def run(args: argparse.Namespace, cfg) -> int:
     names = args.names or list(BENCHES)
     unknown = [n for n in names if n not in BENCHES]
     if unknown:
-        print(f"illuminet bench: unknown benchmark(s) {', '.join(unknown)}; available: {', '.join(BENCHES)}",
-              file=sys.stderr)
+        print(
+            f"illuminet bench: unknown benchmark(s) {', '.join(unknown)}; available: {', '.join(BENCHES)}",
+            file=sys.stderr,
+        )
         return 2
     print(f"# machine: {platform.machine()} {os.cpu_count()} cores, python {platform.python_version()}")
     results = {}

@@ -24,27 +24,53 @@ from pathlib import Path
 
 
 def register(sub) -> None:
-    p = sub.add_parser("bundle", help="make a bundle of any mesh with precomputed radiance transfer (no training)",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--object", required=True, metavar="PATH|builtin:NAME",
-                   help="a GLB/GLTF/OBJ/PLY/STL/OFF file or builtin:vase / builtin:bowl / builtin:sphere")
-    p.add_argument("--out", required=True, metavar="DIR", help="bundle folder to write (or an existing bundle "
-                                                               "of the same object to add PRT to)")
-    p.add_argument("--height", type=float, default=None, metavar="M",
-                   help="scale the object to this height in metres (files: default 0.25; built-ins keep their size)")
+    p = sub.add_parser(
+        "bundle",
+        help="make a bundle of any mesh with precomputed radiance transfer (no training)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--object",
+        required=True,
+        metavar="PATH|builtin:NAME",
+        help="a GLB/GLTF/OBJ/PLY/STL/OFF file or builtin:vase / builtin:bowl / builtin:sphere",
+    )
+    p.add_argument(
+        "--out",
+        required=True,
+        metavar="DIR",
+        help="bundle folder to write (or an existing bundle of the same object to add PRT to)",
+    )
+    p.add_argument(
+        "--height",
+        type=float,
+        default=None,
+        metavar="M",
+        help="scale the object to this height in metres (files: default 0.25; built-ins keep their size)",
+    )
     p.add_argument("--up", choices=("y", "z"), default="y", help="the file's up axis (default y)")
     # 1000, not the learned model's 400: carried to the render mesh, PRT shading of the vase differs from
     # PRT on every render vertex by 3.7 % (mean) with 1000 proxy vertices, 6.9 % with 400 (docs/models.md)
     p.add_argument("--n-proxy", type=int, default=1000, help="lighting proxy vertices of a new bundle (default 1000)")
     p.add_argument("--seed", type=int, default=0, help="seed of the proxy selection (default 0)")
-    p.add_argument("--albedo", type=float, default=0.8,
-                   help="grey albedo of the object for one interreflection bounce (default 0.8, the renderer's "
-                        "albedo of meshes without colour; 0 = no bounce)")
+    p.add_argument(
+        "--albedo",
+        type=float,
+        default=0.8,
+        help="grey albedo of the object for one interreflection bounce (default 0.8, the renderer's "
+        "albedo of meshes without colour; 0 = no bounce)",
+    )
     # defaults: illuminet.models.prt (not imported here: --help stays fast)
-    p.add_argument("--transfer-rays", type=int, default=4096,
-                   help="directions of the transfer integral per vertex (default 4096)")
-    p.add_argument("--directions", type=int, default=1024,
-                   help="directions of the primary light's visibility table (default 1024, ~6 degrees apart)")
+    p.add_argument(
+        "--transfer-rays", type=int, default=4096, help="directions of the transfer integral per vertex (default 4096)"
+    )
+    p.add_argument(
+        "--directions",
+        type=int,
+        default=1024,
+        help="directions of the primary light's visibility table (default 1024, ~6 degrees apart)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
 
@@ -65,14 +91,19 @@ def run(args: argparse.Namespace, cfg) -> int:
     try:
         import scipy  # noqa: F401  (the proxy's nearest neighbours)
     except ImportError:
-        print("illuminet bundle: needs the bundle extra (scipy is missing): pip install 'illuminet[bundle]'",
-              file=sys.stderr)
+        print(
+            "illuminet bundle: needs the bundle extra (scipy is missing): pip install 'illuminet[bundle]'",
+            file=sys.stderr,
+        )
         return 2
     try:
         import embreex  # noqa: F401
     except ImportError:
-        print("illuminet bundle: embreex is not installed: rays are cast with trimesh's own intersector, far "
-              "slower (pip install 'illuminet[bundle]')", file=sys.stderr)
+        print(
+            "illuminet bundle: embreex is not installed: rays are cast with trimesh's own intersector, far "
+            "slower (pip install 'illuminet[bundle]')",
+            file=sys.stderr,
+        )
     from illuminet.models.prt import add_prt, new_bundle
     from illuminet.models.train import Progress
     from illuminet.runtime.assets.bundle import METADATA, BundleError
@@ -105,21 +136,39 @@ def run(args: argparse.Namespace, cfg) -> int:
             if not _same_object(str(existing), args.object):
                 return fail(f"--out {out} holds a bundle of {existing!r}, not {args.object!r}: choose another --out")
             if args.height is not None or args.up != "y":
-                return fail(f"--out {out} is an existing bundle whose mesh is kept: --height/--up apply to new bundles only")
+                return fail(
+                    f"--out {out} is an existing bundle whose mesh is kept: --height/--up apply to new bundles only"
+                )
             if not args.quiet:
                 print(f"adding PRT to the bundle in {out} (its mesh, proxy and models are kept)", file=sys.stderr)
-            path, res = add_prt(out, args.transfer_rays, args.directions, args.albedo, _command(args), args.seed,
-                                progress)
+            path, res = add_prt(
+                out, args.transfer_rays, args.directions, args.albedo, _command(args), args.seed, progress
+            )
         else:
             if out.exists() and (not out.is_dir() or any(out.iterdir())):
-                return fail(f"--out {out} exists and is not a bundle folder (no {METADATA}): choose a new or empty folder")
-            path, res = new_bundle(args.object, out, args.height, args.n_proxy, args.seed, args.transfer_rays,
-                                   args.directions, args.albedo, _command(args), progress, up=args.up)
+                return fail(
+                    f"--out {out} exists and is not a bundle folder (no {METADATA}): choose a new or empty folder"
+                )
+            path, res = new_bundle(
+                args.object,
+                out,
+                args.height,
+                args.n_proxy,
+                args.seed,
+                args.transfer_rays,
+                args.directions,
+                args.albedo,
+                _command(args),
+                progress,
+                up=args.up,
+            )
     except (ObjectLoadError, BundleError, OSError) as e:
         return fail(str(e))
     total = sum((path.parent / f).stat().st_size for f in json.loads(path.read_text())["files"]) + path.stat().st_size
     t = res.timings_s
-    print(f"wrote {path}: {len(res.transfer)} proxy vertices, PRT {sum(t.values()):.1f} s "
-          f"({', '.join(f'{k[:-2]} {v:.2f} s' for k, v in t.items())}), bundle {total / 1024:.0f} KiB, "
-          f"total {time.perf_counter() - t0:.1f} s")
+    print(
+        f"wrote {path}: {len(res.transfer)} proxy vertices, PRT {sum(t.values()):.1f} s "
+        f"({', '.join(f'{k[:-2]} {v:.2f} s' for k, v in t.items())}), bundle {total / 1024:.0f} KiB, "
+        f"total {time.perf_counter() - t0:.1f} s"
+    )
     return 0

@@ -27,8 +27,12 @@ def _board_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--marker-mm", type=float, default=15.0, help="marker side, mm (default 15)")
     g.add_argument("--dictionary", default="DICT_4X4_1000", help="ArUco dictionary (default DICT_4X4_1000)")
     g.add_argument("--legacy", action="store_true", help="OpenCV < 4.6 marker layout (DepthAI boards, older prints)")
-    g.add_argument("--aspect", type=float, default=1.0,
-                   help="square height/width as shown (a board on a stretched monitor; default 1)")
+    g.add_argument(
+        "--aspect",
+        type=float,
+        default=1.0,
+        help="square height/width as shown (a board on a stretched monitor; default 1)",
+    )
 
 
 def _spec(args):
@@ -82,9 +86,11 @@ def cmd_board(args, cfg) -> int:
         return 2
     side = out.with_suffix(".json")
     side.write_text(json.dumps({"board": spec.to_dict()}, indent=2) + "\n")
-    print(f"wrote {out} ({spec.describe()}; {spec.size_mm[0]:g} x {spec.size_mm[1]:g} mm, "
-          f"{img.shape[1]}x{img.shape[0]} px at {args.dpi:g} dpi) and {side} "
-          f"(pass --board {side} to the other commands)")
+    print(
+        f"wrote {out} ({spec.describe()}; {spec.size_mm[0]:g} x {spec.size_mm[1]:g} mm, "
+        f"{img.shape[1]}x{img.shape[0]} px at {args.dpi:g} dpi) and {side} "
+        f"(pass --board {side} to the other commands)"
+    )
     print("print at 100 % (actual size), then measure one square: its size is what --square-mm must say")
     return 0
 
@@ -103,18 +109,30 @@ def cmd_capture(args, cfg) -> int:
 
     try:
         with open_source(args.source_url, cfg) as src:
-            res = capture_views(src, args.output, spec, views=args.views, target_coverage=args.coverage,
-                                max_frames=args.max_frames, split=args.split, min_novelty=args.min_novelty,
-                                on_frame=show)
+            res = capture_views(
+                src,
+                args.output,
+                spec,
+                views=args.views,
+                target_coverage=args.coverage,
+                max_frames=args.max_frames,
+                split=args.split,
+                min_novelty=args.min_novelty,
+                on_frame=show,
+            )
     except (SourceError, ImportError) as e:
         print(f"illuminet calibrate capture: cannot open {args.source_url}: {e}", file=sys.stderr)
         return 2
-    print(f"kept {len(res.files)} image(s) from {res.frames_read} frames into {args.output}; "
-          f"coverage {res.coverage:.0%} (grid below, '#' = corners seen; also {Path(args.output) / 'coverage.png'})")
+    print(
+        f"kept {len(res.files)} image(s) from {res.frames_read} frames into {args.output}; "
+        f"coverage {res.coverage:.0%} (grid below, '#' = corners seen; also {Path(args.output) / 'coverage.png'})"
+    )
     print(res.coverage_text)
     if res.coverage < args.coverage:
-        print(f"coverage below {args.coverage:.0%}: capture more views near the uncovered ('.') image areas",
-              file=sys.stderr)
+        print(
+            f"coverage below {args.coverage:.0%}: capture more views near the uncovered ('.') image areas",
+            file=sys.stderr,
+        )
     return 0
 
 
@@ -138,8 +156,9 @@ def cmd_intrinsics(args, cfg) -> int:
         gc, name = _camera_ref(args.guess)
         guess = gc.camera(name)
     fix = [f for f in (args.fix or "").split(",") if f]
-    res = calibrate_intrinsics(dets, spec, args.model, dist_model=args.dist, guess=guess, fix=fix,
-                               min_views=args.min_views)
+    res = calibrate_intrinsics(
+        dets, spec, args.model, dist_model=args.dist, guess=guess, fix=fix, min_views=args.min_views
+    )
     print(f"{len(dets)} image(s) with the board ({spec.describe()})")
     print(res.summary())
     for p, e in zip(res.paths, res.per_view_rms):
@@ -150,13 +169,19 @@ def cmd_intrinsics(args, cfg) -> int:
         ev = evaluate_intrinsics(dets, spec, ref)
         ours = evaluate_intrinsics(dets, spec, res.camera)
         K0, K1 = ref.K, res.camera.K
-        print(f"compare with {args.compare} ({name}): reprojection RMS on these images, poses re-solved: "
-              f"reference {ev.rms_px:.3f} px, ours {ours.rms_px:.3f} px")
+        print(
+            f"compare with {args.compare} ({name}): reprojection RMS on these images, poses re-solved: "
+            f"reference {ev.rms_px:.3f} px, ours {ours.rms_px:.3f} px"
+        )
         for lab, (r, c) in (("fx", (0, 0)), ("fy", (1, 1)), ("cx", (0, 2)), ("cy", (1, 2))):
             print(f"  {lab}: reference {K0[r, c]:.2f}, ours {K1[r, c]:.2f} ({100 * (K1[r, c] / K0[r, c] - 1):+.2f} %)")
     if args.output:
-        meta = {"tool": "illuminet calibrate intrinsics", "board": spec.to_dict(),
-                "images": [str(p) for p in res.paths], "fixed": list(res.fixed)}
+        meta = {
+            "tool": "illuminet calibrate intrinsics",
+            "board": spec.to_dict(),
+            "images": [str(p) for p in res.paths],
+            "fixed": list(res.fixed),
+        }
         _write(Calibration({args.name: res.camera}, meta=meta), args.output)
     return 0
 
@@ -210,7 +235,7 @@ def cmd_photometric(args, cfg) -> int:
     print(f"{len(files)} exposures {min(times):g}..{max(times):g} s -> {out} ((256, 3) LUT, code -> linear, 255 -> 1)")
     for code in (32, 64, 128, 192):
         print(f"  code {code}: R {lut[code, 0]:.4f} G {lut[code, 1]:.4f} B {lut[code, 2]:.4f}")
-    print(f"use it: [source] response_curve = \"{out}\" in config.toml")
+    print(f'use it: [source] response_curve = "{out}" in config.toml')
     if args.calibration:
         cal = load_calibration(args.calibration)
         cal = replace(cal, response_lut=str(Path(out).resolve()))
@@ -225,12 +250,16 @@ def cmd_import_depthai(args, cfg) -> int:
 
     cal = import_depthai(args.json, args.left_socket, args.right_socket)
     for n, c in cal.cameras.items():
-        print(f"{n}: {c.model} {c.width}x{c.height} fx={c.K[0, 0]:.2f} fy={c.K[1, 1]:.2f} "
-              f"cx={c.K[0, 2]:.2f} cy={c.K[1, 2]:.2f}")
+        print(
+            f"{n}: {c.model} {c.width}x{c.height} fx={c.K[0, 0]:.2f} fy={c.K[1, 1]:.2f} "
+            f"cx={c.K[0, 2]:.2f} cy={c.K[1, 2]:.2f}"
+        )
     if cal.stereo is not None:
         T = cal.stereo.T
-        print(f"stereo {cal.stereo.left} -> {cal.stereo.right}: baseline {cal.stereo.baseline_m * 1000:.2f} mm, "
-              f"T = [{T[0]:.5f}, {T[1]:.5f}, {T[2]:.5f}] m")
+        print(
+            f"stereo {cal.stereo.left} -> {cal.stereo.right}: baseline {cal.stereo.baseline_m * 1000:.2f} mm, "
+            f"T = [{T[0]:.5f}, {T[1]:.5f}, {T[2]:.5f}] m"
+        )
     _write(cal, args.output)
     return 0
 
@@ -240,9 +269,11 @@ def cmd_import_depthai(args, cfg) -> int:
 
 def register(sub) -> None:
     """Add ``calibrate`` and its subcommands to the ``illuminet`` parser."""
-    p = sub.add_parser("calibrate",
-                       help="camera calibration: board, capture, intrinsics, stereo, photometric, import-depthai",
-                       description="Camera calibration with a ChArUco board; see docs/calibration.md.")
+    p = sub.add_parser(
+        "calibrate",
+        help="camera calibration: board, capture, intrinsics, stereo, photometric, import-depthai",
+        description="Camera calibration with a ChArUco board; see docs/calibration.md.",
+    )
     csub = p.add_subparsers(dest="calibrate_command", metavar="SUBCOMMAND")
     csub.required = True
 
@@ -261,8 +292,12 @@ def register(sub) -> None:
     c.add_argument("--coverage", type=float, default=0.8, help="image coverage to reach, 0..1 (default 0.8)")
     c.add_argument("--max-frames", type=int, default=3000, help="stop after this many frames (default 3000)")
     c.add_argument("--min-novelty", type=float, default=0.08, help="pose change needed to keep a view (default 0.08)")
-    c.add_argument("--split", choices=("none", "sbs"), default="none",
-                   help="sbs: frames are side-by-side stereo pairs, saved into left/ and right/")
+    c.add_argument(
+        "--split",
+        choices=("none", "sbs"),
+        default="none",
+        help="sbs: frames are side-by-side stereo pairs, saved into left/ and right/",
+    )
     c.set_defaults(func=_guard(cmd_capture))
 
     i = csub.add_parser("intrinsics", help="calibrate one camera from board images")
@@ -270,14 +305,22 @@ def register(sub) -> None:
     _board_args(i)
     i.add_argument("-o", "--output", help="calibration file to write")
     i.add_argument("--model", choices=("pinhole", "fisheye"), default="pinhole", help="lens model (default pinhole)")
-    i.add_argument("--dist", choices=("none", "standard", "rational"), default="standard",
-                   help="pinhole distortion: none, standard k1 k2 p1 p2 k3, rational +k4..k6 (default standard)")
+    i.add_argument(
+        "--dist",
+        choices=("none", "standard", "rational"),
+        default="standard",
+        help="pinhole distortion: none, standard k1 k2 p1 p2 k3, rational +k4..k6 (default standard)",
+    )
     i.add_argument("--guess", metavar="FILE[:CAMERA]", help="starting intrinsics (our file or a DepthAI JSON)")
-    i.add_argument("--fix", metavar="LIST",
-                   help="comma list held at the guess: focal, aspect, principal_point, distortion, tangential")
+    i.add_argument(
+        "--fix",
+        metavar="LIST",
+        help="comma list held at the guess: focal, aspect, principal_point, distortion, tangential",
+    )
     i.add_argument("--min-views", type=int, help="fewest views accepted (default 4, or 1 with --fix)")
-    i.add_argument("--compare", metavar="FILE[:CAMERA]",
-                   help="also report a reference calibration's fit on these images")
+    i.add_argument(
+        "--compare", metavar="FILE[:CAMERA]", help="also report a reference calibration's fit on these images"
+    )
     i.add_argument("--name", default="left", help="camera name in the file (default left)")
     i.set_defaults(func=_guard(cmd_intrinsics))
 
@@ -297,8 +340,9 @@ def register(sub) -> None:
     ph = csub.add_parser("photometric", help="camera response curve from an exposure bracket (Debevec-Malik)")
     ph.add_argument("bracket_dir", metavar="BRACKET_DIR", help="images of a static scene at several exposure times")
     ph.add_argument("-o", "--output", default="response.npy", help="LUT file (.npy, default response.npy)")
-    ph.add_argument("--times", metavar="JSON",
-                    help='{"file name": seconds}; default: exposures.json in the folder, else file names')
+    ph.add_argument(
+        "--times", metavar="JSON", help='{"file name": seconds}; default: exposures.json in the folder, else file names'
+    )
     ph.add_argument("--samples", type=int, default=120, help="pixel samples for Debevec (default 120)")
     ph.add_argument("--smoothness", type=float, default=10.0, help="Debevec lambda (default 10)")
     ph.add_argument("--calibration", metavar="FILE", help="also record the LUT in this calibration file")

@@ -7,11 +7,17 @@ import json
 
 
 def register(sub) -> None:
-    p = sub.add_parser("config", help="print the effective configuration as TOML",
-                       description="Print the configuration after the file and --set overrides are applied.")
-    p.add_argument("--pipeline", action="store_true",
-                   help="print the stage chain this configuration builds, with each stage's declared "
-                        "requires / optional / provides, instead of the TOML")
+    p = sub.add_parser(
+        "config",
+        help="print the effective configuration as TOML",
+        description="Print the configuration after the file and --set overrides are applied.",
+    )
+    p.add_argument(
+        "--pipeline",
+        action="store_true",
+        help="print the stage chain this configuration builds, with each stage's declared "
+        "requires / optional / provides, instead of the TOML",
+    )
     p.set_defaults(func=run)
 
 

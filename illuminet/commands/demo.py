@@ -63,42 +63,68 @@ def default_source_url(session: Path | None = None) -> str:
     path = Path(session) if session is not None else DEFAULT_SESSION
     return f"replay://{quote(str(path.resolve()))}?loop=1"
 
+
 #: peak resident memory the demo should stay under (MB); above it the demo says so
 RSS_TARGET_MB = 600.0
 
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "demo", help="the whole pipeline on the built-in default session, to a video",
+        "demo",
+        help="the whole pipeline on the built-in default session, to a video",
         description="Run the AR pipeline (planes -> plane light -> shading -> render) on the built-in default "
-                    "session (a small recording of the synthetic RGB-D camera: a near lamp, 1280x800 colour, "
-                    "640x400 depth, looped; or --source URL) and write the composited stream to a video, with a PNG "
-                    "still, per-stage timing and peak memory. Says which shading (learned model or baseline) "
-                    "it used.",
+        "session (a small recording of the synthetic RGB-D camera: a near lamp, 1280x800 colour, "
+        "640x400 depth, looped; or --source URL) and write the composited stream to a video, with a PNG "
+        "still, per-stage timing and peak memory. Says which shading (learned model or baseline) "
+        "it used.",
     )
-    p.add_argument("--frames", type=int, default=None, metavar="N",
-                   help="frames to process (default 90; with --mjpeg: until Ctrl-C)")
-    p.add_argument("--out", default="out/demo.mp4", metavar="PATH",
-                   help="video file to write (.mp4, .avi, .mkv; default out/demo.mp4)")
+    p.add_argument(
+        "--frames",
+        type=int,
+        default=None,
+        metavar="N",
+        help="frames to process (default 90; with --mjpeg: until Ctrl-C)",
+    )
+    p.add_argument(
+        "--out",
+        default="out/demo.mp4",
+        metavar="PATH",
+        help="video file to write (.mp4, .avi, .mkv; default out/demo.mp4)",
+    )
     p.add_argument("--no-video", action="store_true", help="write no video file")
     p.add_argument("--png-dir", metavar="DIR", help="also write every output frame as a PNG into DIR")
-    p.add_argument("--still", metavar="PATH",
-                   help="PNG still of the middle frame (default: next to the video, NAME_still.png; "
-                        "'' for none)")
-    p.add_argument("--source", metavar="URL",
-                   help="frame source instead of the built-in default session (e.g. replay://SESSION, "
-                        "synthetic://indoor?size=1280x800, oakd://)")
-    p.add_argument("--make-default-session", metavar="DIR",
-                   help="(re)generate the built-in default session into the new folder DIR and exit "
-                        "(deterministic per --seed; the shipped one is illuminet/data/demo_session)")
-    p.add_argument("--seed", type=int, default=DEFAULT_SESSION_SEED,
-                   help=f"seed of --make-default-session (default {DEFAULT_SESSION_SEED}, the shipped session)")
+    p.add_argument(
+        "--still",
+        metavar="PATH",
+        help="PNG still of the middle frame (default: next to the video, NAME_still.png; '' for none)",
+    )
+    p.add_argument(
+        "--source",
+        metavar="URL",
+        help="frame source instead of the built-in default session (e.g. replay://SESSION, "
+        "synthetic://indoor?size=1280x800, oakd://)",
+    )
+    p.add_argument(
+        "--make-default-session",
+        metavar="DIR",
+        help="(re)generate the built-in default session into the new folder DIR and exit "
+        "(deterministic per --seed; the shipped one is illuminet/data/demo_session)",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=DEFAULT_SESSION_SEED,
+        help=f"seed of --make-default-session (default {DEFAULT_SESSION_SEED}, the shipped session)",
+    )
     p.add_argument("--stats-json", metavar="PATH", help="write the per-step timing statistics as JSON")
     p.add_argument("--strict", action="store_true", help="stop at the first failing frame with a traceback")
     from illuminet.commands.run import add_live_output_flags
 
-    add_live_output_flags(p.add_argument_group(
-        "live outputs (with --mjpeg the session plays in real time, looped, until Ctrl-C unless --frames)"))
+    add_live_output_flags(
+        p.add_argument_group(
+            "live outputs (with --mjpeg the session plays in real time, looped, until Ctrl-C unless --frames)"
+        )
+    )
     p.set_defaults(func=cmd_demo)
 
 
@@ -177,9 +203,16 @@ class SHFallbackShading(Stage):
             dep = cv2.resize(frame.depth, (sw, sh), interpolation=cv2.INTER_NEAREST)
             intr = frame.intrinsics.scaled(sw, sh)
             try:
-                coef = fit_sh_from_rgbd(linearize(col), dep, intr, self.cfg.plane_light.assumed_albedo,
-                                        R_obj_cam=anchor.R.T, exposure_scale=max(pl.exposure_scale, 1e-12),
-                                        stride=1, step=2)
+                coef = fit_sh_from_rgbd(
+                    linearize(col),
+                    dep,
+                    intr,
+                    self.cfg.plane_light.assumed_albedo,
+                    R_obj_cam=anchor.R.T,
+                    exposure_scale=max(pl.exposure_scale, 1e-12),
+                    stride=1,
+                    step=2,
+                )
             except ValueError as e:
                 raise FrameError(f"SH baseline: {e}") from None
             a = self.alpha if self._coef is not None else 0.0
@@ -195,8 +228,9 @@ class SHFallbackShading(Stage):
         return {"mode": "sh (demo fallback: no bundle)", "frames": self.frames, "fits": self.fits}
 
 
-def make_default_session(path: str | Path, *, seed: int = DEFAULT_SESSION_SEED,
-                         frames: int = DEFAULT_SESSION_FRAMES) -> Path:
+def make_default_session(
+    path: str | Path, *, seed: int = DEFAULT_SESSION_SEED, frames: int = DEFAULT_SESSION_FRAMES
+) -> Path:
     """Generate the demo's default session into the new folder ``path``, deterministically per seed.
 
     Records :func:`default_session_source_url` (the synthetic camera's lamp scene at 1280x800, one
@@ -224,13 +258,29 @@ def make_default_session(path: str | Path, *, seed: int = DEFAULT_SESSION_SEED,
     w, h = DEFAULT_SESSION_SIZE
     k = DEFAULT_SESSION_DEPTH_SCALE
     stereo_url = url.replace(f"size={w}x{h}", f"size={w // k}x{h // k}")
-    meta = {"generated_by": f"illuminet demo --make-default-session DIR --seed {int(seed)}",
-            "seed": int(seed), "source": url, "frames": int(frames),
-            "color_jpeg_quality": DEFAULT_SESSION_JPEG_QUALITY, "depth_scale": DEFAULT_SESSION_DEPTH_SCALE}
+    meta = {
+        "generated_by": f"illuminet demo --make-default-session DIR --seed {int(seed)}",
+        "seed": int(seed),
+        "source": url,
+        "frames": int(frames),
+        "color_jpeg_quality": DEFAULT_SESSION_JPEG_QUALITY,
+        "depth_scale": DEFAULT_SESSION_DEPTH_SCALE,
+    }
     meta["depth_source"] = stereo_url
-    with open_source(url, defaults()) as src, open_source(stereo_url, defaults()) as stereo, SessionWriter(
-            path, source=url, color="jpeg", jpeg_quality=DEFAULT_SESSION_JPEG_QUALITY, fsync=False,
-            depth_scale=k, depth_png_compression=9, meta=meta) as wr:
+    with (
+        open_source(url, defaults()) as src,
+        open_source(stereo_url, defaults()) as stereo,
+        SessionWriter(
+            path,
+            source=url,
+            color="jpeg",
+            jpeg_quality=DEFAULT_SESSION_JPEG_QUALITY,
+            fsync=False,
+            depth_scale=k,
+            depth_png_compression=9,
+            meta=meta,
+        ) as wr,
+    ):
         while True:
             f, d = src.read(), stereo.read()
             if f is None or d is None:
@@ -277,11 +327,14 @@ def describe_shading(methods: collections.Counter, cfg: Config) -> str:
     if not methods:
         return "no frames"
     main, n = methods.most_common(1)[0]
-    names = {"sh": "SH baseline (2nd-order spherical harmonics fitted to the RGB-D shading)",
-             "ambient": "ambient baseline (the plane's mean irradiance: no learned model loaded, or a PRT-only bundle "
-                        "without a light estimate)",
-             "constant": "constant-prior baseline", "none": "none (no plane light yet)",
-             "prt": "precomputed radiance transfer of the light estimate (physical, self-shadowed)"}
+    names = {
+        "sh": "SH baseline (2nd-order spherical harmonics fitted to the RGB-D shading)",
+        "ambient": "ambient baseline (the plane's mean irradiance: no learned model loaded, or a PRT-only bundle "
+        "without a light estimate)",
+        "constant": "constant-prior baseline",
+        "none": "none (no plane light yet)",
+        "prt": "precomputed radiance transfer of the light estimate (physical, self-shadowed)",
+    }
     what = f"learned model ({main.split(':', 1)[1]} ONNX)" if main.startswith("model") else names.get(main, main)
     others = ", ".join(f"{m} {c}" for m, c in methods.items() if m != main)
     return f"{what} on {n} frames" + (f" (also: {others})" if others else "") + f"; [model] bundle = {cfg.model.bundle}"
@@ -298,10 +351,18 @@ def demo_config(args: argparse.Namespace, cfg: Config) -> Config:
     """The configuration the demo runs with: outputs from the flags, replay as fast as possible
     (in real time while serving ``--mjpeg``: a viewer wants the scene's pace, not a blur)."""
     live = bool(getattr(args, "mjpeg", None))
-    over = [("output", "video", "" if args.no_video else args.out),
-            ("source", "timing", "recorded" if live else "asap"), ("source", "max_frames", demo_frames(args))]
-    for flag, key in (("estimates", "estimates"), ("mjpeg", "mjpeg"), ("listen", "listen"), ("port", "port"),
-                      ("viewer_model", "viewer_model")):
+    over = [
+        ("output", "video", "" if args.no_video else args.out),
+        ("source", "timing", "recorded" if live else "asap"),
+        ("source", "max_frames", demo_frames(args)),
+    ]
+    for flag, key in (
+        ("estimates", "estimates"),
+        ("mjpeg", "mjpeg"),
+        ("listen", "listen"),
+        ("port", "port"),
+        ("viewer_model", "viewer_model"),
+    ):
         if getattr(args, flag, None) is not None:
             over.append(("output", key, getattr(args, flag)))
     if args.png_dir:
@@ -322,8 +383,11 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
     if args.make_default_session:
         return _make_session(args)
     if args.seed != DEFAULT_SESSION_SEED:
-        print(f"illuminet demo: --seed {args.seed} only applies with --make-default-session DIR "
-              f"(the demo replays the shipped session, seed {DEFAULT_SESSION_SEED})", file=sys.stderr)
+        print(
+            f"illuminet demo: --seed {args.seed} only applies with --make-default-session DIR "
+            f"(the demo replays the shipped session, seed {DEFAULT_SESSION_SEED})",
+            file=sys.stderr,
+        )
         return 2
     if args.frames is not None and args.frames < 1:
         print(f"illuminet demo: --frames must be at least 1, got {args.frames}", file=sys.stderr)
@@ -349,8 +413,16 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
 
     status = StatusLine()  # a live line on a terminal; nothing when piped
     try:
-        run_loop(source, stages, sinks, strict=cfg.logging.strict, max_frames=frames, stats=stats,
-                 on_stats=status.update, stats_interval_s=0.5)
+        run_loop(
+            source,
+            stages,
+            sinks,
+            strict=cfg.logging.strict,
+            max_frames=frames,
+            stats=stats,
+            on_stats=status.update,
+            stats_interval_s=0.5,
+        )
     except (SourceError, SinkError, OSError) as e:
         status.close()
         if cfg.logging.strict:
@@ -386,8 +458,10 @@ def _source_url(args: argparse.Namespace, frames: int | None) -> str:
     if (DEFAULT_SESSION / "manifest.json").is_file():
         return default_source_url()
     # an install without the package data: the synthetic camera still gives a demo
-    print(f"demo: the default session {DEFAULT_SESSION} is missing; using the synthetic camera "
-          f"(slow: it renders every frame)")
+    print(
+        f"demo: the default session {DEFAULT_SESSION} is missing; using the synthetic camera "
+        f"(slow: it renders every frame)"
+    )
     return SYNTHETIC_SOURCE.format(frames=frames or 100000)
 
 
@@ -414,7 +488,9 @@ def _print_report(stats, stages, probe: StillSink, cfg: Config, rc: int) -> None
     if probe.written is not None:
         print(f"still: {probe.written}")
     rss = peak_rss_mb()
-    print(f"peak resident memory: {rss:.0f} MB (target <= {RSS_TARGET_MB:.0f} MB)"
-          + ("" if rss <= RSS_TARGET_MB else "  ** over target **"))
+    print(
+        f"peak resident memory: {rss:.0f} MB (target <= {RSS_TARGET_MB:.0f} MB)"
+        + ("" if rss <= RSS_TARGET_MB else "  ** over target **")
+    )
     if cfg.logging.stats_json:
         Path(cfg.logging.stats_json).write_text(stats.to_json() + "\n")

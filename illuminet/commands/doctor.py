@@ -47,21 +47,27 @@ def check_gl() -> Check:
     second one: a new moderngl context becomes current, and releasing it would leave the shared one
     (used by the renderer later in the same process) not current.
     """
-    fix = ("install Mesa's EGL and drivers: sudo apt-get install libegl1 libgl1-mesa-dri libgles2 "
-           "(software llvmpipe works everywhere; for a GPU, pass /dev/dri into the container)")
+    fix = (
+        "install Mesa's EGL and drivers: sudo apt-get install libegl1 libgl1-mesa-dri libgles2 "
+        "(software llvmpipe works everywhere; for a GPU, pass /dev/dri into the container)"
+    )
     try:
         import moderngl  # noqa: F401  (a clearer message than the GL module's when it is missing)
     except ImportError as e:
         return Check("OpenGL (EGL)", MISSING, f"moderngl not importable: {e}", "pip install moderngl", True)
     from illuminet.runtime.render.gl import GLError, get_context
+
     try:
         ctx = get_context("egl")
     except GLError as e:  # no libEGL, no driver, no device, or a shared context of another backend
         return Check("OpenGL (EGL)", MISSING, f"no EGL context: {e}", fix, True)
     info = ctx.info
     renderer, version, vendor = info["GL_RENDERER"], info["GL_VERSION"], info["GL_VENDOR"]
-    note = " (software rendering: fine for 640x400; a GPU renders larger frames faster)" \
-        if "llvmpipe" in renderer.lower() or "softpipe" in renderer.lower() else ""
+    note = (
+        " (software rendering: fine for 640x400; a GPU renders larger frames faster)"
+        if "llvmpipe" in renderer.lower() or "softpipe" in renderer.lower()
+        else ""
+    )
     return Check("OpenGL (EGL)", OK, f"{renderer}; OpenGL {version}; {vendor}{note}", essential=True)
 
 
@@ -72,8 +78,13 @@ def check_onnxruntime() -> Check:
         return Check("onnxruntime", MISSING, f"not importable: {e}", "pip install onnxruntime", True)
     providers = ort.get_available_providers()
     if "CPUExecutionProvider" not in providers:
-        return Check("onnxruntime", MISSING, f"{ort.__version__} without CPUExecutionProvider ({providers})",
-                     "reinstall onnxruntime (pip install --force-reinstall onnxruntime)", True)
+        return Check(
+            "onnxruntime",
+            MISSING,
+            f"{ort.__version__} without CPUExecutionProvider ({providers})",
+            "reinstall onnxruntime (pip install --force-reinstall onnxruntime)",
+            True,
+        )
     return Check("onnxruntime", OK, f"{ort.__version__}; providers: {', '.join(providers)}", essential=True)
 
 
@@ -92,9 +103,14 @@ def check_opencv() -> Check:
     detail = f"{cv2.__version__}; " + ", ".join(f"{k} {'yes' if v else 'no'}" for k, v in has.items())
     missing = [k for k, v in has.items() if not v]
     if missing:
-        fix = ("ximgproc/findPlanes come with the contrib build: pip uninstall opencv-python "
-               "opencv-python-headless; pip install opencv-contrib-python-headless") if \
-            {"ximgproc", "findPlanes"} & set(missing) else ""
+        fix = (
+            (
+                "ximgproc/findPlanes come with the contrib build: pip uninstall opencv-python "
+                "opencv-python-headless; pip install opencv-contrib-python-headless"
+            )
+            if {"ximgproc", "findPlanes"} & set(missing)
+            else ""
+        )
         if "FFmpeg" in missing:
             fix += ("; " if fix else "") + "video files need OpenCV's FFmpeg backend (the PyPI wheels have it)"
         if "V4L2" in missing:
@@ -108,13 +124,21 @@ def check_pyav() -> Check:
     try:
         av = importlib.import_module("av")
     except ImportError as e:
-        return Check("PyAV (H.264 video)", MISSING, f"not importable: {e}; .mp4 files are written as MPEG-4 part 2 "
-                     "by OpenCV (plays in VLC, not in browsers)", "pip install av")
+        return Check(
+            "PyAV (H.264 video)",
+            MISSING,
+            f"not importable: {e}; .mp4 files are written as MPEG-4 part 2 by OpenCV (plays in VLC, not in browsers)",
+            "pip install av",
+        )
     try:
         av.codec.Codec("libx264", "w")
     except Exception as e:  # av.codec.codec.UnknownCodecError and friends
-        return Check("PyAV (H.264 video)", MISSING, f"{av.__version__}; no libx264 encoder ({e})",
-                     "pip install --force-reinstall av (the PyPI wheels include libx264)")
+        return Check(
+            "PyAV (H.264 video)",
+            MISSING,
+            f"{av.__version__}; no libx264 encoder ({e})",
+            "pip install --force-reinstall av (the PyPI wheels include libx264)",
+        )
     return Check("PyAV (H.264 video)", OK, f"{av.__version__}; libx264 (MP4 as H.264, yuv420p)")
 
 
@@ -126,32 +150,44 @@ def check_depthai() -> Check:
     try:
         devices = oakd.list_devices()
     except Exception as e:  # USB stack problems surface here
-        return Check("DepthAI (OAK)", MISSING, f"{oakd.depthai_version()}; device search failed: {e}",
-                     "check USB access (udev rule below) or run with the device's IP for PoE models")
+        return Check(
+            "DepthAI (OAK)",
+            MISSING,
+            f"{oakd.depthai_version()}; device search failed: {e}",
+            "check USB access (udev rule below) or run with the device's IP for PoE models",
+        )
     items = [f"{d['id']}  {d['name']}  {d['state']} {d['protocol']} {d['platform']}" for d in devices]
     if not devices:
         return Check(
-            "DepthAI (OAK)", NONE, f"{oakd.depthai_version()}; no OAK device found",
-            "plug the OAK in (USB3 port and cable); on Linux allow access once: echo 'SUBSYSTEM==\"usb\", "
-            "ATTRS{idVendor}==\"03e7\", MODE=\"0666\"' | sudo tee /etc/udev/rules.d/80-movidius.rules && "
+            "DepthAI (OAK)",
+            NONE,
+            f"{oakd.depthai_version()}; no OAK device found",
+            'plug the OAK in (USB3 port and cable); on Linux allow access once: echo \'SUBSYSTEM=="usb", '
+            'ATTRS{idVendor}=="03e7", MODE="0666"\' | sudo tee /etc/udev/rules.d/80-movidius.rules && '
             "sudo udevadm control --reload-rules && sudo udevadm trigger; in a container pass "
             "-v /dev/bus/usb:/dev/bus/usb --device-cgroup-rule='c 189:* rmw'",
         )
-    return Check("DepthAI (OAK)", OK, f"{oakd.depthai_version()}; {len(devices)} device(s): use oakd://ID",
-                 items=items)
+    return Check("DepthAI (OAK)", OK, f"{oakd.depthai_version()}; {len(devices)} device(s): use oakd://ID", items=items)
 
 
 def check_v4l2() -> Check:
     v4l2 = importlib.import_module("illuminet.hw.v4l2")
     devices = v4l2.list_devices()
     if not devices:
-        return Check("V4L2 cameras", NONE, "no /dev/video* device",
-                     "plug in a stereo UVC camera; in a container pass --device /dev/videoN; "
-                     "v4l2-ctl --list-devices (apt-get install v4l-utils) shows what the kernel sees")
+        return Check(
+            "V4L2 cameras",
+            NONE,
+            "no /dev/video* device",
+            "plug in a stereo UVC camera; in a container pass --device /dev/videoN; "
+            "v4l2-ctl --list-devices (apt-get install v4l-utils) shows what the kernel sees",
+        )
     items = [f"{d['device']}  {d['name']}" for d in devices]
-    return Check("V4L2 cameras", OK,
-                 f"{len(devices)} device(s); stereo only: v4l2://DEV?stereo=sbs or ?right=DEV2 with a calibration",
-                 items=items)
+    return Check(
+        "V4L2 cameras",
+        OK,
+        f"{len(devices)} device(s); stereo only: v4l2://DEV?stereo=sbs or ?right=DEV2 with a calibration",
+        items=items,
+    )
 
 
 def check_serial(imu_url: str) -> Check:
@@ -166,12 +202,20 @@ def check_serial(imu_url: str) -> Check:
             reader.close()
             configured += " (opens)"
         except (OSError, ValueError) as e:
-            return Check("serial ports", MISSING, f"{len(ports)} port(s){configured} -- cannot open: {e}",
-                         "check the path and permissions (Linux: sudo usermod -aG dialout $USER, log in again)",
-                         items=items)
+            return Check(
+                "serial ports",
+                MISSING,
+                f"{len(ports)} port(s){configured} -- cannot open: {e}",
+                "check the path and permissions (Linux: sudo usermod -aG dialout $USER, log in again)",
+                items=items,
+            )
     if not ports:
-        return Check("serial ports", NONE, "no serial port" + configured,
-                     "a USB-serial IMU appears as /dev/ttyUSB* or /dev/ttyACM*; see docs/live.md for the protocol")
+        return Check(
+            "serial ports",
+            NONE,
+            "no serial port" + configured,
+            "a USB-serial IMU appears as /dev/ttyUSB* or /dev/ttyACM*; see docs/live.md for the protocol",
+        )
     return Check("serial ports", OK, f"{len(ports)} port(s){configured}", items=items)
 
 
@@ -191,14 +235,22 @@ def run_checks(imu_url: str = "") -> list[Check]:
         try:
             out.append(fn())
         except Exception as e:  # the doctor must report, not crash
-            out.append(Check(name, MISSING, f"check failed: {type(e).__name__}: {e}",
-                             essential=name in ("OpenGL (EGL)", "onnxruntime")))
+            out.append(
+                Check(
+                    name,
+                    MISSING,
+                    f"check failed: {type(e).__name__}: {e}",
+                    essential=name in ("OpenGL (EGL)", "onnxruntime"),
+                )
+            )
     return out
 
 
 def format_report(checks: list[Check]) -> str:
-    lines = [f"illuminet doctor -- {platform.system()} {platform.machine()}, python {platform.python_version()}, "
-             f"{os.cpu_count()} cores"]
+    lines = [
+        f"illuminet doctor -- {platform.system()} {platform.machine()}, python {platform.python_version()}, "
+        f"{os.cpu_count()} cores"
+    ]
     for c in checks:
         lines.append(f"[{c.status:^7}] {c.name}: {c.detail}")
         lines += [f"            {it}" for it in c.items]
@@ -211,10 +263,13 @@ def format_report(checks: list[Check]) -> str:
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "doctor", help="check GL, onnxruntime, OpenCV, DepthAI/V4L2 cameras and serial ports",
-        description=("Report what this machine offers: EGL/OpenGL renderer, onnxruntime providers, OpenCV "
-                     "features, OAK devices, V4L2 cameras, serial ports; with how to fix what is missing. "
-                     "Exit code 0 when the essentials (OpenGL via EGL, onnxruntime) work."),
+        "doctor",
+        help="check GL, onnxruntime, OpenCV, DepthAI/V4L2 cameras and serial ports",
+        description=(
+            "Report what this machine offers: EGL/OpenGL renderer, onnxruntime providers, OpenCV "
+            "features, OAK devices, V4L2 cameras, serial ports; with how to fix what is missing. "
+            "Exit code 0 when the essentials (OpenGL via EGL, onnxruntime) work."
+        ),
     )
     p.add_argument("--json", action="store_true", help="print the checks as JSON instead of text")
     p.set_defaults(func=run)

@@ -42,40 +42,82 @@ CROSSCHECK_SCENES = ("lamp_room", "area_lamp_boxes", "indoor_table", "outdoor_hd
 
 
 def register(sub) -> None:
-    p = sub.add_parser("eval", help="evaluate a bundle against ground truth and baselines",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "eval",
+        help="evaluate a bundle against ground truth and baselines",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--bundle", default=None, help="bundle to evaluate (default: [model] bundle)")
     p.add_argument("--cases", type=int, default=100, help="test cases per lighting suite (default 100; 0 = skip them)")
     p.add_argument("--flicker-scenes", type=int, default=8, help="static scenes per suite for temporal flicker")
     p.add_argument("--seed", type=int, default=0, help="test-set seed (default 0)")
-    p.add_argument("--hdr", metavar="DIR", default=None,
-                   help="folder of .hdr maps for the real-lighting suite (held-out maps only); default: "
-                        "../shared/data/hdri when present")
+    p.add_argument(
+        "--hdr",
+        metavar="DIR",
+        default=None,
+        help="folder of .hdr maps for the real-lighting suite (held-out maps only); default: "
+        "../shared/data/hdri when present",
+    )
     p.add_argument("--out", metavar="DIR", default=None, help="report folder (default: eval/<bundle name>)")
     p.add_argument("--ablation", action="store_true", help="also run the loss ablation (retrains the GAN stage)")
     p.add_argument("--ablation-epochs", type=int, default=8, help="GAN epochs per ablation variant (default 8)")
     p.add_argument("--no-figure", action="store_true", help="skip the rendered PNG figure")
-    p.add_argument("--camera-scenes", type=int, default=8,
-                   help="scenes per camera suite (end to end on the synthetic camera; 0 = skip; default 8)")
+    p.add_argument(
+        "--camera-scenes",
+        type=int,
+        default=8,
+        help="scenes per camera suite (end to end on the synthetic camera; 0 = skip; default 8)",
+    )
     p.add_argument("--camera-frames", type=int, default=6, help="frames per camera scene (default 6)")
-    p.add_argument("--camera-suites", default=",".join(CAMERA_SUITES), metavar="LIST",
-                   help=f"comma-separated camera suites (default: {','.join(CAMERA_SUITES)})")
-    p.add_argument("--variant", action="append", default=[], metavar="NAME:SECTION.KEY=VALUE,...",
-                   help="another named configuration of the pipeline for the camera suites (repeatable)")
-    p.add_argument("--vertices", type=int, default=0,
-                   help="camera suites: evaluate this many render vertices, evenly spread (0 = all)")
-    p.add_argument("--crosscheck", action="store_true",
-                   help="compare the synthetic ground truth with Mitsuba 3 instead (needs illuminet[groundtruth])")
-    p.add_argument("--crosscheck-scenes", default=",".join(CROSSCHECK_SCENES), metavar="LIST",
-                   help=f"cross-check scenes (default: {','.join(CROSSCHECK_SCENES)})")
+    p.add_argument(
+        "--camera-suites",
+        default=",".join(CAMERA_SUITES),
+        metavar="LIST",
+        help=f"comma-separated camera suites (default: {','.join(CAMERA_SUITES)})",
+    )
+    p.add_argument(
+        "--variant",
+        action="append",
+        default=[],
+        metavar="NAME:SECTION.KEY=VALUE,...",
+        help="another named configuration of the pipeline for the camera suites (repeatable)",
+    )
+    p.add_argument(
+        "--vertices",
+        type=int,
+        default=0,
+        help="camera suites: evaluate this many render vertices, evenly spread (0 = all)",
+    )
+    p.add_argument(
+        "--crosscheck",
+        action="store_true",
+        help="compare the synthetic ground truth with Mitsuba 3 instead (needs illuminet[groundtruth])",
+    )
+    p.add_argument(
+        "--crosscheck-scenes",
+        default=",".join(CROSSCHECK_SCENES),
+        metavar="LIST",
+        help=f"cross-check scenes (default: {','.join(CROSSCHECK_SCENES)})",
+    )
     p.add_argument("--crosscheck-vertices", type=int, default=300, help="object vertices compared (default 300)")
     p.add_argument("--crosscheck-spp", type=int, default=512, help="Mitsuba rays per vertex (default 512)")
-    p.add_argument("--crosscheck-object", default="builtin:bowl", help="object of the cross-check (default builtin:bowl)")
-    p.add_argument("--crosscheck-bounces", type=int, default=None,
-                   help="in-house bounces to check (default: the synthetic camera's default)")
-    p.add_argument("--mitsuba-variant", choices=("scalar_rgb", "llvm"), default="scalar_rgb",
-                   help="Mitsuba variant: scalar_rgb (always works) or llvm (llvm_ad_rgb, several times faster; "
-                        "needs libLLVM >= 16, point DRJIT_LIBLLVM_PATH at it)")
+    p.add_argument(
+        "--crosscheck-object", default="builtin:bowl", help="object of the cross-check (default builtin:bowl)"
+    )
+    p.add_argument(
+        "--crosscheck-bounces",
+        type=int,
+        default=None,
+        help="in-house bounces to check (default: the synthetic camera's default)",
+    )
+    p.add_argument(
+        "--mitsuba-variant",
+        choices=("scalar_rgb", "llvm"),
+        default="scalar_rgb",
+        help="Mitsuba variant: scalar_rgb (always works) or llvm (llvm_ad_rgb, several times faster; "
+        "needs libLLVM >= 16, point DRJIT_LIBLLVM_PATH at it)",
+    )
     p.add_argument("--update-bundle", action="store_true", help="store the figures in the bundle")
     p.set_defaults(func=run)
 
@@ -84,7 +126,7 @@ def _ablation(ev, epochs: int) -> None:
     """Retrain the GAN stage twice (paper losses vs without shading + smoothness) on the bundle's data."""
     import numpy as np
 
-    from illuminet.models.train import Trainer, TrainConfig, predict_jax
+    from illuminet.models.train import TrainConfig, Trainer, predict_jax
 
     b = ev.bundle
     work = b.path / "work"
@@ -121,13 +163,22 @@ def _crosscheck(args, hdr: str) -> int:
     names = [n for n in args.crosscheck_scenes.split(",") if n]
     bad = [n for n in names if n not in CROSSCHECK_SCENES]
     if bad:
-        print(f"illuminet eval: unknown cross-check scene(s) {', '.join(bad)}; known: {', '.join(CROSSCHECK_SCENES)}",
-              file=sys.stderr)
+        print(
+            f"illuminet eval: unknown cross-check scene(s) {', '.join(bad)}; known: {', '.join(CROSSCHECK_SCENES)}",
+            file=sys.stderr,
+        )
         return 2
     try:
-        report = run_crosscheck(names, args.crosscheck_object, args.crosscheck_vertices, args.crosscheck_spp,
-                                bounces=args.crosscheck_bounces, hdr_dir=hdr or None, variant=args.mitsuba_variant,
-                                progress=Progress("crosscheck", len(names)))
+        report = run_crosscheck(
+            names,
+            args.crosscheck_object,
+            args.crosscheck_vertices,
+            args.crosscheck_spp,
+            bounces=args.crosscheck_bounces,
+            hdr_dir=hdr or None,
+            variant=args.mitsuba_variant,
+            progress=Progress("crosscheck", len(names)),
+        )
     except CrosscheckUnavailable as e:
         print(f"illuminet eval: {e}", file=sys.stderr)
         return 2
@@ -156,8 +207,10 @@ def run(args: argparse.Namespace, cfg) -> int:
     suites = [s for s in args.camera_suites.split(",") if s]
     bad = [s for s in suites if s not in CAMERA_SUITES]
     if bad:
-        print(f"illuminet eval: unknown camera suite(s) {', '.join(bad)}; known: {', '.join(CAMERA_SUITES)}",
-              file=sys.stderr)
+        print(
+            f"illuminet eval: unknown camera suite(s) {', '.join(bad)}; known: {', '.join(CAMERA_SUITES)}",
+            file=sys.stderr,
+        )
         return 2
     cam = None
     try:
@@ -165,8 +218,9 @@ def run(args: argparse.Namespace, cfg) -> int:
             from illuminet.models.camera_eval import CameraEval, parse_variant
             from illuminet.pipeline import build_stages
 
-            cam = CameraEval(cfg, build_stages, spec, [parse_variant(v) for v in args.variant], hdr or None,
-                             args.vertices or None)
+            cam = CameraEval(
+                cfg, build_stages, spec, [parse_variant(v) for v in args.variant], hdr or None, args.vertices or None
+            )
         ev = Evaluator(spec, hdr or None) if args.cases > 0 else None
     except (BundleError, ConfigError) as e:
         print(f"illuminet eval: {e}", file=sys.stderr)
@@ -180,15 +234,23 @@ def run(args: argparse.Namespace, cfg) -> int:
                 _ablation(ev, args.ablation_epochs)
             except (ImportError, FileNotFoundError) as e:
                 print(f"illuminet eval: ablation skipped: {e}", file=sys.stderr)
-        report = finish(ev.run(args.cases, args.flicker_scenes, smoothing=cfg.model.temporal_smoothing,
-                               seed=args.seed, progress=Progress("eval", 1)))
+        report = finish(
+            ev.run(
+                args.cases,
+                args.flicker_scenes,
+                smoothing=cfg.model.temporal_smoothing,
+                seed=args.seed,
+                progress=Progress("eval", 1),
+            )
+        )
         name = ev.bundle.name
     else:
         name = cam.bundle.name if cam is not None else str(spec)
         report = {"bundle": name, "suites": {}}
     if cam is not None:
-        report["camera"] = cam.run(suites, args.camera_scenes, args.camera_frames, args.seed,
-                                   progress=Progress("camera", 1))
+        report["camera"] = cam.run(
+            suites, args.camera_scenes, args.camera_frames, args.seed, progress=Progress("camera", 1)
+        )
     report["eval_wall_s"] = round(time.time() - t0, 1)
     out = Path(args.out or Path("eval") / name)
     out.mkdir(parents=True, exist_ok=True)
@@ -203,8 +265,13 @@ def run(args: argparse.Namespace, cfg) -> int:
             names = {"true": "Ground truth", **LABELS}
             panels = [(names[m], ex[m] / 3.14159265 * ex["k"]) for m in order if m in ex]
             fig = out / "eval.png"
-            figure(fig, ev.bundle.vertices, ev.bundle.faces, panels,
-                   title=f"{ev.bundle.name}: {suite} test case (front row, back row)")
+            figure(
+                fig,
+                ev.bundle.vertices,
+                ev.bundle.faces,
+                panels,
+                title=f"{ev.bundle.name}: {suite} test case (front row, back row)",
+            )
             report["figure"] = fig.name
         except Exception as e:  # no EGL: the report is still written
             print(f"illuminet eval: figure skipped ({e})", file=sys.stderr)
@@ -221,9 +288,14 @@ def run(args: argparse.Namespace, cfg) -> int:
 
         (ev.bundle.path / "eval.json").write_text(json.dumps(report, indent=2) + "\n")
         meta = dict(ev.bundle.meta)
-        meta["evaluation"] = {s: {m: {k: v for k, v in r.items()} for m, r in res.items()
-                                  if m in ("ours_int8", "ours_fp32", "constant", "ambient", "sh_rgbd", "oracle_sh")}
-                              for s, res in report["suites"].items()}
+        meta["evaluation"] = {
+            s: {
+                m: {k: v for k, v in r.items()}
+                for m, r in res.items()
+                if m in ("ours_int8", "ours_fp32", "constant", "ambient", "sh_rgbd", "oracle_sh")
+            }
+            for s, res in report["suites"].items()
+        }
         meta["evaluation"]["n_cases"] = report["n_cases"]
         meta["evaluation"]["int8_vs_fp32_mae_max_diff"] = report["int8_vs_fp32_mae_max_diff"]
         finalize_bundle(ev.bundle.path, meta)

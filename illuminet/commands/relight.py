@@ -25,18 +25,31 @@ import numpy as np
 
 
 def register(sub) -> None:
-    p = sub.add_parser("relight", help="predict a virtual object's radiance in one RGB-D image (npz)",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "relight",
+        help="predict a virtual object's radiance in one RGB-D image (npz)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--color", required=True, metavar="PNG", help="colour image (8-bit RGB, sRGB)")
-    p.add_argument("--depth", required=True, metavar="PNG|NPY",
-                   help="aligned depth: uint16 PNG in mm, or .npy float metres (0 = invalid)")
+    p.add_argument(
+        "--depth",
+        required=True,
+        metavar="PNG|NPY",
+        help="aligned depth: uint16 PNG in mm, or .npy float metres (0 = invalid)",
+    )
     p.add_argument("--intrinsics", required=True, metavar="FX,FY,CX,CY|JSON", help="colour camera intrinsics")
     p.add_argument("--anchor", required=True, metavar="X,Y", help="pixel where the object stands")
     p.add_argument("--bundle", default=None, help="object bundle (default: [model] bundle)")
-    p.add_argument("--precision", choices=("int8", "fp32"), default=None,
-                   help="ONNX chain (default: [model] precision)")
-    p.add_argument("--exposure", metavar="US,ISO", default=None,
-                   help="exposure time (microseconds) and ISO, when known (absolute units)")
+    p.add_argument(
+        "--precision", choices=("int8", "fp32"), default=None, help="ONNX chain (default: [model] precision)"
+    )
+    p.add_argument(
+        "--exposure",
+        metavar="US,ISO",
+        default=None,
+        help="exposure time (microseconds) and ISO, when known (absolute units)",
+    )
     p.add_argument("--out", required=True, metavar="NPZ", help="output file")
     p.add_argument("--preview", metavar="PNG", help="also write the lit object composited into the colour image")
     p.set_defaults(func=run)
@@ -69,8 +82,10 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
         if d is None:
             raise ValueError(f"--depth {depth_path}: cannot read an image from it")
         if d.dtype != np.uint16 or d.ndim != 2:
-            raise ValueError(f"--depth {depth_path}: expected a single-channel 16-bit PNG in millimetres, "
-                             f"got {d.dtype} with shape {d.shape}")
+            raise ValueError(
+                f"--depth {depth_path}: expected a single-channel 16-bit PNG in millimetres, "
+                f"got {d.dtype} with shape {d.shape}"
+            )
         depth = depth_from_mm(d)
     from illuminet.api import align_depth
 
@@ -79,8 +94,14 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
     if Path(intr).is_file():
         try:
             d = json.loads(Path(intr).read_text())
-            K = Intrinsics(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]),
-                           int(d.get("width", w)), int(d.get("height", h)))
+            K = Intrinsics(
+                float(d["fx"]),
+                float(d["fy"]),
+                float(d["cx"]),
+                float(d["cy"]),
+                int(d.get("width", w)),
+                int(d.get("height", h)),
+            )
         except (KeyError, ValueError, json.JSONDecodeError) as e:
             raise ValueError(f"--intrinsics {intr}: expected JSON with fx, fy, cx, cy: {e}") from None
         if (K.width, K.height) != (w, h):
@@ -108,9 +129,11 @@ def run(args: argparse.Namespace, cfg) -> int:
         print(f"illuminet relight: {e}", file=sys.stderr)
         return 2
     res.save(args.out)
-    print(f"wrote {args.out}: {len(res.vertices)} vertices, method {res.method}, "
-          f"{res.plane_observed:.0%} of the plane grid observed, mean radiance "
-          f"{np.round(res.radiance.mean(0), 4).tolist()}")
+    print(
+        f"wrote {args.out}: {len(res.vertices)} vertices, method {res.method}, "
+        f"{res.plane_observed:.0%} of the plane grid observed, mean radiance "
+        f"{np.round(res.radiance.mean(0), 4).tolist()}"
+    )
     if args.preview:
         import cv2
 
@@ -120,12 +143,17 @@ def run(args: argparse.Namespace, cfg) -> int:
         try:
             pic = render_preview(color, depth, K, res, cfg)
         except GLError as e:
-            print(f"illuminet relight: --preview needs OpenGL via EGL: {e} (illuminet doctor says what is "
-                  f"missing); the npz was written", file=sys.stderr)
+            print(
+                f"illuminet relight: --preview needs OpenGL via EGL: {e} (illuminet doctor says what is "
+                f"missing); the npz was written",
+                file=sys.stderr,
+            )
             return 1
         if not cv2.imwrite(args.preview, np.ascontiguousarray(pic[:, :, ::-1])):
-            print(f"illuminet relight: --preview {args.preview}: cannot write it (folder missing? extension?)",
-                  file=sys.stderr)
+            print(
+                f"illuminet relight: --preview {args.preview}: cannot write it (folder missing? extension?)",
+                file=sys.stderr,
+            )
             return 1
         print(f"wrote {args.preview}: the lit object composited into the {pic.shape[1]}x{pic.shape[0]} image")
     return 0

@@ -31,25 +31,43 @@ log = logging.getLogger("illuminet.run")
 
 def _add_source_flags(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("source (override [source])")
-    g.add_argument("--timing", choices=("recorded", "asap"),
-                   help="replay timing: follow recorded timestamps, or as fast as possible ([source] timing)")
-    g.add_argument("--loop", action=argparse.BooleanOptionalAction, default=None,
-                   help="replay: start again at the end ([source] loop)")
-    g.add_argument("--max-frames", type=int, metavar="N",
-                   help="stop after N frames, 0 = no limit ([source] max_frames)")
+    g.add_argument(
+        "--timing",
+        choices=("recorded", "asap"),
+        help="replay timing: follow recorded timestamps, or as fast as possible ([source] timing)",
+    )
+    g.add_argument(
+        "--loop",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="replay: start again at the end ([source] loop)",
+    )
+    g.add_argument(
+        "--max-frames", type=int, metavar="N", help="stop after N frames, 0 = no limit ([source] max_frames)"
+    )
 
 
 def add_live_output_flags(g) -> None:
     """--estimates, --mjpeg, --listen, --port, --viewer-model (shared with ``illuminet demo``)."""
-    g.add_argument("--estimates", metavar="FILE",
-                   help="write each frame's lighting estimate as a JSON line to FILE ('-' = stdout; docs/estimate.md)")
-    g.add_argument("--mjpeg", action=argparse.BooleanOptionalAction, default=None,
-                   help="serve the output over HTTP: the stream at /, a lit 3D viewer at /viewer, the "
-                        "estimate at /estimates (Server-Sent Events) and /estimate.json")
+    g.add_argument(
+        "--estimates",
+        metavar="FILE",
+        help="write each frame's lighting estimate as a JSON line to FILE ('-' = stdout; docs/estimate.md)",
+    )
+    g.add_argument(
+        "--mjpeg",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="serve the output over HTTP: the stream at /, a lit 3D viewer at /viewer, the "
+        "estimate at /estimates (Server-Sent Events) and /estimate.json",
+    )
     g.add_argument("--listen", metavar="ADDR", help="MJPEG bind address (default 127.0.0.1; 0.0.0.0 = local network)")
     g.add_argument("--port", type=int, help="MJPEG port ([output] port)")
-    g.add_argument("--viewer-model", metavar="PATH",
-                   help="model /viewer draws: .glb/.gltf/.obj/.ply/.stl or builtin:NAME ([output] viewer_model)")
+    g.add_argument(
+        "--viewer-model",
+        metavar="PATH",
+        help="model /viewer draws: .glb/.gltf/.obj/.ply/.stl or builtin:NAME ([output] viewer_model)",
+    )
 
 
 def _add_output_flags(p: argparse.ArgumentParser, *, record: bool = True) -> None:
@@ -58,20 +76,28 @@ def _add_output_flags(p: argparse.ArgumentParser, *, record: bool = True) -> Non
     g.add_argument("--fps", type=float, help="frame rate written into the video file ([output] fps)")
     g.add_argument("--png-dir", metavar="DIR", help="write a PNG per output frame into DIR")
     if record:
-        g.add_argument("--record", metavar="DIR", help="also record the input frames (and their lighting "
-                                                       "estimates, estimates.jsonl) as a session in DIR")
+        g.add_argument(
+            "--record",
+            metavar="DIR",
+            help="also record the input frames (and their lighting estimates, estimates.jsonl) as a session in DIR",
+        )
     add_live_output_flags(g)
     g = p.add_argument_group("run control (override [logging])")
-    g.add_argument("--strict", action="store_true", default=None,
-                   help="stop at the first failing frame with a traceback instead of counting it")
+    g.add_argument(
+        "--strict",
+        action="store_true",
+        default=None,
+        help="stop at the first failing frame with a traceback instead of counting it",
+    )
     g.add_argument("--stats-json", metavar="PATH", help="write the per-step timing statistics as JSON at the end")
 
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "run", help="run the pipeline on a source (camera, replay, synthetic)",
+        "run",
+        help="run the pipeline on a source (camera, replay, synthetic)",
         description="Run the AR pipeline on frames from SOURCE_URL (default: [source] url): oakd://, "
-                    "v4l2:///dev/videoN, replay://SESSION, synthetic://SCENE. Ctrl-C stops cleanly.",
+        "v4l2:///dev/videoN, replay://SESSION, synthetic://SCENE. Ctrl-C stops cleanly.",
     )
     p.add_argument("source_url", nargs="?", metavar="SOURCE_URL", help="frame source (default: [source] url)")
     _add_source_flags(p)
@@ -79,31 +105,42 @@ def register(sub) -> None:
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser(
-        "replay", help="run the pipeline on a recorded session",
+        "replay",
+        help="run the pipeline on a recorded session",
         description="Replay the session folder SESSION through the pipeline (same as run replay://SESSION). "
-                    "--check only validates the session and lists every problem.",
+        "--check only validates the session and lists every problem.",
     )
     p.add_argument("session", metavar="SESSION", help="session folder (made by `illuminet record` or --record)")
-    p.add_argument("--check", action="store_true",
-                   help="validate every index line and decode every frame; print problems; exit 1 if any")
+    p.add_argument(
+        "--check",
+        action="store_true",
+        help="validate every index line and decode every frame; print problems; exit 1 if any",
+    )
     _add_source_flags(p)
     _add_output_flags(p)
     p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser(
-        "record", help="record a source into a session folder",
+        "record",
+        help="record a source into a session folder",
         description="Record frames from SOURCE_URL (colour, 16-bit depth, timestamps, intrinsics, exposure, "
-                    "IMU) into the new session folder OUT. Crash-safe: a killed recording keeps every "
-                    "complete frame. Ctrl-C / SIGTERM stop and finalise it.",
+        "IMU) into the new session folder OUT. Crash-safe: a killed recording keeps every "
+        "complete frame. Ctrl-C / SIGTERM stop and finalise it.",
     )
     p.add_argument("source_url", metavar="SOURCE_URL", help="frame source to record")
     p.add_argument("out", metavar="OUT", help="new session folder")
-    p.add_argument("--color", choices=("raw", "png", "jpeg"),
-                   help="colour encoding: raw bytes (lossless, least CPU; default), PNG (lossless, ~40%% smaller), "
-                        "JPEG (lossy) ([output] record_color)")
+    p.add_argument(
+        "--color",
+        choices=("raw", "png", "jpeg"),
+        help="colour encoding: raw bytes (lossless, least CPU; default), PNG (lossless, ~40%% smaller), "
+        "JPEG (lossy) ([output] record_color)",
+    )
     p.add_argument("--jpeg-quality", type=int, metavar="Q", help="JPEG quality 1..100 ([output] record_jpeg_quality)")
-    p.add_argument("--no-fsync", action="store_true",
-                   help="do not fsync each frame (faster; still safe against kill -9, not against power loss)")
+    p.add_argument(
+        "--no-fsync",
+        action="store_true",
+        help="do not fsync each frame (faster; still safe against kill -9, not against power loss)",
+    )
     _add_source_flags(p)
     _add_output_flags(p, record=False)
     p.set_defaults(func=cmd_record)
@@ -155,8 +192,16 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
     rc = 0
     status = StatusLine()  # a live line on a terminal; nothing when piped
     try:
-        run_loop(source, stages, sinks, strict=cfg.logging.strict, max_frames=cfg.source.max_frames, stats=stats,
-                 on_stats=status.update, stats_interval_s=0.5)
+        run_loop(
+            source,
+            stages,
+            sinks,
+            strict=cfg.logging.strict,
+            max_frames=cfg.source.max_frames,
+            stats=stats,
+            on_stats=status.update,
+            stats_interval_s=0.5,
+        )
     except (SourceError, SinkError, SessionError) as e:  # these messages say it all; no traceback
         status.close()
         print(f"illuminet: {e}", file=sys.stderr)
@@ -204,10 +249,12 @@ def cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
             return 1
         problems = reader.check()
         m = reader.manifest
-        print(f"{args.session}: {m['format']} v{m['version']}, {reader.width}x{reader.height}, colour "
-              f"{reader.color_encoding}, depth {_depth_summary(reader)}, "
-              f"{len(reader)} intact frames, {'finalised' if reader.finalized else 'NOT finalised'}, "
-              f"source {m.get('source') or '?'}")
+        print(
+            f"{args.session}: {m['format']} v{m['version']}, {reader.width}x{reader.height}, colour "
+            f"{reader.color_encoding}, depth {_depth_summary(reader)}, "
+            f"{len(reader)} intact frames, {'finalised' if reader.finalized else 'NOT finalised'}, "
+            f"source {m.get('source') or '?'}"
+        )
         est = reader.estimates()
         if est:
             print(f"  lighting estimates: {len(est)} of {len(reader)} frames (estimates.jsonl)")
@@ -224,9 +271,11 @@ def cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
 
 def cmd_record(args: argparse.Namespace, cfg: Config) -> int:
     if args.estimates:
-        print("illuminet record: --estimates needs the lighting stages, which record does not run; use "
-              "`illuminet run SOURCE --record OUT --estimates FILE` (the session then keeps them too)",
-              file=sys.stderr)
+        print(
+            "illuminet record: --estimates needs the lighting stages, which record does not run; use "
+            "`illuminet run SOURCE --record OUT --estimates FILE` (the session then keeps them too)",
+            file=sys.stderr,
+        )
         return 2
     args.record = args.out
     cfg = config_with_flags(args, cfg)

@@ -40,8 +40,16 @@ METADATA = "bundle.json"
 #: every file a bundle may hold; ``mesh`` always, the ONNX pair when ``bundle.json`` has ``onnx``, ``prt`` optional
 FILES = {"mesh": "mesh.npz", "fp32": "transfer_fp32.onnx", "int8": "transfer_int8.onnx", "prt": PRT_FILE}
 MODEL_FILES = ("fp32", "int8")
-MESH_KEYS = ("vertices", "normals", "faces", "proxy_index", "proxy_edges", "carry_index", "carry_weight",
-             "prior_shading")
+MESH_KEYS = (
+    "vertices",
+    "normals",
+    "faces",
+    "proxy_index",
+    "proxy_edges",
+    "carry_index",
+    "carry_weight",
+    "prior_shading",
+)
 
 
 class BundleError(ValueError):
@@ -67,15 +75,18 @@ def resolve_bundle(spec: str | Path) -> Path:
         name = s.split(":", 1)[1]
         p = builtin_dir() / name
         if not (p / METADATA).is_file():
-            raise BundleError(f"bundle {s!r}: no built-in bundle named {name!r}; built-in: "
-                              f"{', '.join('builtin:' + n for n in builtin_names()) or '(none installed)'}")
+            raise BundleError(
+                f"bundle {s!r}: no built-in bundle named {name!r}; built-in: "
+                f"{', '.join('builtin:' + n for n in builtin_names()) or '(none installed)'}"
+            )
         return p
     p = Path(s)
     if p.is_file() and p.name == METADATA:
         p = p.parent
     if not p.is_dir():
-        raise BundleError(f"bundle {s!r}: folder not found (expected builtin:NAME or a bundle folder "
-                          f"containing {METADATA})")
+        raise BundleError(
+            f"bundle {s!r}: folder not found (expected builtin:NAME or a bundle folder containing {METADATA})"
+        )
     return p
 
 
@@ -126,9 +137,11 @@ class Bundle:
         return "onnx" in self.meta
 
     def _no_model(self, what: str) -> BundleError:
-        return BundleError(f"bundle {self.name} ({self.path}) has no learned model (made by `illuminet bundle`, "
-                           f"PRT only), so it has no {what}: use [model] shading = \"prt\" or \"auto\", or a "
-                           "bundle made by `illuminet train`")
+        return BundleError(
+            f"bundle {self.name} ({self.path}) has no learned model (made by `illuminet bundle`, "
+            f'PRT only), so it has no {what}: use [model] shading = "prt" or "auto", or a '
+            "bundle made by `illuminet train`"
+        )
 
     def _plane(self, key: str):
         if "plane" not in self.meta:
@@ -151,7 +164,7 @@ class Bundle:
         if precision not in ("int8", "fp32"):
             raise BundleError(f"precision {precision!r}: expected 'int8' or 'fp32'")
         if not self.has_model:
-            raise self._no_model("ONNX chain for shading mode \"model\"")
+            raise self._no_model('ONNX chain for shading mode "model"')
         return self.path / FILES[precision]
 
     def carry(self, proxy_values: np.ndarray) -> np.ndarray:
@@ -189,8 +202,10 @@ def load_bundle(spec: str | Path, verify: bool = True) -> Bundle:
         raise BundleError(f"{mpath}: not valid JSON: {e}") from None
     fmt = meta.get("format")
     if fmt != BUNDLE_FORMAT:
-        raise BundleError(f"{mpath}: bundle format {fmt!r} is not supported (this version reads format "
-                          f"{BUNDLE_FORMAT}); retrain or update illuminet")
+        raise BundleError(
+            f"{mpath}: bundle format {fmt!r} is not supported (this version reads format "
+            f"{BUNDLE_FORMAT}); retrain or update illuminet"
+        )
     for key in ("files", "vertices") + (("plane",) if "onnx" in meta else ()):
         if key not in meta:
             raise BundleError(f"{mpath}: missing key {key!r}")
@@ -208,12 +223,15 @@ def load_bundle(spec: str | Path, verify: bool = True) -> Bundle:
         size = p.stat().st_size
         if size != rec.get("bytes"):
             raise BundleError(
-                f"{p}: size {size} bytes, {METADATA} records {rec.get('bytes')} (file damaged or replaced)")
+                f"{p}: size {size} bytes, {METADATA} records {rec.get('bytes')} (file damaged or replaced)"
+            )
         if verify:
             digest = _sha256(p)
             if digest != rec.get("sha256"):
-                raise BundleError(f"{p}: sha256 {digest} does not match {METADATA} ({rec.get('sha256')}); "
-                                  "the file is damaged or was replaced")
+                raise BundleError(
+                    f"{p}: sha256 {digest} does not match {METADATA} ({rec.get('sha256')}); "
+                    "the file is damaged or was replaced"
+                )
     try:
         with np.load(path / FILES["mesh"], allow_pickle=False) as z:
             missing = [k for k in MESH_KEYS if k not in z.files]
@@ -251,13 +269,19 @@ def _check_shapes(b: Bundle, where: Path) -> None:
     need(b.faces.size == 0 or (b.faces.min() >= 0 and b.faces.max() < R), f"faces index outside 0..{R - 1}")
     need(R == counts.get("render"), f"{R} render vertices, metadata says {counts.get('render')}")
     need(V == counts.get("proxy"), f"{V} proxy vertices, metadata says {counts.get('proxy')}")
-    need(b.proxy_index.ndim == 1 and (V == 0 or (b.proxy_index.min() >= 0 and b.proxy_index.max() < R)),
-         f"proxy_index must index the {R} render vertices")
-    need(b.proxy_edges.ndim == 2 and b.proxy_edges.shape[1] == 2,
-         f"proxy_edges must be (E, 2), got {b.proxy_edges.shape}")
+    need(
+        b.proxy_index.ndim == 1 and (V == 0 or (b.proxy_index.min() >= 0 and b.proxy_index.max() < R)),
+        f"proxy_index must index the {R} render vertices",
+    )
+    need(
+        b.proxy_edges.ndim == 2 and b.proxy_edges.shape[1] == 2,
+        f"proxy_edges must be (E, 2), got {b.proxy_edges.shape}",
+    )
     need(b.proxy_edges.size == 0 or b.proxy_edges.max() < V, f"proxy_edges index outside 0..{V - 1}")
-    need(b.carry_index.shape == b.carry_weight.shape and b.carry_index.ndim == 2 and len(b.carry_index) == R,
-         f"carry_index {b.carry_index.shape} and carry_weight {b.carry_weight.shape} must both be (R={R}, k)")
+    need(
+        b.carry_index.shape == b.carry_weight.shape and b.carry_index.ndim == 2 and len(b.carry_index) == R,
+        f"carry_index {b.carry_index.shape} and carry_weight {b.carry_weight.shape} must both be (R={R}, k)",
+    )
     need(b.carry_index.min() >= 0 and b.carry_index.max() < V, f"carry_index outside 0..{V - 1}")
     need(bool(np.allclose(b.carry_weight.sum(1), 1.0, atol=1e-3)), "carry_weight rows must sum to 1")
     need(b.prior_shading.shape == (V, 3), f"prior_shading must be ({V}, 3), got {b.prior_shading.shape}")

@@ -31,19 +31,43 @@ DEFAULT_HEIGHT = 0.25
 _PROFILES = {
     "vase": np.array(
         [
-            [0.000, 0.000], [0.045, 0.000], [0.056, 0.012], [0.078, 0.050], [0.085, 0.095],
-            [0.074, 0.150], [0.045, 0.195], [0.033, 0.215], [0.040, 0.240], [0.055, 0.258],
+            [0.000, 0.000],
+            [0.045, 0.000],
+            [0.056, 0.012],
+            [0.078, 0.050],
+            [0.085, 0.095],
+            [0.074, 0.150],
+            [0.045, 0.195],
+            [0.033, 0.215],
+            [0.040, 0.240],
+            [0.055, 0.258],
             [0.058, 0.260],
             # inside, 6 mm wall
-            [0.051, 0.258], [0.036, 0.242], [0.027, 0.215], [0.039, 0.193], [0.068, 0.150],
-            [0.079, 0.095], [0.072, 0.052], [0.050, 0.020], [0.000, 0.016],
+            [0.051, 0.258],
+            [0.036, 0.242],
+            [0.027, 0.215],
+            [0.039, 0.193],
+            [0.068, 0.150],
+            [0.079, 0.095],
+            [0.072, 0.052],
+            [0.050, 0.020],
+            [0.000, 0.016],
         ]
     ),
     "bowl": np.array(
         [
-            [0.000, 0.000], [0.040, 0.000], [0.050, 0.006], [0.080, 0.030], [0.108, 0.060],
-            [0.122, 0.090], [0.125, 0.100],
-            [0.119, 0.100], [0.116, 0.090], [0.102, 0.063], [0.075, 0.035], [0.045, 0.016],
+            [0.000, 0.000],
+            [0.040, 0.000],
+            [0.050, 0.006],
+            [0.080, 0.030],
+            [0.108, 0.060],
+            [0.122, 0.090],
+            [0.125, 0.100],
+            [0.119, 0.100],
+            [0.116, 0.090],
+            [0.102, 0.063],
+            [0.075, 0.035],
+            [0.045, 0.016],
             [0.000, 0.012],
         ]
     ),
@@ -68,8 +92,8 @@ def _catmull_rom(points: np.ndarray, samples: int) -> np.ndarray:
         t = np.linspace(0.0, 1.0, 16, endpoint=False)[:, None]
         p0, p1, p2, p3 = p[i - 1], p[i], p[i + 1], p[i + 2]
         dense.append(
-            0.5 * ((2 * p1) + (-p0 + p2) * t + (2 * p0 - 5 * p1 + 4 * p2 - p3) * t**2
-                   + (-p0 + 3 * p1 - 3 * p2 + p3) * t**3)
+            0.5
+            * ((2 * p1) + (-p0 + p2) * t + (2 * p0 - 5 * p1 + 4 * p2 - p3) * t**2 + (-p0 + 3 * p1 - 3 * p2 + p3) * t**3)
         )
     dense.append(points[-1][None])
     dense = np.vstack(dense)
@@ -114,9 +138,7 @@ def builtin_object(name: str, detail: str = "render") -> trimesh.Trimesh:
         mesh.apply_translation([0.0, 0.1, 0.0])
         return mesh
     if name not in _PROFILES:
-        raise ObjectLoadError(
-            f"unknown built-in object {name!r}; expected one of {', '.join(BUILTIN_OBJECTS)}"
-        )
+        raise ObjectLoadError(f"unknown built-in object {name!r}; expected one of {', '.join(BUILTIN_OBJECTS)}")
     return _lathe(name, detail)
 
 
@@ -135,8 +157,9 @@ def normalise(mesh: trimesh.Trimesh, height: float | None = DEFAULT_HEIGHT) -> t
     return mesh
 
 
-def load_object(spec: str, detail: str = "render", height: float | None = DEFAULT_HEIGHT,
-                up: str = "y") -> trimesh.Trimesh:
+def load_object(
+    spec: str, detail: str = "render", height: float | None = DEFAULT_HEIGHT, up: str = "y"
+) -> trimesh.Trimesh:
     """Load an object by spec: ``builtin:NAME`` or a mesh file path.
 
     Parameters

@@ -224,8 +224,9 @@ def fit_sh_from_rgbd(
     -------
     (9, 3) irradiance SH coefficients: ``E(n) = sh9(n) @ coeffs``.
     """
-    normals, e = sh_samples_from_rgbd(color_lin, depth, intrinsics, albedo, R_obj_cam, exposure_scale, mask,
-                                      stride, step)
+    normals, e = sh_samples_from_rgbd(
+        color_lin, depth, intrinsics, albedo, R_obj_cam, exposure_scale, mask, stride, step
+    )
     if normals.shape[0] < 9:
         raise ValueError(f"fit_sh_from_rgbd: only {normals.shape[0]} usable pixels (need >= 9 with depth and normals)")
     return sh_fit(normals, e, lam=lam)

@@ -84,8 +84,14 @@ class HemisphereVisibility:
     visible : (V, n) bool, True where the ray leaves without hitting the mesh
     """
 
-    def __init__(self, mesh: "trimesh.Trimesh | None", points: np.ndarray | None = None,
-                 normals: np.ndarray | None = None, n_directions: int = 128, eps: float = DEFAULT_EPS):
+    def __init__(
+        self,
+        mesh: trimesh.Trimesh | None,
+        points: np.ndarray | None = None,
+        normals: np.ndarray | None = None,
+        n_directions: int = 128,
+        eps: float = DEFAULT_EPS,
+    ):
         if mesh is None and (points is None or normals is None):
             raise ValueError("HemisphereVisibility: give points and normals when there is no mesh")
         self.points = np.asarray(mesh.vertices if points is None else points, dtype=np.float64).reshape(-1, 3)

@@ -82,9 +82,7 @@ class PointLights:
             e = np.repeat(e[:, None], 3, axis=1)
         e = e.reshape(-1, 3) if e.size else np.zeros((0, 3))
         if p.shape != e.shape:
-            raise ValueError(
-                f"PointLights: positions {p.shape} and intensities {e.shape} must both be (N, 3)"
-            )
+            raise ValueError(f"PointLights: positions {p.shape} and intensities {e.shape} must both be (N, 3)")
         if not (np.all(np.isfinite(p)) and np.all(np.isfinite(e))):
             raise ValueError("PointLights: positions and intensities must be finite")
         if np.any(e < 0):
@@ -147,9 +145,7 @@ def _light_terms(points: np.ndarray, normals: np.ndarray, lights: PointLights, v
     if visibility is not None:
         vis = np.asarray(visibility, dtype=np.float64)
         if vis.shape != weight.shape:
-            raise ValueError(
-                f"visibility must be (V, N) = {weight.shape} (vertices x lights), got {vis.shape}"
-            )
+            raise ValueError(f"visibility must be (V, N) = {weight.shape} (vertices x lights), got {vis.shape}")
         weight = weight * vis
     return w, weight, cos
 
@@ -304,8 +300,11 @@ def sample_indoor_scene(
         ok = _keep_away(p, np.zeros((1, 3)), 2.0 * object_size)
         pos = np.concatenate([pos, p[ok]])
         kinds = np.concatenate([kinds, kind[ok]])
-    cct = np.where(kinds == 0, rng.uniform(2700, 5000, n),
-                   np.where(kinds == 1, rng.uniform(2300, 3500, n), rng.uniform(5500, 9000, n)))
+    cct = np.where(
+        kinds == 0,
+        rng.uniform(2700, 5000, n),
+        np.where(kinds == 1, rng.uniform(2300, 3500, n), rng.uniform(5500, 9000, n)),
+    )
     # two decades of strength: a few lights dominate, as in real rooms
     strength = _loguniform(rng, 0.01, 1.0, n)
     lights = PointLights(pos, color_temperature_rgb(cct) * strength[:, None])
@@ -449,9 +448,7 @@ def load_hdr(path: str | Path) -> np.ndarray:
         raise FileNotFoundError(f"HDR map not found: {path}")
     img = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
     if img is None or img.ndim != 3 or img.shape[2] != 3:
-        raise ValueError(
-            f"{path}: cannot read as an HDR image (expected a Radiance .hdr or .exr with 3 channels)"
-        )
+        raise ValueError(f"{path}: cannot read as an HDR image (expected a Radiance .hdr or .exr with 3 channels)")
     rgb = np.ascontiguousarray(img[..., ::-1], dtype=np.float32)
     if not np.all(np.isfinite(rgb)) or rgb.min() < 0:
         rgb = np.nan_to_num(np.maximum(rgb, 0), nan=0.0, posinf=0.0)
@@ -469,8 +466,11 @@ def equirect_directions(height: int, width: int) -> np.ndarray:
     phi = np.pi * (2.0 * (np.arange(width) + 0.5) / width - 1.0)
     st = np.sin(theta)[:, None]
     return np.stack(
-        [st * np.sin(phi)[None, :], np.broadcast_to(np.cos(theta)[:, None], (height, width)),
-         -st * np.cos(phi)[None, :]],
+        [
+            st * np.sin(phi)[None, :],
+            np.broadcast_to(np.cos(theta)[:, None], (height, width)),
+            -st * np.cos(phi)[None, :],
+        ],
         axis=-1,
     )
 

@@ -45,8 +45,9 @@ def _first_hit_distance(intersector, origins: np.ndarray, directions: np.ndarray
     return out
 
 
-def first_hits(mesh: trimesh.Trimesh, origins: np.ndarray, directions: np.ndarray, chunk: int = 1 << 18,
-               progress=None) -> tuple[np.ndarray, np.ndarray]:
+def first_hits(
+    mesh: trimesh.Trimesh, origins: np.ndarray, directions: np.ndarray, chunk: int = 1 << 18, progress=None
+) -> tuple[np.ndarray, np.ndarray]:
     """The triangle each ray hits first and where (Embree when installed).
 
     Parameters
@@ -185,8 +186,9 @@ class VisibilityField:
         theta = np.pi * (np.arange(h) + 0.5) / h
         phi = 2.0 * np.pi * (np.arange(w) + 0.5) / w
         st = np.sin(theta)[:, None]
-        cells = np.stack([st * np.cos(phi)[None], np.broadcast_to(np.cos(theta)[:, None], (h, w)),
-                          st * np.sin(phi)[None]], -1).reshape(-1, 3)
+        cells = np.stack(
+            [st * np.cos(phi)[None], np.broadcast_to(np.cos(theta)[:, None], (h, w)), st * np.sin(phi)[None]], -1
+        ).reshape(-1, 3)
         cos = cells @ self.directions.T
         idx = np.argpartition(-cos, k, axis=1)[:, :k]
         ang = np.arccos(np.clip(np.take_along_axis(cos, idx, 1), -1, 1))

@@ -49,6 +49,7 @@ ANTIALIAS = ("edge", "msaa", "off")
 
 # -------------------------------------------------------------------------------------- projection
 
+
 def crop_projection(K: np.ndarray, crop: tuple[int, int, int, int], near: float, far: float) -> np.ndarray:
     """4x4 clip matrix for an OpenCV pinhole camera drawing only the pixel rectangle ``crop``.
 
@@ -60,12 +61,14 @@ def crop_projection(K: np.ndarray, crop: tuple[int, int, int, int], near: float,
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     a = (far + near) / (far - near)
     b = -2.0 * far * near / (far - near)
-    return np.array([
-        [2.0 * fx / w, 0.0, 2.0 * (cx + 0.5 - x0) / w - 1.0, 0.0],
-        [0.0, 2.0 * fy / h, 2.0 * (cy + 0.5 - y0) / h - 1.0, 0.0],
-        [0.0, 0.0, a, b],
-        [0.0, 0.0, 1.0, 0.0],
-    ])
+    return np.array(
+        [
+            [2.0 * fx / w, 0.0, 2.0 * (cx + 0.5 - x0) / w - 1.0, 0.0],
+            [0.0, 2.0 * fy / h, 2.0 * (cy + 0.5 - y0) / h - 1.0, 0.0],
+            [0.0, 0.0, a, b],
+            [0.0, 0.0, 1.0, 0.0],
+        ]
+    )
 
 
 def _mat(m: np.ndarray) -> bytes:
@@ -74,6 +77,7 @@ def _mat(m: np.ndarray) -> bytes:
 
 
 # ------------------------------------------------------------------------------------- compositor
+
 
 @dataclass
 class DrawInfo:
@@ -139,9 +143,20 @@ class Compositor:
         How the object's edges are smoothed (see :data:`ANTIALIAS`).
     """
 
-    def __init__(self, ctx, mesh: RenderMesh, msaa: int = 4, shadow: bool = True, shadow_map: int = 1024,
-                 occlusion: bool = True, depth_tolerance_m: float = 0.03, shadow_softness: float = 0.05,
-                 contact_shadow: float = 0.75, response_lut: np.ndarray | None = None, antialias: str = "edge"):
+    def __init__(
+        self,
+        ctx,
+        mesh: RenderMesh,
+        msaa: int = 4,
+        shadow: bool = True,
+        shadow_map: int = 1024,
+        occlusion: bool = True,
+        depth_tolerance_m: float = 0.03,
+        shadow_softness: float = 0.05,
+        contact_shadow: float = 0.75,
+        response_lut: np.ndarray | None = None,
+        antialias: str = "edge",
+    ):
         make_current(ctx)
         self.ctx = ctx
         self.mesh = mesh
@@ -169,8 +184,11 @@ class Compositor:
         custom = response_lut is not None
         self._upload_colour_tables(response_lut)
         self._upload_mesh(custom)
-        self.shadow = (ShadowCaster(ctx, mesh.vertices, mesh.faces, shadow_map, shadow_softness,
-                                    closed=bool(mesh.closed)) if shadow else None)
+        self.shadow = (
+            ShadowCaster(ctx, mesh.vertices, mesh.faces, shadow_map, shadow_softness, closed=bool(mesh.closed))
+            if shadow
+            else None
+        )
         self._make_screen_programs(custom)
         check_gl(ctx, f"setting up the renderer for {mesh.source}")
 
@@ -225,12 +243,12 @@ class Compositor:
         self._quad = ctx.buffer(quad.tobytes())
         self._bg_prog = ctx.program(vertex_shader=BG_VS, fragment_shader=BG_FS)
         self._bg_vao = ctx.vertex_array(self._bg_prog, [(self._quad, "2f", "in_uv")])
-        self._over_prog = ctx.program(vertex_shader=BG_VS,
-                                      fragment_shader=OVER_EDGE_FS if self.antialias == "edge" else OVER_FS)
+        self._over_prog = ctx.program(
+            vertex_shader=BG_VS, fragment_shader=OVER_EDGE_FS if self.antialias == "edge" else OVER_FS
+        )
         self._over_vao = ctx.vertex_array(self._over_prog, [(self._quad, "2f", "in_uv")])
         if self.shadow is not None:
-            self._rcv_prog = ctx.program(vertex_shader=RECEIVER_VS,
-                                         fragment_shader=with_transfer(RECEIVER_FS, custom))
+            self._rcv_prog = ctx.program(vertex_shader=RECEIVER_VS, fragment_shader=with_transfer(RECEIVER_FS, custom))
             self._rcv_vao = ctx.vertex_array(self._rcv_prog, [(self._quad, "2f", "in_uv")])
 
     # -- framebuffers sized to the largest crop seen so far ------------------------------------------
@@ -343,8 +361,9 @@ class Compositor:
             self.shadow.update(light_dir, share)
             sp = self.shadow.params(light_dir, share)
         region = self._region(K, cam_from_obj, sp, color.shape[1], color.shape[0])
-        self.info = DrawInfo(drawn=region is not None, shadow=bool(sp is not None and sp.use_shadow),
-                             light_dir=light_dir, share=share)
+        self.info = DrawInfo(
+            drawn=region is not None, shadow=bool(sp is not None and sp.use_shadow), light_dir=light_dir, share=share
+        )
         if region is None:
             return out
         self.info.crop = region.crop
@@ -366,8 +385,9 @@ class Compositor:
         check_gl(self.ctx, "drawing a frame")
         return out
 
-    def _check_inputs(self, color: np.ndarray, depth: np.ndarray | None, irradiance: np.ndarray,
-                      exposure_scale: float) -> np.ndarray:
+    def _check_inputs(
+        self, color: np.ndarray, depth: np.ndarray | None, irradiance: np.ndarray, exposure_scale: float
+    ) -> np.ndarray:
         """Validate :meth:`draw`'s arrays; returns the irradiance as (N, 3) float32."""
         if color.ndim != 3 or color.shape[2] != 3 or color.dtype != np.uint8:
             raise ValueError(f"color must be an HxWx3 uint8 RGB array, got {color.shape} {color.dtype}")
@@ -415,10 +435,11 @@ class Compositor:
         ow, oh = region.obj[2:] if region.obj is not None else (0, 0)
         self._ensure_capacity(w, h, max(ow, 1), max(oh, 1))
         f = self._fbos
-        f["bg"].write(np.ascontiguousarray(color[y0:y0 + h, x0:x0 + w]), viewport=(0, 0, w, h))
+        f["bg"].write(np.ascontiguousarray(color[y0 : y0 + h, x0 : x0 + w]), viewport=(0, 0, w, h))
         if depth is not None:
-            f["depth_in"].write(np.ascontiguousarray(depth[y0:y0 + h, x0:x0 + w], dtype=np.float32),
-                                viewport=(0, 0, w, h))
+            f["depth_in"].write(
+                np.ascontiguousarray(depth[y0 : y0 + h, x0 : x0 + w], dtype=np.float32), viewport=(0, 0, w, h)
+            )
         else:
             f["depth_in"].write(self._zeros[: w * h], viewport=(0, 0, w, h))
         main = f["main"]
@@ -441,8 +462,14 @@ class Compositor:
         f = self._fbos
         clip = crop_projection(K, region.crop, region.near, region.far) @ cam_from_obj
         prog = self._rcv_prog
-        units = (("u_bg", f["bg"]), ("u_real_depth", f["depth_in"]), ("u_dec_lut", self._dec_lut),
-                 ("u_enc_lut", self._enc_lut), ("u_vis", self.shadow.vis_tex), ("u_ao", self.shadow.ao_tex))
+        units = (
+            ("u_bg", f["bg"]),
+            ("u_real_depth", f["depth_in"]),
+            ("u_dec_lut", self._dec_lut),
+            ("u_enc_lut", self._enc_lut),
+            ("u_vis", self.shadow.vis_tex),
+            ("u_ao", self.shadow.ao_tex),
+        )
         for i, (name, tex) in enumerate(units):
             if name in prog:  # the LUTs are compiled out for the plain sRGB curve
                 tex.use(i)
@@ -457,8 +484,15 @@ class Compositor:
         prog["u_depth_tol"].value = self.depth_tol if has_depth else 1e9
         self._rcv_vao.render(moderngl.TRIANGLE_STRIP)
 
-    def _draw_object(self, K: np.ndarray, cam_from_obj: np.ndarray, irr: np.ndarray, exposure_scale: float,
-                     region: _Region, has_depth: bool) -> None:
+    def _draw_object(
+        self,
+        K: np.ndarray,
+        cam_from_obj: np.ndarray,
+        irr: np.ndarray,
+        exposure_scale: float,
+        region: _Region,
+        has_depth: bool,
+    ) -> None:
         """Pass 3: the object, into its own (multisampled) layer over its bounding rectangle."""
         import moderngl
 
@@ -481,10 +515,14 @@ class Compositor:
         self._enc_lut.use(3)
         oclip = crop_projection(K, region.obj, region.near, region.far) @ cam_from_obj
         common = {
-            "u_tex": 0, "u_real_depth": 1, "u_enc_lut": 3, "u_offset": (ox0 - x0, oy0 - y0),
+            "u_tex": 0,
+            "u_real_depth": 1,
+            "u_enc_lut": 3,
+            "u_offset": (ox0 - x0, oy0 - y0),
             "u_radiance_scale": float(exposure_scale) / np.pi,
             "u_occlusion": 1.0 if (self.occlusion and has_depth) else 0.0,
-            "u_depth_tol": self.depth_tol, "u_mark_occluded": 1.0 if self.antialias == "edge" else 0.0,
+            "u_depth_tol": self.depth_tol,
+            "u_mark_occluded": 1.0 if self.antialias == "edge" else 0.0,
         }
         for prog, _ in self._obj_progs.values():
             for name, value in common.items():
@@ -527,7 +565,7 @@ class Compositor:
         """Pass 5: read the crop back (already in image row order) and paste it into ``out``."""
         x0, y0, w, h = region.crop
         self._fbos["main"].read_into(self._readbuf, viewport=(0, 0, w, h), components=3, alignment=1)
-        out[y0:y0 + h, x0:x0 + w] = self._readbuf[: w * h * 3].reshape(h, w, 3)
+        out[y0 : y0 + h, x0 : x0 + w] = self._readbuf[: w * h * 3].reshape(h, w, 3)
 
     def _mark(self, step: str) -> None:
         """With ``profile`` on: wait for the GPU and charge the time since the last mark to ``step``."""
@@ -555,8 +593,20 @@ class Compositor:
             vao.release()
             prog.release()
         self._obj_progs = {}
-        for name in ("_bg_vao", "_bg_prog", "_over_vao", "_over_prog", "_rcv_vao", "_rcv_prog", "_vbo", "_ibo",
-                     "_irr", "_quad", "_dec_lut", "_enc_lut"):
+        for name in (
+            "_bg_vao",
+            "_bg_prog",
+            "_over_vao",
+            "_over_prog",
+            "_rcv_vao",
+            "_rcv_prog",
+            "_vbo",
+            "_ibo",
+            "_irr",
+            "_quad",
+            "_dec_lut",
+            "_enc_lut",
+        ):
             obj = getattr(self, name, None)
             if obj is not None:
                 obj.release()
@@ -564,4 +614,3 @@ class Compositor:
         if getattr(self, "shadow", None) is not None:
             self.shadow.release()
             self.shadow = None
-

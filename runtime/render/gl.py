@@ -67,12 +67,14 @@ def create_context(backend: str = "egl", require: int = REQUIRED_GL):
     except Exception as e:
         hint = (
             "EGL needs libEGL and a Mesa driver (Debian/Ubuntu: apt install libegl1 libgl1-mesa-dri); "
-            "on a machine with a display, [render] gl_backend = \"default\" uses GLX instead"
+            'on a machine with a display, [render] gl_backend = "default" uses GLX instead'
             if backend == "egl"
-            else "the default backend needs a display (DISPLAY); headless machines should use gl_backend = \"egl\""
+            else 'the default backend needs a display (DISPLAY); headless machines should use gl_backend = "egl"'
         )
-        raise GLError(f"cannot create an OpenGL {require // 100}.{require % 100 // 10} context "
-                      f"with backend {backend!r}: {e}. {hint}") from None
+        raise GLError(
+            f"cannot create an OpenGL {require // 100}.{require % 100 // 10} context "
+            f"with backend {backend!r}: {e}. {hint}"
+        ) from None
     log.debug("GL context: %s, %s", ctx.info.get("GL_RENDERER"), ctx.info.get("GL_VERSION"))
     park(ctx)
     return ctx

@@ -31,6 +31,7 @@ DEFAULT_ALBEDO = 0.8
 
 # ------------------------------------------------------------------------------------------ meshes
 
+
 @dataclass
 class MeshPart:
     """A run of faces drawn with one albedo source.
@@ -108,8 +109,16 @@ class RenderMesh:
         """The same mesh with vertex positions multiplied by ``s`` (about the object origin)."""
         if not (s > 0 and np.isfinite(s)):
             raise ValueError(f"[render] object_scale: expected a positive number, got {s!r}")
-        return RenderMesh(self.vertices * np.float32(s), self.normals, self.faces, self.uv, self.colors,
-                          self.parts, self.source, self.closed)
+        return RenderMesh(
+            self.vertices * np.float32(s),
+            self.normals,
+            self.faces,
+            self.uv,
+            self.colors,
+            self.parts,
+            self.source,
+            self.closed,
+        )
 
     @classmethod
     def from_trimesh(cls, mesh, source: str = "<trimesh>", texture: np.ndarray | None = None) -> RenderMesh:
@@ -158,9 +167,13 @@ class RenderMesh:
             n0 += len(v)
             f0 += len(g.faces)
         return cls(
-            vertices=np.concatenate(verts), normals=np.concatenate(norms), faces=np.concatenate(faces),
-            uv=np.concatenate(uvs) if any_uv else None, colors=np.concatenate(cols) if any_col else None,
-            parts=parts, source=source,
+            vertices=np.concatenate(verts),
+            normals=np.concatenate(norms),
+            faces=np.concatenate(faces),
+            uv=np.concatenate(uvs) if any_uv else None,
+            colors=np.concatenate(cols) if any_col else None,
+            parts=parts,
+            source=source,
         )
 
 
@@ -354,10 +367,15 @@ def _concat(meshes: list[RenderMesh], source: str) -> RenderMesh:
         normals=np.concatenate([m.normals for m in meshes]),
         faces=np.concatenate([m.faces.astype(np.int64) + o for m, o in zip(meshes, offs)]),
         uv=np.concatenate([m.uv if m.uv is not None else np.zeros((m.n_vertices, 2), np.float32) for m in meshes])
-        if any_uv else None,
-        colors=np.concatenate([m.colors if m.colors is not None else np.full((m.n_vertices, 3), 255, np.uint8)
-                               for m in meshes]) if any_col else None,
-        parts=parts, source=source,
+        if any_uv
+        else None,
+        colors=np.concatenate(
+            [m.colors if m.colors is not None else np.full((m.n_vertices, 3), 255, np.uint8) for m in meshes]
+        )
+        if any_col
+        else None,
+        parts=parts,
+        source=source,
     )
 
 
@@ -376,7 +394,7 @@ def _gltf_textures(path: Path) -> list[np.ndarray]:
         header = None
         while off + 8 <= len(data):
             length, ctype = struct.unpack_from("<I4s", data, off)
-            chunk = data[off + 8: off + 8 + length]
+            chunk = data[off + 8 : off + 8 + length]
             if ctype == b"JSON":
                 header = json.loads(chunk)
             elif ctype == b"BIN\x00":
@@ -395,7 +413,7 @@ def _gltf_textures(path: Path) -> list[np.ndarray]:
             img = header["images"][header["textures"][tex_ref["index"]]["source"]]
             if "bufferView" in img:
                 bv = header["bufferViews"][img["bufferView"]]
-                blob = bin_chunk[bv.get("byteOffset", 0): bv.get("byteOffset", 0) + bv["byteLength"]]
+                blob = bin_chunk[bv.get("byteOffset", 0) : bv.get("byteOffset", 0) + bv["byteLength"]]
             elif img.get("uri", "").startswith("data:"):
                 blob = base64.b64decode(img["uri"].split(",", 1)[1])
             else:
@@ -448,8 +466,6 @@ def load_render_mesh(src: Any) -> RenderMesh:
     return mesh
 
 
-
-
 def mesh_from_bundle(bundle) -> RenderMesh:
     """The render mesh of an object bundle (:class:`illuminet.runtime.assets.bundle.Bundle`).
 
@@ -458,8 +474,9 @@ def mesh_from_bundle(bundle) -> RenderMesh:
     that is a file whose mesh has the same vertices (texture/UV, vertex colours, base colour);
     built-in objects are plain glazed white (:data:`DEFAULT_ALBEDO`).
     """
-    mesh = RenderMesh(vertices=bundle.vertices, normals=bundle.normals, faces=bundle.faces,
-                      source=f"bundle {bundle.name}")
+    mesh = RenderMesh(
+        vertices=bundle.vertices, normals=bundle.normals, faces=bundle.faces, source=f"bundle {bundle.name}"
+    )
     spec = str(bundle.meta.get("object", "") or "")
     if spec and not spec.startswith("builtin:") and Path(spec).is_file():
         try:
@@ -470,7 +487,11 @@ def mesh_from_bundle(bundle) -> RenderMesh:
         if look.n_vertices == mesh.n_vertices and len(look.faces) == len(mesh.faces):
             mesh.uv, mesh.colors, mesh.parts = look.uv, look.colors, look.parts
         else:
-            log.warning("bundle %s: %s has %d vertices, the bundle %d; its colours cannot be matched, plain albedo",
-                        bundle.name, spec, look.n_vertices, mesh.n_vertices)
+            log.warning(
+                "bundle %s: %s has %d vertices, the bundle %d; its colours cannot be matched, plain albedo",
+                bundle.name,
+                spec,
+                look.n_vertices,
+                mesh.n_vertices,
+            )
     return mesh
-

@@ -27,6 +27,7 @@ ENCODE_LUT_SIZE = 4096
 
 # --------------------------------------------------------------------------------- colour encoding
 
+
 def encode_lut(response_lut: np.ndarray | None = None, size: int = ENCODE_LUT_SIZE) -> np.ndarray:
     """(size, 3) float32 table: linear value i/(size-1) -> code value / 255 per channel.
 
@@ -58,7 +59,6 @@ def decode_lut(response_lut: np.ndarray | None = None) -> np.ndarray:
     return lut
 
 
-
 #: GLSL colour transfer functions: the sRGB formulas (default, cheapest on llvmpipe), or lookups in
 #: the measured camera response's tables when one is configured
 ENCODE_SRGB = """vec3 encode(vec3 l) {
@@ -83,9 +83,11 @@ DECODE_LUT = """vec3 decode(vec3 c) {
 
 def with_transfer(src: str, custom: bool) -> str:
     """Insert the encode/decode functions into a shader source at its //ENCODE// and //DECODE// marks."""
-    return src.replace("//ENCODE//", ENCODE_LUT if custom else ENCODE_SRGB).replace(
-        "//DECODE//", DECODE_LUT if custom else DECODE_SRGB).replace("//OCCLUSION//", OCCLUSION_GLSL)
-
+    return (
+        src.replace("//ENCODE//", ENCODE_LUT if custom else ENCODE_SRGB)
+        .replace("//DECODE//", DECODE_LUT if custom else DECODE_SRGB)
+        .replace("//OCCLUSION//", OCCLUSION_GLSL)
+    )
 
 
 # --------------------------------------------------------------------------------------- shaders
@@ -253,4 +255,3 @@ void main() {
     f_color = (amax - amin > 0.5) ? sum / 16.0 : c;
 }
 """
-

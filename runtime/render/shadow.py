@@ -282,8 +282,8 @@ class ShadowParams:
 
     share: float
     use_shadow: bool
-    patch: np.ndarray      # xmin, zmin, xmax, zmax on the plane: where the visibility texture lies
-    ao_rect: np.ndarray    # the contact map's rectangle on the plane
+    patch: np.ndarray  # xmin, zmin, xmax, zmax on the plane: where the visibility texture lies
+    ao_rect: np.ndarray  # the contact map's rectangle on the plane
     draw_rect: np.ndarray  # the part of the plane the receiver must draw (darkened at all)
 
 
@@ -315,8 +315,16 @@ class ShadowCaster:
     #: smooths the direction, so a still light redraws nothing and a turning one every few frames
     REDRAW_DEG = 1.0
 
-    def __init__(self, ctx, vertices: np.ndarray, faces: np.ndarray, size: int = 1024, softness: float = 0.05,
-                 vis_size: int = 160, closed: bool = False):
+    def __init__(
+        self,
+        ctx,
+        vertices: np.ndarray,
+        faces: np.ndarray,
+        size: int = 1024,
+        softness: float = 0.05,
+        vis_size: int = 160,
+        closed: bool = False,
+    ):
         import moderngl
 
         if size < 16 or size > 8192:
@@ -379,8 +387,9 @@ class ShadowCaster:
         h0 = 0.5 * max(height, 1e-3)
         sigma_m = 0.10 * foot + 0.04 * height
         margin = 3.0 * sigma_m
-        rect = np.array([self.bbox_min[0] - margin, self.bbox_min[2] - margin,
-                         self.bbox_max[0] + margin, self.bbox_max[2] + margin])
+        rect = np.array(
+            [self.bbox_min[0] - margin, self.bbox_min[2] - margin, self.bbox_max[0] + margin, self.bbox_max[2] + margin]
+        )
         hmax = float(self.bbox_max[1]) + 1e-3
         tex = ctx.texture((res, res), 1, dtype="f4")
         depth = ctx.depth_renderbuffer((res, res))
@@ -415,8 +424,14 @@ class ShadowCaster:
         rows, cols = np.nonzero(ao * self.CONTACT_VISIBLE_SCALE > 0.01)
         sx, sz = (rect[2] - rect[0]) / res, (rect[3] - rect[1]) / res
         if len(rows):
-            self.ao_draw_rect = np.array([rect[0] + (cols.min() - 1) * sx, rect[1] + (rows.min() - 1) * sz,
-                                          rect[0] + (cols.max() + 2) * sx, rect[1] + (rows.max() + 2) * sz])
+            self.ao_draw_rect = np.array(
+                [
+                    rect[0] + (cols.min() - 1) * sx,
+                    rect[1] + (rows.min() - 1) * sz,
+                    rect[0] + (cols.max() + 2) * sx,
+                    rect[1] + (rows.max() + 2) * sz,
+                ]
+            )
         else:
             self.ao_draw_rect = np.array([self.center[0], self.center[2], self.center[0], self.center[2]])
         ao_tex = ctx.texture((res, res), 1, ao.astype(np.float32).tobytes(), dtype="f4")
@@ -428,10 +443,21 @@ class ShadowCaster:
     def _patch(self, direction: np.ndarray | None) -> np.ndarray:
         height = self.bbox_max[1] - min(self.bbox_min[1], 0.0)
         use = direction is not None and direction[1] > MIN_ELEVATION_SIN
-        p = shadow_patch(direction if use else None, self.bbox_min, self.bbox_max,
-                         margin=0.15 * self.radius, max_length=6.0 * max(height, self.radius))
-        return np.array([min(p[0], self.ao_rect[0]), min(p[1], self.ao_rect[1]),
-                         max(p[2], self.ao_rect[2]), max(p[3], self.ao_rect[3])])
+        p = shadow_patch(
+            direction if use else None,
+            self.bbox_min,
+            self.bbox_max,
+            margin=0.15 * self.radius,
+            max_length=6.0 * max(height, self.radius),
+        )
+        return np.array(
+            [
+                min(p[0], self.ao_rect[0]),
+                min(p[1], self.ao_rect[1]),
+                max(p[2], self.ao_rect[2]),
+                max(p[3], self.ao_rect[3]),
+            ]
+        )
 
     # -- cast shadow -------------------------------------------------------------------------------
     def penumbra(self, share: float | None) -> float:
@@ -493,8 +519,14 @@ class ShadowCaster:
         if len(rows):
             p = self.patch
             sx, sz = (p[2] - p[0]) / vs[0], (p[3] - p[1]) / vs[1]
-            self.cast_rect = np.array([p[0] + (cols.min() - 1) * sx, p[1] + (rows.min() - 1) * sz,
-                                       p[0] + (cols.max() + 2) * sx, p[1] + (rows.max() + 2) * sz])
+            self.cast_rect = np.array(
+                [
+                    p[0] + (cols.min() - 1) * sx,
+                    p[1] + (rows.min() - 1) * sz,
+                    p[0] + (cols.max() + 2) * sx,
+                    p[1] + (rows.max() + 2) * sz,
+                ]
+            )
         else:
             self.cast_rect = None
         self.redraws += 1
@@ -522,8 +554,20 @@ class ShadowCaster:
         if getattr(self, "_vbo", None) is not None:
             make_current(self.ctx)
             park(self.ctx)
-        for name in ("_depth_vao", "_depth_prog", "_shadow_fbo", "shadow_tex", "_vis_vao", "_vis_prog",
-                     "_vis_fbo", "vis_tex", "ao_tex", "_quad", "_vbo", "_ibo"):
+        for name in (
+            "_depth_vao",
+            "_depth_prog",
+            "_shadow_fbo",
+            "shadow_tex",
+            "_vis_vao",
+            "_vis_prog",
+            "_vis_fbo",
+            "vis_tex",
+            "ao_tex",
+            "_quad",
+            "_vbo",
+            "_ibo",
+        ):
             obj = getattr(self, name, None)
             if obj is not None:
                 obj.release()

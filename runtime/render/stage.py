@@ -69,8 +69,14 @@ class RenderStage(Stage):
     #: when the per-frame prediction jitters (0 = none)
     LIGHT_SMOOTHING = 0.7
 
-    def __init__(self, config, mesh: Any = None, carry: Callable[[np.ndarray], np.ndarray] | None = None,
-                 ctx=None, response_lut: np.ndarray | None = None):
+    def __init__(
+        self,
+        config,
+        mesh: Any = None,
+        carry: Callable[[np.ndarray], np.ndarray] | None = None,
+        ctx=None,
+        response_lut: np.ndarray | None = None,
+    ):
         self.cfg = config
         self._mesh_src = mesh
         self._carry = carry
@@ -110,15 +116,29 @@ class RenderStage(Stage):
             mesh = mesh.scaled(r.object_scale)
         self._carry = carry
         self.comp = Compositor(
-            ctx, mesh, msaa=r.msaa, shadow=r.shadow, shadow_map=r.shadow_map, occlusion=r.occlusion,
-            depth_tolerance_m=r.depth_tolerance_m, shadow_softness=r.shadow_softness,
-            contact_shadow=r.contact_shadow, response_lut=self._response_lut, antialias=r.antialias,
+            ctx,
+            mesh,
+            msaa=r.msaa,
+            shadow=r.shadow,
+            shadow_map=r.shadow_map,
+            occlusion=r.occlusion,
+            depth_tolerance_m=r.depth_tolerance_m,
+            shadow_softness=r.shadow_softness,
+            contact_shadow=r.contact_shadow,
+            response_lut=self._response_lut,
+            antialias=r.antialias,
         )
         from illuminet.runtime.render.gl import renderer_name
 
-        log.info("render: %s, %d vertices, %d faces, antialias %s%s, GL %s", mesh.source, mesh.n_vertices,
-                 len(mesh.faces), self.comp.antialias, f" x{self.comp.msaa}" if self.comp.msaa else "",
-                 renderer_name(ctx))
+        log.info(
+            "render: %s, %d vertices, %d faces, antialias %s%s, GL %s",
+            mesh.source,
+            mesh.n_vertices,
+            len(mesh.faces),
+            self.comp.antialias,
+            f" x{self.comp.msaa}" if self.comp.msaa else "",
+            renderer_name(ctx),
+        )
 
     def close(self) -> None:
         """Free the GPU objects (the shared context stays); safe to call twice."""

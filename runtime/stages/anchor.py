@@ -132,8 +132,9 @@ def synthetic_plane(gravity: np.ndarray | None) -> tuple[Plane, np.ndarray]:
         fwd_h = np.array([0.0, -1.0, 0.0]) - (np.array([0.0, -1.0, 0.0]) @ up) * up
     fwd_h /= np.linalg.norm(fwd_h)
     origin = SYNTHETIC_HEIGHT_M * g + SYNTHETIC_DISTANCE_M * fwd_h
-    plane = Plane(id=SYNTHETIC_ID, normal=up, offset=SYNTHETIC_HEIGHT_M, centroid=origin.copy(),
-                  area_m2=0.0, label="synthetic")
+    plane = Plane(
+        id=SYNTHETIC_ID, normal=up, offset=SYNTHETIC_HEIGHT_M, centroid=origin.copy(), area_m2=0.0, label="synthetic"
+    )
     return plane, origin
 
 
@@ -160,7 +161,7 @@ def _covers(p: Plane, u: float, v: float, radius: int = 3, min_fraction: float =
     i, j = int(round(v / s)), int(round(u / s))
     if not (0 <= i < m.shape[0] and 0 <= j < m.shape[1]):
         return False
-    win = m[max(0, i - radius):i + radius + 1, max(0, j - radius):j + radius + 1]
+    win = m[max(0, i - radius) : i + radius + 1, max(0, j - radius) : j + radius + 1]
     return win.size > 0 and float(win.mean()) >= min_fraction
 
 
@@ -233,8 +234,10 @@ class AnchorStage(Stage):
         if self.mode == "pixel":
             u, v = self.pixel
             if not (0 <= u < w and 0 <= v < h):
-                self._warn("pixel_outside", f"[anchor] pixel = [{u:g}, {v:g}] is outside the {w}x{h} image; "
-                                            "using the image centre")
+                self._warn(
+                    "pixel_outside",
+                    f"[anchor] pixel = [{u:g}, {v:g}] is outside the {w}x{h} image; using the image centre",
+                )
                 u, v = (w - 1) / 2.0, (h - 1) / 2.0
             ray = _pixel_ray(frame, u, v)
             under = [p for p in planes if _covers(p, u, v)]
@@ -279,8 +282,11 @@ class AnchorStage(Stage):
         plane, origin = synthetic_plane(frame.gravity)
         self.synthetic_frames += 1
         if self.state != "synthetic":
-            log.info("anchor: no usable %s plane; using a synthetic floor %.1f m below the camera",
-                     "horizontal" if self.mode == "auto" else "", SYNTHETIC_HEIGHT_M)
+            log.info(
+                "anchor: no usable %s plane; using a synthetic floor %.1f m below the camera",
+                "horizontal" if self.mode == "auto" else "",
+                SYNTHETIC_HEIGHT_M,
+            )
         self.state = "synthetic"
         return plane, origin
 
@@ -302,8 +308,12 @@ class AnchorStage(Stage):
             self._T_world_obj = invert(T_cw) @ T_cam_obj
             self._plane_world = plane_to_world(plane.normal, plane.offset, T_cw)
             self.placements += 1
-            log.info("anchor: placed on plane %d (%s) at %s m (camera frame), locked to the world",
-                     plane.id, plane.label, np.array2string(origin, precision=2))
+            log.info(
+                "anchor: placed on plane %d (%s) at %s m (camera frame), locked to the world",
+                plane.id,
+                plane.label,
+                np.array2string(origin, precision=2),
+            )
         else:
             T_pred = T_cw @ self._T_world_obj
             plane = tracked[0] if tracked else self._match(planes, T_pred)
@@ -345,8 +355,11 @@ class AnchorStage(Stage):
             synthetic = True
         else:
             plane, origin = chosen
-            if plane.id != self._plane_id or self._origin is None or \
-                    np.linalg.norm(origin - self._origin) > self.JUMP_M:
+            if (
+                plane.id != self._plane_id
+                or self._origin is None
+                or np.linalg.norm(origin - self._origin) > self.JUMP_M
+            ):
                 self._origin = origin
             else:
                 o = self.smoothing * self._origin + (1.0 - self.smoothing) * origin

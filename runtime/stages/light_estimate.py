@@ -126,8 +126,14 @@ class Samples:
     saturated: np.ndarray  # (N,) bool: some channel at the top of the range
 
 
-def frame_samples(frame: Frame, anchor: Anchor, exposure_scale: float, planes: tuple,
-                  response_lut: np.ndarray | None = None, stride: int = 2) -> Samples:
+def frame_samples(
+    frame: Frame,
+    anchor: Anchor,
+    exposure_scale: float,
+    planes: tuple,
+    response_lut: np.ndarray | None = None,
+    stride: int = 2,
+) -> Samples:
     """Pixel samples on the planes' depth-cloud grid (every ``stride``-th cloud point).
 
     The cloud grid is the one :class:`~illuminet.runtime.stages.planes.PlaneStage` fitted planes on
@@ -177,8 +183,7 @@ def frame_samples(frame: Frame, anchor: Anchor, exposure_scale: float, planes: t
             on = np.zeros(len(x), bool)
             on[ok] = m[ci[ok], cj[ok]]
             plane_idx[on & near] = k
-    return Samples(radiance=lin / max(exposure_scale, 1e-12), direction=w, position=pts, plane=plane_idx,
-                   saturated=sat)
+    return Samples(radiance=lin / max(exposure_scale, 1e-12), direction=w, position=pts, plane=plane_idx, saturated=sat)
 
 
 class EnvMap:
@@ -246,8 +251,9 @@ class NearFit:
     intercepts: np.ndarray  # (G, 3) per-plane ambient irradiance
 
 
-def fit_near_light(x: np.ndarray, n: np.ndarray, e: np.ndarray, w: np.ndarray, groups: np.ndarray,
-                   seeds: np.ndarray) -> NearFit | None:
+def fit_near_light(
+    x: np.ndarray, n: np.ndarray, e: np.ndarray, w: np.ndarray, groups: np.ndarray, seeds: np.ndarray
+) -> NearFit | None:
     """Point light explaining the spatial variation of plane irradiance (see module docstring).
 
     Parameters
@@ -378,8 +384,14 @@ class LightEstimateStage(Stage):
         anchor: Anchor = self.require(frame, ANCHOR)
         pl: PlaneLight = self.require(frame, PLANE_LIGHT)
         t = frame.t_device_ns or frame.t_host_ns
-        due = (self._last is None or self.period_ns <= 0 or t is None or self._t_est is None
-               or not 0 <= t - self._t_est < self.period_ns or self._moved(anchor))
+        due = (
+            self._last is None
+            or self.period_ns <= 0
+            or t is None
+            or self._t_est is None
+            or not 0 <= t - self._t_est < self.period_ns
+            or self._moved(anchor)
+        )
         if due:
             self._t_est = t
             if self._pending is not None:
@@ -391,8 +403,11 @@ class LightEstimateStage(Stage):
                 self._last = self._estimate(frame, anchor, pl)
         else:
             self.skipped += 1
-        est = self._last if self._last.T_cam_obj is anchor.T_cam_obj else \
-            dataclasses.replace(self._last, T_cam_obj=anchor.T_cam_obj)
+        est = (
+            self._last
+            if self._last.T_cam_obj is anchor.T_cam_obj
+            else dataclasses.replace(self._last, T_cam_obj=anchor.T_cam_obj)
+        )
         return frame.with_result(LIGHT, est)
 
     def _estimate(self, frame: Frame, anchor: Anchor, pl: PlaneLight) -> LightEstimate:
@@ -413,7 +428,7 @@ class LightEstimateStage(Stage):
             # the coarse search is spread over search_every frames (a lamp is fixed in the world), and
             # the last answer is refined every frame; at most NEAR_ROWS samples keep it cheap.
             k = self.frames % self.search_every
-            seeds = NEAR_GRID[k::self.search_every]  # the coarse grid, spread over search_every frames
+            seeds = NEAR_GRID[k :: self.search_every]  # the coarse grid, spread over search_every frames
             if self._near is not None:
                 seeds = np.concatenate([seeds, self._near.position[None]])
             sub = _subsample(len(xs), NEAR_ROWS, self.frames)
@@ -449,26 +464,40 @@ class LightEstimateStage(Stage):
                 L_rad, E_p = self._solve(xs, ns, es, ws, primary_dir, None)
                 conf_dir = 0.5 * directional
         else:
-            conf_dir = {"near_light": min(1.0, near.r2) if near else 0.0, "shadow": shadow[1] if shadow else 0.0,
-                        "emitter": 0.6}.get(cues[0], 0.5)
+            conf_dir = {
+                "near_light": min(1.0, near.r2) if near else 0.0,
+                "shadow": shadow[1] if shadow else 0.0,
+                "emitter": 0.6,
+            }.get(cues[0], 0.5)
         if primary_dir is not None and float(E_p @ LUMA) <= 0:
             primary_dir, primary_pos, E_p, conf_dir = None, None, np.zeros(3), 0.0
         raw = {"sh9": L_rad * SH_A_HAT[:, None], "dir": primary_dir, "rgb": E_p, "pos": primary_pos}
         filt = self._filter(raw, frame)
-        obs = {"planes": len(set(labels)), "plane_labels": sorted(set(labels)),
-               "shadow": None if shadow is None else round(float(shadow[1]), 3),
-               "env_coverage": round(self.env.coverage(), 3), "emitters": int(emitters), "cues": cues}
+        obs = {
+            "planes": len(set(labels)),
+            "plane_labels": sorted(set(labels)),
+            "shadow": None if shadow is None else round(float(shadow[1]), 3),
+            "env_coverage": round(self.env.coverage(), 3),
+            "emitters": int(emitters),
+            "cues": cues,
+        }
         n_rows = len(xs)
         est = LightEstimate(
             sh9=filt["sh9"].astype(np.float32),
             primary_dir=None if filt["dir"] is None else filt["dir"].astype(np.float32),
             primary_rgb=np.asarray(filt["rgb"], np.float32),
             primary_pos=None if filt["pos"] is None else np.asarray(filt["pos"], np.float32),
-            confidence={"ambient": float(np.clip(0.3 + 0.7 * self.env.coverage() + 0.1 * (n_rows > 100), 0, 1)),
-                        "direction": float(conf_dir), "intensity": float(0.7 * conf_dir),
-                        "colour": float(np.clip(0.4 + 0.6 * self.env.coverage() * 2, 0, 1)),
-                        "position": float(near.r2) if (near is not None and primary_pos is not None) else 0.0},
-            observed=obs, exposure_scale=scale, method="scene", T_cam_obj=anchor.T_cam_obj,
+            confidence={
+                "ambient": float(np.clip(0.3 + 0.7 * self.env.coverage() + 0.1 * (n_rows > 100), 0, 1)),
+                "direction": float(conf_dir),
+                "intensity": float(0.7 * conf_dir),
+                "colour": float(np.clip(0.4 + 0.6 * self.env.coverage() * 2, 0, 1)),
+                "position": float(near.r2) if (near is not None and primary_pos is not None) else 0.0,
+            },
+            observed=obs,
+            exposure_scale=scale,
+            method="scene",
+            T_cam_obj=anchor.T_cam_obj,
         )
         self.frames += 1
         self.ms.append((time.perf_counter() - t0) * 1e3)
@@ -566,8 +595,14 @@ class LightEstimateStage(Stage):
         if not xs:
             z3 = np.zeros((0, 3))
             return z3, z3, z3, np.zeros(0), np.zeros(0, np.int64), labels
-        return (np.concatenate(xs), np.concatenate(ns), np.concatenate(es), np.concatenate(ws),
-                np.concatenate(gs).astype(np.int64), labels)
+        return (
+            np.concatenate(xs),
+            np.concatenate(ns),
+            np.concatenate(es),
+            np.concatenate(ws),
+            np.concatenate(gs).astype(np.int64),
+            labels,
+        )
 
     @staticmethod
     def _neutral(e: np.ndarray, illum: np.ndarray) -> np.ndarray:
@@ -672,13 +707,19 @@ class LightEstimateStage(Stage):
         else:
             d = a * prev["dir"] + (1 - a) * raw["dir"]
             out["dir"] = d / max(np.linalg.norm(d), 1e-12)
-            out["pos"] = raw["pos"] if prev["pos"] is None or raw["pos"] is None else a * prev["pos"] + (1 - a) * raw["pos"]
+            out["pos"] = (
+                raw["pos"] if prev["pos"] is None or raw["pos"] is None else a * prev["pos"] + (1 - a) * raw["pos"]
+            )
         self._state = out
         return out
 
     def stats(self) -> dict[str, Any]:
-        st: dict[str, Any] = {"frames": self.frames, "reused": self.skipped, "env_coverage": round(self.env.coverage(), 3),
-                              "warnings": dict(self._warn.counts)}
+        st: dict[str, Any] = {
+            "frames": self.frames,
+            "reused": self.skipped,
+            "env_coverage": round(self.env.coverage(), 3),
+            "warnings": dict(self._warn.counts),
+        }
         if self.ms:
             st["median_ms"] = round(float(np.median(self.ms)), 2)
         s = self._state

@@ -212,8 +212,9 @@ def _axis_angle(n: np.ndarray, a: float) -> np.ndarray:
     return np.eye(3) + np.sin(a) * K + (1.0 - np.cos(a)) * (K @ K)
 
 
-def _refine_reprojection(R: np.ndarray, t: np.ndarray, Pw: np.ndarray, uv: np.ndarray, intr,
-                         n_c: np.ndarray | None, iters: int = 2) -> tuple[np.ndarray, np.ndarray]:
+def _refine_reprojection(
+    R: np.ndarray, t: np.ndarray, Pw: np.ndarray, uv: np.ndarray, intr, n_c: np.ndarray | None, iters: int = 2
+) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Newton on the reprojection error of the inlier landmarks (Huber, 1 px).
 
     The tracked pixels are precise (LK: ~0.05 px) while this frame's depth is not (stereo error
@@ -309,8 +310,12 @@ class Odometry:
         self._velocity = None
         self.state = "init"
 
-    def update(self, frame: Frame, plane_cam: tuple[np.ndarray, float] | None = None,
-               plane_world: tuple[np.ndarray, float] | None = None) -> OdometryResult:
+    def update(
+        self,
+        frame: Frame,
+        plane_cam: tuple[np.ndarray, float] | None = None,
+        plane_world: tuple[np.ndarray, float] | None = None,
+    ) -> OdometryResult:
         """Estimate this frame's camera pose.
 
         Parameters
@@ -351,8 +356,9 @@ class Odometry:
         if REPROJ_REFINE:
             idx_in = np.nonzero(use)[0][inl]
             uv = (p1[idx_in].astype(np.float64) + 0.5) * DOWNSCALE - 0.5
-            R, t = _refine_reprojection(R, t, self._lm[idx_in], uv, intr,
-                                        np.asarray(plane_cam[0], np.float64) if constrained else None)
+            R, t = _refine_reprojection(
+                R, t, self._lm[idx_in], uv, intr, np.asarray(plane_cam[0], np.float64) if constrained else None
+            )
         self._bad_run = 0
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R, t
@@ -382,8 +388,9 @@ class Odometry:
         # (tiles) a plain search from the old position can lock onto the neighbouring period
         guess = self._predict(intr, grey.shape)
         if guess is not None:
-            p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._grey, grey_lk, p0, guess.reshape(-1, 1, 2).copy(),
-                                                  flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **_LK)
+            p1, st1, _ = cv2.calcOpticalFlowPyrLK(
+                self._grey, grey_lk, p0, guess.reshape(-1, 1, 2).copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **_LK
+            )
         else:
             p1, st1, _ = cv2.calcOpticalFlowPyrLK(self._grey, grey_lk, p0, None, **_LK)
         good = st1.ravel() == 1
@@ -403,17 +410,31 @@ class Odometry:
         if self._bad_run >= RESET_AFTER:
             # cannot tie this view to the landmarks: restart on it with the held pose
             self.resets += 1
-            log.info("odometry: lost for %d frames (%d inliers of %d tracked); restarting tracking "
-                     "with the last pose", self._bad_run, n_in, n_track)
+            log.info(
+                "odometry: lost for %d frames (%d inliers of %d tracked); restarting tracking with the last pose",
+                self._bad_run,
+                n_in,
+                n_track,
+            )
             self._start(grey, depth, intr)
             # if the next frame cannot be tied to this one either (it was garbage too), restart
             # again at once rather than waiting another RESET_AFTER frames
             self._bad_run = RESET_AFTER - 1
-        return self._lose(f"{n_in} inliers of {n_track} tracked (need {MIN_INLIERS} and "
-                          f"{100 * MIN_INLIER_SHARE:.0f} %)", tracked=n_track)
+        return self._lose(
+            f"{n_in} inliers of {n_track} tracked (need {MIN_INLIERS} and {100 * MIN_INLIER_SHARE:.0f} %)",
+            tracked=n_track,
+        )
 
-    def _keep_landmarks(self, p1: np.ndarray, X: np.ndarray, good: np.ndarray, idx: np.ndarray, inl: np.ndarray,
-                        R: np.ndarray, t: np.ndarray) -> None:
+    def _keep_landmarks(
+        self,
+        p1: np.ndarray,
+        X: np.ndarray,
+        good: np.ndarray,
+        idx: np.ndarray,
+        inl: np.ndarray,
+        R: np.ndarray,
+        t: np.ndarray,
+    ) -> None:
         """Step 3: refine the inlier landmarks' world positions (running mean over at most
         :data:`MAX_OBS` observations), drop the outliers, keep the untracked ones that were good in 2D.
 
@@ -462,9 +483,15 @@ class Odometry:
     # -- internals
     def _result(self, state: str, inliers: int, tracked: int, constrained: bool, reason: str = "") -> OdometryResult:
         self.state = state
-        self.last = OdometryResult(T_cam_world=self.T_cam_world.copy(), state=state, inliers=inliers,
-                                   tracked=tracked, landmarks=len(self._lm), plane_constrained=constrained,
-                                   reason=reason)
+        self.last = OdometryResult(
+            T_cam_world=self.T_cam_world.copy(),
+            state=state,
+            inliers=inliers,
+            tracked=tracked,
+            landmarks=len(self._lm),
+            plane_constrained=constrained,
+            reason=reason,
+        )
         return self.last
 
     def _lose(self, reason: str, tracked: int = 0) -> OdometryResult:
@@ -534,8 +561,9 @@ class Odometry:
         mask = np.full(grey.shape, 255, np.uint8)
         for x, y in self._pts:
             cv2.circle(mask, (int(x), int(y)), 6, 0, -1)
-        c = cv2.goodFeaturesToTrack(grey, maxCorners=want + want // 2, qualityLevel=0.01, minDistance=7,
-                                    mask=mask, blockSize=5)
+        c = cv2.goodFeaturesToTrack(
+            grey, maxCorners=want + want // 2, qualityLevel=0.01, minDistance=7, mask=mask, blockSize=5
+        )
         if c is None:
             return
         c = c.reshape(-1, 2).astype(np.float32)
@@ -546,8 +574,9 @@ class Odometry:
         self._lm = np.concatenate([self._lm, (X - t) @ R])
         self._nobs = np.concatenate([self._nobs, np.ones(len(c), np.int32)])
 
-    def _fit(self, Pw: np.ndarray, Qc: np.ndarray, plane_cam, plane_world
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    def _fit(
+        self, Pw: np.ndarray, Qc: np.ndarray, plane_cam, plane_world
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """Robust rigid fit ``Qc ~ R Pw + t``: (R, t, inlier mask) or None."""
         N = len(Pw)
         z = Qc[:, 2]
@@ -602,14 +631,14 @@ class Odometry:
 
         rot, t2 = procrustes(p2[idx], q2[idx], np.ones(idx.shape))
         r2 = p2[None] @ np.swapaxes(rot, 1, 2) + t2[:, None, :] - q2[None]
-        res = np.sqrt((r2 ** 2).sum(axis=2) + res_n[None] ** 2)
+        res = np.sqrt((r2**2).sum(axis=2) + res_n[None] ** 2)
         inl = res < thr[None]
         m = inl[int(np.argmax(inl.sum(axis=1)))]
 
         def refit(ww):
             rot_, t2_ = procrustes(p2, q2, ww)
             r2_ = p2 @ rot_.T + t2_ - q2
-            return (rot_, t2_), np.sqrt((r2_ ** 2).sum(axis=1) + res_n ** 2)
+            return (rot_, t2_), np.sqrt((r2_**2).sum(axis=1) + res_n**2)
 
         out = _irls(refit, m, w, thr, 2)
         if out is None:
@@ -617,8 +646,11 @@ class Odometry:
         (rb, tb), m = out
         # rotation about n_c by the 2D angle, composed with the tilt correction
         c, s = rb[0, 0], rb[1, 0]
-        Rn = np.outer(n_c, n_c) + c * (np.eye(3) - np.outer(n_c, n_c)) + s * np.array(
-            [[0, -n_c[2], n_c[1]], [n_c[2], 0, -n_c[0]], [-n_c[1], n_c[0], 0]])
+        Rn = (
+            np.outer(n_c, n_c)
+            + c * (np.eye(3) - np.outer(n_c, n_c))
+            + s * np.array([[0, -n_c[2], n_c[1]], [n_c[2], 0, -n_c[0]], [-n_c[1], n_c[0], 0]])
+        )
         R = Rn @ R0
         t = tb[0] * e1 + tb[1] * e2 + t_n * n_c
         return R, t, m

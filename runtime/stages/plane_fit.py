@@ -305,8 +305,8 @@ def estimate_normals(P: np.ndarray, valid: np.ndarray, window: int = 5) -> tuple
     pm = ps / np.maximum(ws, 1.0)[..., None]
     k = 2
     pp = cv2.copyMakeBorder(pm, k, k, k, k, cv2.BORDER_REPLICATE)
-    dx = pp[k:-k, 2 * k:] - pp[k:-k, : -2 * k]
-    dy = pp[2 * k:, k:-k] - pp[: -2 * k, k:-k]
+    dx = pp[k:-k, 2 * k :] - pp[k:-k, : -2 * k]
+    dy = pp[2 * k :, k:-k] - pp[: -2 * k, k:-k]
     # cross product by components (float32 throughout; np.cross is slower on small arrays)
     ax, ay, az = dx[..., 0], dx[..., 1], dx[..., 2]
     bx, by, bz = dy[..., 0], dy[..., 1], dy[..., 2]
@@ -354,8 +354,9 @@ def inlier_threshold(z: np.ndarray, at_1m: float) -> np.ndarray:
     return np.minimum(at_1m * zz * zz, MAX_INLIER_M)
 
 
-def fit_plane(P: np.ndarray, weights: np.ndarray | None = None
-              ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
+def fit_plane(
+    P: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
     """Weighted least-squares plane through points (orthogonal regression).
 
     Returns normal (towards the camera, d > 0), offset d, centroid, eigenvalues (ascending) and
@@ -413,8 +414,15 @@ def _fit_moments(S: np.ndarray) -> tuple[np.ndarray, float] | None:
     return _solve_disparity(AtA, np.array([S[7], S[8], S[6]]))
 
 
-def _inliers(cloud: Cloud, n: np.ndarray, d: float, thr_1m: float, allowed: np.ndarray | None,
-             normal_cos: float | None, despeckle: bool = True) -> np.ndarray:
+def _inliers(
+    cloud: Cloud,
+    n: np.ndarray,
+    d: float,
+    thr_1m: float,
+    allowed: np.ndarray | None,
+    normal_cos: float | None,
+    despeckle: bool = True,
+) -> np.ndarray:
     n32 = n.astype(np.float32)
     dist = np.abs(cloud.points @ n32 + np.float32(d))
     ok = dist < cloud.threshold(thr_1m)  # invalid points are at the origin: dist = d > threshold
@@ -447,9 +455,17 @@ def _drop_specks(mask: np.ndarray, min_size: int = 12, rel: float = 0.05) -> np.
     return lut[lab]
 
 
-def refine(cloud: Cloud, n: np.ndarray, d: float, thr_1m: float, allowed: np.ndarray | None = None,
-           iterations: int = 2, final_inliers: bool = True, despeckle: bool = True,
-           use_normals: bool = True) -> PlaneFit | None:
+def refine(
+    cloud: Cloud,
+    n: np.ndarray,
+    d: float,
+    thr_1m: float,
+    allowed: np.ndarray | None = None,
+    iterations: int = 2,
+    final_inliers: bool = True,
+    despeckle: bool = True,
+    use_normals: bool = True,
+) -> PlaneFit | None:
     """Refit a plane on its inliers ``iterations`` times (inlier set recomputed each time).
 
     The fit is :func:`fit_plane_disparity`; centroid, area, extent and axes come from the final
@@ -488,20 +504,30 @@ def refine(cloud: Cloud, n: np.ndarray, d: float, thr_1m: float, allowed: np.nda
     ndotr = np.abs(cloud.rays().reshape(-1, 3) @ n.astype(np.float32))
     ndotr = np.maximum(ndotr, np.float32(1e-3))
     view_cos = float(np.dot(mf, ndotr * cloud.inv_ray_norm())) / cnt
-    area = float(np.dot(mf, ndotr ** -3)) * d * d * pix
+    area = float(np.dot(mf, ndotr**-3)) * d * d * pix
     # Extent along the in-plane principal axes (a uniform rectangle has variance L^2 / 12).
     ext = np.sqrt(12.0 * np.maximum(evals[1:], 0.0))
     # Standard error of the offset (for the tracker's motion gate): residual spread of the
     # inverse-depth fit, sigma_q, over sqrt(N), scaled by d^2 (d = 1/|abc|, so dd = d^2 d|abc|).
     abc = -np.asarray(n, np.float64) / d
-    rss = S[18] - 2.0 * (abc[0] * S[7] + abc[1] * S[8] + abc[2] * S[6]) + abc @ np.array(
-        [[S[3], S[4], S[1]], [S[4], S[5], S[2]], [S[1], S[2], S[0]]]) @ abc
+    rss = (
+        S[18]
+        - 2.0 * (abc[0] * S[7] + abc[1] * S[8] + abc[2] * S[6])
+        + abc @ np.array([[S[3], S[4], S[1]], [S[4], S[5], S[2]], [S[1], S[2], S[0]]]) @ abc
+    )
     sigma_q = np.sqrt(max(rss, 0.0) / max(cnt - 3, 1))
     offset_se = float(d * d * sigma_q / np.sqrt(cnt))
     return PlaneFit(
-        normal=np.asarray(n, np.float64), offset=float(d), mask=mask, n_inliers=cnt, centroid=c,
-        area_m2=area, extent_m=(float(ext[1]), float(ext[0])), axes=evecs[:, [2, 1]].T.copy(),
-        view_cos=view_cos, offset_se=offset_se,
+        normal=np.asarray(n, np.float64),
+        offset=float(d),
+        mask=mask,
+        n_inliers=cnt,
+        centroid=c,
+        area_m2=area,
+        extent_m=(float(ext[1]), float(ext[0])),
+        axes=evecs[:, [2, 1]].T.copy(),
+        view_cos=view_cos,
+        offset_se=offset_se,
     )
 
 
@@ -533,8 +559,12 @@ MAX_VIEW_ANGLE_DEG = 82.0
 
 
 def _accept(fits: list[PlaneFit], fit: PlaneFit | None, params: DetectParams) -> bool:
-    return (fit is not None and fit.n_inliers >= params.min_points and fit.area_m2 >= params.min_area_m2
-            and fit.view_cos > np.cos(np.radians(MAX_VIEW_ANGLE_DEG)))
+    return (
+        fit is not None
+        and fit.n_inliers >= params.min_points
+        and fit.area_m2 >= params.min_area_m2
+        and fit.view_cos > np.cos(np.radians(MAX_VIEW_ANGLE_DEG))
+    )
 
 
 def detect_ransac(cloud: Cloud, params: DetectParams, rng: np.random.Generator) -> list[PlaneFit]:
@@ -592,10 +622,12 @@ def detect_region(cloud: Cloud, params: DetectParams, rng: np.random.Generator |
     thr = inlier_threshold(cloud.z, params.inlier_threshold_m)
     smooth = nv.copy()
     # right and down neighbours: normals agree and the neighbour lies on this point's tangent plane
-    for sl_a, sl_b in (((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
-                       ((slice(None, -1), slice(None)), (slice(1, None), slice(None)))):
+    for sl_a, sl_b in (
+        ((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
+        ((slice(None, -1), slice(None)), (slice(1, None), slice(None))),
+    ):
         na, nb = Nrm[sl_a], Nrm[sl_b]
-        ok = (np.einsum("ijk,ijk->ij", na, nb) > cos_t)
+        ok = np.einsum("ijk,ijk->ij", na, nb) > cos_t
         ok &= np.abs(np.einsum("ijk,ijk->ij", na, P[sl_b] - P[sl_a])) < 2.0 * thr[sl_a]
         ok &= nv[sl_a] & nv[sl_b]
         bad = ~ok
@@ -644,8 +676,14 @@ def detect_opencv(cloud: Cloud, params: DetectParams, rng: np.random.Generator |
     N4[~cloud.normal_valid, :3] = np.nan
     thr = float(params.inlier_threshold_m)
     labels, coeffs = cv2.findPlanes(
-        P4, N4, block_size=max(4, w // 20), min_size=params.min_points, threshold=thr,
-        sensor_error_a=0.0, sensor_error_b=0.0, sensor_error_c=thr,
+        P4,
+        N4,
+        block_size=max(4, w // 20),
+        min_size=params.min_points,
+        threshold=thr,
+        sensor_error_a=0.0,
+        sensor_error_b=0.0,
+        sensor_error_c=thr,
     )
     if coeffs is None:
         return []
@@ -677,8 +715,9 @@ def detect_opencv(cloud: Cloud, params: DetectParams, rng: np.random.Generator |
 DETECTORS = {"ransac": detect_ransac, "region": detect_region, "opencv": detect_opencv}
 
 
-def detect_planes(cloud: Cloud, params: DetectParams, method: str = "region",
-                  rng: np.random.Generator | None = None) -> list[PlaneFit]:
+def detect_planes(
+    cloud: Cloud, params: DetectParams, method: str = "region", rng: np.random.Generator | None = None
+) -> list[PlaneFit]:
     """Segment ``cloud`` into up to ``params.max_planes`` planes, largest first."""
     try:
         fn = DETECTORS[method]

@@ -80,9 +80,15 @@ def grid_vertices(grid: int, extent_m: float) -> np.ndarray:
     return np.stack([xx.ravel(), np.zeros(grid * grid), zz.ravel()], axis=1)
 
 
-def measure_cells(frame: Frame, T_cam_obj: np.ndarray, grid: int, extent_m: float, inlier_threshold_m: float,
-                  response_lut: np.ndarray | None = None, samples: int = SAMPLES_PER_CELL
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def measure_cells(
+    frame: Frame,
+    T_cam_obj: np.ndarray,
+    grid: int,
+    extent_m: float,
+    inlier_threshold_m: float,
+    response_lut: np.ndarray | None = None,
+    samples: int = SAMPLES_PER_CELL,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Area-averaged linear colour per cell in one frame (module docstring).
 
     Returns
@@ -109,23 +115,23 @@ def measure_cells(frame: Frame, T_cam_obj: np.ndarray, grid: int, extent_m: floa
     Hm = intr.K @ M_cam  # sample -> homogeneous pixel
     flags = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
     # warpPerspective samples src at the pixel centre convention (x = col index); ours matches.
-    col = cv2.warpPerspective(frame.color, Hm, (S, S), flags=flags, borderMode=cv2.BORDER_CONSTANT,
-                              borderValue=(0, 0, 0))
+    col = cv2.warpPerspective(
+        frame.color, Hm, (S, S), flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0)
+    )
     # depth the plane predicts at each sample (camera z of the sample point), and whether in front
     a = np.arange(S, dtype=np.float32)
-    z_pred = (np.float32(M_cam[2, 0]) * a[None, :] + np.float32(M_cam[2, 1]) * a[:, None]
-              + np.float32(M_cam[2, 2]))
+    z_pred = np.float32(M_cam[2, 0]) * a[None, :] + np.float32(M_cam[2, 1]) * a[:, None] + np.float32(M_cam[2, 2])
     ok = z_pred > 0.05
     if frame.depth is not None:
         # outside the image the border value 0 reads as invalid depth
-        dm = cv2.warpPerspective(frame.depth, Hm, (S, S), flags=flags, borderMode=cv2.BORDER_CONSTANT,
-                                 borderValue=0.0)
+        dm = cv2.warpPerspective(frame.depth, Hm, (S, S), flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
         tol = 3.0 * inlier_threshold(z_pred, inlier_threshold_m)
         with np.errstate(invalid="ignore"):
             ok &= np.abs(dm - z_pred) < tol  # NaN compares False; 0 (invalid) is far from z_pred
     else:
-        inside = cv2.warpPerspective(np.ones((H, W), np.uint8), Hm, (S, S), flags=flags,
-                                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        inside = cv2.warpPerspective(
+            np.ones((H, W), np.uint8), Hm, (S, S), flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+        )
         ok &= inside > 0
     # (np.max over a length-3 last axis is ~20x slower than two element-wise maxima)
     ok &= np.maximum(np.maximum(col[..., 0], col[..., 1]), col[..., 2]) < SATURATED
@@ -229,8 +235,9 @@ class CellFusion:
         # times this frame's coverage; decays while the cell is not seen.
         window = 1.0 / (1.0 - f) if f > 0 else 1.0
         c_obs = np.minimum(self.nobs / window, 1.0) * np.clip(coverage / MIN_CELL_COVERAGE, 0, 1) ** 0.5
-        self.conf = np.where(take | blend, np.maximum(c_obs, 0.5 * self.conf),
-                             self.conf * max(f, 0.5)).astype(np.float32)
+        self.conf = np.where(take | blend, np.maximum(c_obs, 0.5 * self.conf), self.conf * max(f, 0.5)).astype(
+            np.float32
+        )
         self.conf[out & ~persistent] *= 0.9
 
     @property
@@ -353,16 +360,24 @@ class PlaneLightStage(Stage):
                 self.fusion.reset()
                 self._T_ref_world = T_world
                 self._T_ref = anchor.T_cam_obj.copy()
-            lin, observed, coverage = measure_cells(frame, anchor.T_cam_obj, self.grid, self.extent, self.thr,
-                                                    self.lut)
+            lin, observed, coverage = measure_cells(frame, anchor.T_cam_obj, self.grid, self.extent, self.thr, self.lut)
             lin = smooth_cells(lin, observed, self.grid, self.sigma)
         self.observed_cells = int(observed.sum())
         scale, source = self._exposure(frame, lin, observed)
         E = (np.pi / self.albedo) * lin / np.float32(scale)
         self.fusion.update(E.astype(np.float32), observed, coverage)
         has = self.fusion.has_value
-        parts = [(self.vertices, self.normals, np.where(has[:, None], self.fusion.est, 0.0), has.copy(),
-                  np.where(has, self.fusion.conf, 0.0), observed, label)]
+        parts = [
+            (
+                self.vertices,
+                self.normals,
+                np.where(has[:, None], self.fusion.est, 0.0),
+                has.copy(),
+                np.where(has, self.fusion.conf, 0.0),
+                observed,
+                label,
+            )
+        ]
         if self.n_extra and not anchor.synthetic:
             parts += self._extra(frame, anchor, scale)
         elif self._extra_state:
@@ -372,9 +387,12 @@ class PlaneLightStage(Stage):
             normals=np.concatenate([p[1] for p in parts]) if len(parts) > 1 else self.normals,
             irradiance=np.concatenate([p[2] for p in parts]).astype(np.float32),
             mask=np.concatenate([p[3] for p in parts]),
-            confidence=np.concatenate([p[4] for p in parts]).astype(np.float32), grid=self.grid,
-            exposure_scale=float(scale), plane_slices=tuple(slice(k * P, (k + 1) * P) for k in range(len(parts))),
-            labels=tuple(p[6] for p in parts), observed=np.concatenate([p[5] for p in parts]),
+            confidence=np.concatenate([p[4] for p in parts]).astype(np.float32),
+            grid=self.grid,
+            exposure_scale=float(scale),
+            plane_slices=tuple(slice(k * P, (k + 1) * P) for k in range(len(parts))),
+            labels=tuple(p[6] for p in parts),
+            observed=np.concatenate([p[5] for p in parts]),
             exposure_source=source,
         )
         return frame.with_result(PLANE_LIGHT, self._last)
@@ -415,8 +433,17 @@ class PlaneLightStage(Stage):
             v_cam = self.vertices @ T[:3, :3].T + T[:3, 3]
             v_obj = (v_cam - t_a) @ R_a
             n_obj = np.tile(R_a.T @ n, (P, 1))
-            out.append((v_obj, n_obj, np.where(has[:, None], fusion.est, 0.0), has.copy(),
-                        np.where(has, fusion.conf, 0.0), obs, p.label))
+            out.append(
+                (
+                    v_obj,
+                    n_obj,
+                    np.where(has[:, None], fusion.est, 0.0),
+                    has.copy(),
+                    np.where(has, fusion.conf, 0.0),
+                    obs,
+                    p.label,
+                )
+            )
         for pid in list(self._extra_state):
             if pid not in keep:
                 del self._extra_state[pid]

@@ -87,8 +87,14 @@ class PlaneTracker:
     MOTION_GATE_M = 0.002
     MOTION_GATE_DEG = 0.3
 
-    def __init__(self, params: DetectParams, method: str = "region", redetect_every: int = 30,
-                 smoothing: float = 0.8, seed: int = 0):
+    def __init__(
+        self,
+        params: DetectParams,
+        method: str = "region",
+        redetect_every: int = 30,
+        smoothing: float = 0.8,
+        seed: int = 0,
+    ):
         if method not in DETECTORS:
             raise ValueError(f"[planes] method: expected one of {', '.join(DETECTORS)}, got {method!r}")
         if not 0.0 <= smoothing < 1.0:
@@ -140,8 +146,17 @@ class PlaneTracker:
         near = cloud.valid & (best_d < zthr)
         updates = []
         for k, t in enumerate(self.tracks):
-            fit = refine(cloud, t.normal, t.offset, thr, allowed=near & (owner == k), iterations=1,
-                         final_inliers=False, despeckle=False, use_normals=False)
+            fit = refine(
+                cloud,
+                t.normal,
+                t.offset,
+                thr,
+                allowed=near & (owner == k),
+                iterations=1,
+                final_inliers=False,
+                despeckle=False,
+                use_normals=False,
+            )
             if fit is None or fit.n_inliers < 0.5 * t.ref_inliers:
                 return False  # lost: the caller re-detects
             if np.degrees(np.arccos(np.clip(abs(fit.normal @ t.normal), -1, 1))) > self.MATCH_DEG:
@@ -186,8 +201,10 @@ class PlaneTracker:
             for j, t in enumerate(old):
                 ang = np.degrees(np.arccos(np.clip(f.normal @ t.normal, -1.0, 1.0)))
                 doff = abs(f.offset - t.offset)
-                gate = max(self.MATCH_OFFSET_M,
-                           3.0 * float(inlier_threshold(np.float64(f.centroid[2]), self.params.inlier_threshold_m)))
+                gate = max(
+                    self.MATCH_OFFSET_M,
+                    3.0 * float(inlier_threshold(np.float64(f.centroid[2]), self.params.inlier_threshold_m)),
+                )
                 if ang < self.MATCH_DEG and doff < gate:
                     pairs.append((ang / self.MATCH_DEG + doff / gate, i, j))
         pairs.sort()
@@ -244,10 +261,13 @@ class PlaneStage(Stage):
             problem = check_depth(depth)
         else:
             cloud = make_cloud(depth, frame.intrinsics)
-            problem = check_depth(depth, sample=depth[::cloud.stride, ::cloud.stride])
+            problem = check_depth(depth, sample=depth[:: cloud.stride, :: cloud.stride])
             if problem is None and cloud.nonfinite:
-                self._warn("nonfinite", f"depth has NaN/inf values ({cloud.nonfinite} of {cloud.valid.size} "
-                                        "sampled); they are treated as invalid (expected 0 for invalid)")
+                self._warn(
+                    "nonfinite",
+                    f"depth has NaN/inf values ({cloud.nonfinite} of {cloud.valid.size} "
+                    "sampled); they are treated as invalid (expected 0 for invalid)",
+                )
         if problem is not None:
             kind, msg = problem
             self.bad_frames += 1
@@ -260,13 +280,22 @@ class PlaneStage(Stage):
         planes = []
         for t, lab in zip(tracks, labels):
             f = t.fit
-            planes.append(Plane(
-                id=t.id, normal=t.normal.copy(), offset=t.offset, centroid=f.centroid.copy(),
-                area_m2=f.area_m2, label=lab,
-                inlier_mask=cloud.upsample_mask(f.mask) if self.full_masks else None,
-                n_inliers=f.n_inliers, extent_m=f.extent_m, axes=f.axes.copy(), cloud_mask=f.mask,
-                cloud_stride=cloud.stride,
-            ))
+            planes.append(
+                Plane(
+                    id=t.id,
+                    normal=t.normal.copy(),
+                    offset=t.offset,
+                    centroid=f.centroid.copy(),
+                    area_m2=f.area_m2,
+                    label=lab,
+                    inlier_mask=cloud.upsample_mask(f.mask) if self.full_masks else None,
+                    n_inliers=f.n_inliers,
+                    extent_m=f.extent_m,
+                    axes=f.axes.copy(),
+                    cloud_mask=f.mask,
+                    cloud_stride=cloud.stride,
+                )
+            )
         self._last = tuple(planes)
         return frame.with_result(PLANES, self._last)
 

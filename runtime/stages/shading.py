@@ -31,8 +31,9 @@ LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 POOL = 2
 
 
-def preprocess_plane(irradiance: np.ndarray, mask: np.ndarray, grid: int, pool: int = POOL,
-                     confidence: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+def preprocess_plane(
+    irradiance: np.ndarray, mask: np.ndarray, grid: int, pool: int = POOL, confidence: np.ndarray | None = None
+) -> tuple[np.ndarray, float]:
     """Plane irradiance grid -> network input (cells, 4) and the normalising scale ``s``.
 
     Parameters
@@ -59,8 +60,9 @@ def preprocess_plane(irradiance: np.ndarray, mask: np.ndarray, grid: int, pool: 
     m = np.asarray(mask, dtype=bool)
     n = grid * grid
     if e.shape != (n, 3) or m.shape != (n,):
-        raise ValueError(f"plane irradiance must be ({n}, 3) with mask ({n},) for grid {grid}, "
-                         f"got {e.shape} and {m.shape}")
+        raise ValueError(
+            f"plane irradiance must be ({n}, 3) with mask ({n},) for grid {grid}, got {e.shape} and {m.shape}"
+        )
     if grid % pool:
         raise ValueError(f"plane grid {grid} is not divisible by the pooling factor {pool}")
     w = _cell_weights(m, confidence)
@@ -187,9 +189,11 @@ class ShadingStage(Stage):
             if self.mode == "model" or (self.mode == "auto" and self.bundle.has_model):
                 self.chain = TransferChain(self.bundle, self.precision)
             if self.mode == "prt" and self.bundle.prt is None:
-                raise BundleError(f"bundle {self.bundle.name} ({self.bundle.path}) has no PRT tables ({PRT_FILE}) for "
-                                  f"[model] shading = \"prt\": add them with `illuminet bundle --object "
-                                  f"{self.bundle.meta.get('object', 'MESH')} --out {self.bundle.path}`")
+                raise BundleError(
+                    f"bundle {self.bundle.name} ({self.bundle.path}) has no PRT tables ({PRT_FILE}) for "
+                    f'[model] shading = "prt": add them with `illuminet bundle --object '
+                    f"{self.bundle.meta.get('object', 'MESH')} --out {self.bundle.path}`"
+                )
         except BundleError as e:
             if self.mode != "auto":
                 raise
@@ -200,15 +204,21 @@ class ShadingStage(Stage):
             if self.bundle.prt is None:
                 log.info("bundle %s has no PRT tables: shading uses %s", self.bundle.name, self.fallback)
             elif self.fallback == "ambient":
-                log.info("bundle %s has no learned model: frames without a light estimate use the ambient "
-                         "baseline", self.bundle.name)
+                log.info(
+                    "bundle %s has no learned model: frames without a light estimate use the ambient baseline",
+                    self.bundle.name,
+                )
 
     def close(self) -> None:
         self.chain = None
 
     def stats(self) -> dict:
-        return {"mode": self.mode, "precision": self.precision if self.chain is not None else None,
-                "frames": self.frames, "methods": dict(self.methods)}
+        return {
+            "mode": self.mode,
+            "precision": self.precision if self.chain is not None else None,
+            "frames": self.frames,
+            "methods": dict(self.methods),
+        }
 
     def _plane_input(self, pl):
         sl = pl.plane_slices[0] if pl.plane_slices else slice(0, len(pl.irradiance))
@@ -233,19 +243,27 @@ class ShadingStage(Stage):
             if light is None:
                 raise FrameError("shading mode prt needs a light estimate (results['light']) on this frame")
             if self._proxy is None:  # the proxy's points (at the drawn scale) and normals, once
-                self._proxy = (np.asarray(b.proxy_vertices, np.float64) * self.object_scale,
-                               np.asarray(b.proxy_normals, np.float64))
+                self._proxy = (
+                    np.asarray(b.proxy_vertices, np.float64) * self.object_scale,
+                    np.asarray(b.proxy_normals, np.float64),
+                )
             irr = prt_irradiance(b.prt, self._proxy[0], self._proxy[1], light)
             d = None if light.primary_dir is None else np.asarray(light.primary_dir, np.float32)
-            return ObjectShading(irradiance=irr, method="prt", dominant_dir=d,
-                                 dominant_share=light.primary_share() if d is not None else 0.0)
+            return ObjectShading(
+                irradiance=irr,
+                method="prt",
+                dominant_dir=d,
+                dominant_share=light.primary_share() if d is not None else 0.0,
+            )
         if pl is None:
             raise FrameError(f"shading mode {mode} needs the plane light (results['plane_light']) on this frame")
         irr, mask, conf = self._plane_input(pl)
         if mode == "model":
             if pl.grid != b.grid:
-                raise FrameError(f"plane grid is {pl.grid}x{pl.grid} but bundle {b.name} was trained on "
-                                 f"{b.grid}x{b.grid}: set [plane_light] grid = {b.grid}")
+                raise FrameError(
+                    f"plane grid is {pl.grid}x{pl.grid} but bundle {b.name} was trained on "
+                    f"{b.grid}x{b.grid}: set [plane_light] grid = {b.grid}"
+                )
             try:
                 x, s = preprocess_plane(irr, mask, b.grid, b.pool, conf)
             except ValueError as e:
@@ -253,8 +271,9 @@ class ShadingStage(Stage):
             oi, sh = self.chain(x)
             oi, sh = oi * s, np.maximum(sh, 0.0) * s
             d, share = dominant_light_from_oi(oi)
-            return ObjectShading(irradiance=sh, method=f"model:{self.precision}", oi=oi, dominant_dir=d,
-                                 dominant_share=share)
+            return ObjectShading(
+                irradiance=sh, method=f"model:{self.precision}", oi=oi, dominant_dir=d, dominant_share=share
+            )
         if mode == "constant":
             try:
                 s = plane_scale(irr, mask, conf)
@@ -272,9 +291,12 @@ class ShadingStage(Stage):
             lin = coef[1:4] @ LUMA
             d = np.array([lin[2], lin[0], lin[1]], np.float32)
             nd = float(np.linalg.norm(d))
-            return ObjectShading(irradiance=sh_eval(coef, b.proxy_normals), method="sh",
-                                 dominant_dir=d / nd if nd > 0 else None,
-                                 dominant_share=float(np.clip(nd / max(float(coef[0] @ LUMA), 1e-12), 0, 1)))
+            return ObjectShading(
+                irradiance=sh_eval(coef, b.proxy_normals),
+                method="sh",
+                dominant_dir=d / nd if nd > 0 else None,
+                dominant_share=float(np.clip(nd / max(float(coef[0] @ LUMA), 1e-12), 0, 1)),
+            )
         raise FrameError(f"unknown shading mode {mode!r}")
 
     def process(self, frame):
@@ -295,8 +317,13 @@ class ShadingStage(Stage):
         if a > 0 and prev is not None and prev[0] == s.method and prev[1].shape == s.irradiance.shape:
             irr = a * prev[1] + (1 - a) * s.irradiance
             oi = s.oi if (s.oi is None or prev[2] is None) else a * prev[2] + (1 - a) * s.oi
-            d, share = (dominant_light_from_oi(oi) if oi is not None else (s.dominant_dir, s.dominant_share))
-            s = ObjectShading(irradiance=irr.astype(np.float32), method=s.method,
-                              oi=None if oi is None else oi.astype(np.float32), dominant_dir=d, dominant_share=share)
+            d, share = dominant_light_from_oi(oi) if oi is not None else (s.dominant_dir, s.dominant_share)
+            s = ObjectShading(
+                irradiance=irr.astype(np.float32),
+                method=s.method,
+                oi=None if oi is None else oi.astype(np.float32),
+                dominant_dir=d,
+                dominant_share=share,
+            )
         self._prev = (s.method, s.irradiance, s.oi)
         return s

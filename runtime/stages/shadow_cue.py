@@ -271,8 +271,9 @@ def _rays(intr: Intrinsics, s: int, shape: tuple[int, int]) -> tuple[np.ndarray,
     return _RAYS[key]
 
 
-def _observe(color_linear, depth, intr: Intrinsics, planes, T_cam_obj, receiver: Plane,
-             prm: ShadowParams) -> _Observation | None:
+def _observe(
+    color_linear, depth, intr: Intrinsics, planes, T_cam_obj, receiver: Plane, prm: ShadowParams
+) -> _Observation | None:
     s = prm.stride
     z = np.ascontiguousarray(depth[::s, ::s], np.float32)
     rx, ry = _rays(intr, s, z.shape)
@@ -298,7 +299,9 @@ def _observe(color_linear, depth, intr: Intrinsics, planes, T_cam_obj, receiver:
         return z * (np.float32(e[0]) * rx + np.float32(e[1]) * ry + np.float32(e[2])) - np.float32(o)
 
     h = coord(n, off[2])
-    tol = np.clip(np.float32(prm.on_plane_at_1m) * np.maximum(z, np.float32(0.5)) ** 2, np.float32(0.01), np.float32(0.10))
+    tol = np.clip(
+        np.float32(prm.on_plane_at_1m) * np.maximum(z, np.float32(0.5)) ** 2, np.float32(0.01), np.float32(0.10)
+    )
     on = valid & (np.abs(h) < tol)
     up = valid & (h > np.maximum(np.float32(prm.min_caster_m), 2 * tol)) & (h < np.float32(prm.max_caster_m))
     # points on large walls and on planes facing down are not casters (module docstring); tested by
@@ -320,11 +323,11 @@ def _observe(color_linear, depth, intr: Intrinsics, planes, T_cam_obj, receiver:
     c = prm.cell_m
     lo = np.array([min(a_on.min(), a_up.min()), min(b_on.min(), b_up.min())], np.float64) - c
     hi = np.array([max(a_on.max(), a_up.max()), max(b_on.max(), b_up.max())], np.float64) + c
-    cols, rows = (np.ceil((hi - lo) / c).astype(int) + 1)
+    cols, rows = np.ceil((hi - lo) / c).astype(int) + 1
     if rows * cols > 600 * 600:  # a grazing view of a huge floor: keep the 18 m x 18 m around the casters
         ctr = np.array([np.median(a_up), np.median(b_up)])
         lo, hi = np.maximum(lo, ctr - 9.0), np.minimum(hi, ctr + 9.0)
-        cols, rows = (np.ceil((hi - lo) / c).astype(int) + 1)
+        cols, rows = np.ceil((hi - lo) / c).astype(int) + 1
     size = rows * cols
 
     def cells(aa, bb):  # flat cell index, and which points fall inside the grid
@@ -364,8 +367,19 @@ def _observe(color_linear, depth, intr: Intrinsics, planes, T_cam_obj, receiver:
     # footprint cells do not count (under an object; their neighbours do: a sun near the zenith
     # casts shadows only a cell or two long)
     w = (np.minimum(cnt.reshape(rows, cols), 4.0) / 4.0 * (hmax == 0)).astype(np.float32)
-    obs = _Observation(basis=basis, R_obj=R, lo=lo, shape=(rows, cols), cell=c, weights=w,
-                       dark=dark, rel=rel, caster_ab=cab, caster_h=ch, n_min=prm.min_shadow_cells)
+    obs = _Observation(
+        basis=basis,
+        R_obj=R,
+        lo=lo,
+        shape=(rows, cols),
+        cell=c,
+        weights=w,
+        dark=dark,
+        rel=rel,
+        caster_ab=cab,
+        caster_h=ch,
+        n_min=prm.min_shadow_cells,
+    )
     obs.n = float(w.sum())
     if obs.n < 50:
         return None
@@ -419,8 +433,12 @@ def _azimuth_masks(obs: _Observation, phi: float, tans: np.ndarray, pad: int = 0
     # canvas (J, I) -> grid (col, row) index, pixel centres at integers (for warpAffine)
     ox = x0 + 0.5 * c
     oy = y0 + 0.5 * c
-    M = np.array([[sd[0], sp[0], (ox * sd[0] + oy * sp[0] - obs.lo[0]) / c - 0.5],
-                  [sd[1], sp[1], (ox * sd[1] + oy * sp[1] - obs.lo[1]) / c - 0.5]])
+    M = np.array(
+        [
+            [sd[0], sp[0], (ox * sd[0] + oy * sp[0] - obs.lo[0]) / c - 0.5],
+            [sd[1], sp[1], (ox * sd[1] + oy * sp[1] - obs.lo[1]) / c - 0.5],
+        ]
+    )
     return masks, M
 
 
@@ -442,8 +460,14 @@ def _azimuth_scores(obs: _Observation, phi: float, tans: np.ndarray) -> np.ndarr
         return np.zeros(len(tans))
     masks, M = out
     T, rows, cols = masks.shape
-    can = cv2.warpAffine(obs.stack, M, (cols, rows), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    can = cv2.warpAffine(
+        obs.stack,
+        M,
+        (cols, rows),
+        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )
     # (2, N): sums over masks as a uint8 x float32 einsum, which never starts BLAS threads (a
     # skinny float matmul does, and on a busy machine that costs several times the work)
     can = np.ascontiguousarray(can.reshape(-1, 2).T)
@@ -454,8 +478,11 @@ def _azimuth_scores(obs: _Observation, phi: float, tans: np.ndarray) -> np.ndarr
     both = np.concatenate([m8.reshape(T, -1), (cv2.dilate(m8, k) - m8).reshape(T, -1)])
     sums = np.einsum("tn,kn->tk", both, can).astype(np.float64)  # (2T, 2): sum of w * dark, of w
     sm, sr = sums[:T], sums[T:]
-    contrast = np.where((sm[:, 1] >= obs.n_min) & (sr[:, 1] >= obs.n_min),
-                        sm[:, 0] / np.maximum(sm[:, 1], 1e-9) - sr[:, 0] / np.maximum(sr[:, 1], 1e-9), 0.0)
+    contrast = np.where(
+        (sm[:, 1] >= obs.n_min) & (sr[:, 1] >= obs.n_min),
+        sm[:, 0] / np.maximum(sm[:, 1], 1e-9) - sr[:, 0] / np.maximum(sr[:, 1], 1e-9),
+        0.0,
+    )
     corr = _pearson(obs.n, obs.mean, obs.var_n, sm[:, 0], sm[:, 1], obs.n_min)
     return corr * np.maximum(contrast, 0.0)
 
@@ -475,8 +502,14 @@ def _mask_on_grid(obs: _Observation, phi: float, theta: float) -> np.ndarray:
         return np.zeros(obs.shape, bool)
     masks, M = out
     Mi = cv2.invertAffineTransform(M)
-    g = cv2.warpAffine(masks[0].astype(np.uint8), Mi, (obs.shape[1], obs.shape[0]),
-                       flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    g = cv2.warpAffine(
+        masks[0].astype(np.uint8),
+        Mi,
+        (obs.shape[1], obs.shape[0]),
+        flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )
     return g.astype(bool)
 
 
@@ -597,9 +630,16 @@ SHARPNESS_FULL = 0.2
 RATIO_FULL = 0.5
 
 
-def shadow_direction(color_linear: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, planes,
-                     anchor_T_cam_obj: np.ndarray, receiver_id: int | None = None,
-                     params: ShadowParams | None = None, prior: ShadowCue | None = None) -> ShadowCue | None:
+def shadow_direction(
+    color_linear: np.ndarray,
+    depth: np.ndarray,
+    intrinsics: Intrinsics,
+    planes,
+    anchor_T_cam_obj: np.ndarray,
+    receiver_id: int | None = None,
+    params: ShadowParams | None = None,
+    prior: ShadowCue | None = None,
+) -> ShadowCue | None:
     """The direction towards the light that the shadows on the anchor plane point to.
 
     Parameters
@@ -660,16 +700,27 @@ def shadow_direction(color_linear: np.ndarray, depth: np.ndarray, intrinsics: In
     ring = cv2.dilate(mask.astype(np.uint8), np.ones((2 * int(0.3 / obs.cell) + 1,) * 2, np.uint8)).astype(bool)
     sh, lit = obs.rel[mask & seen], obs.rel[ring & ~mask & seen]
     ratio = float(np.median(sh) / max(np.median(lit), 1e-6)) if sh.size >= 4 and lit.size >= 4 else 1.0
-    conf = float(np.clip(score / SCORE_FULL, 0, 1)
-                 * np.clip((sharp - SHARPNESS_MIN) / (SHARPNESS_FULL - SHARPNESS_MIN), 0, 1)
-                 * np.clip((1.0 - ratio) / (1.0 - RATIO_FULL), 0, 1))
+    conf = float(
+        np.clip(score / SCORE_FULL, 0, 1)
+        * np.clip((sharp - SHARPNESS_MIN) / (SHARPNESS_FULL - SHARPNESS_MIN), 0, 1)
+        * np.clip((1.0 - ratio) / (1.0 - RATIO_FULL), 0, 1)
+    )
     az_conf = conf * az_factor
     w = _direction(phi, theta)
     d_obj = obs.R_obj.T @ (obs.basis.T @ w)
     d_obj /= np.linalg.norm(d_obj)
-    return ShadowCue(direction=d_obj, confidence=float(conf), azimuth_confidence=float(az_conf), score=float(score),
-                     sharpness=float(sharp), shadow_ratio=float(ratio), n_casters=int(obs.caster_h.size),
-                     receiver_id=int(receiver.id), elapsed_s=time.perf_counter() - t0, search=search)
+    return ShadowCue(
+        direction=d_obj,
+        confidence=float(conf),
+        azimuth_confidence=float(az_conf),
+        score=float(score),
+        sharpness=float(sharp),
+        shadow_ratio=float(ratio),
+        n_casters=int(obs.caster_h.size),
+        receiver_id=int(receiver.id),
+        elapsed_s=time.perf_counter() - t0,
+        search=search,
+    )
 
 
 class ShadowTracker:
@@ -715,7 +766,8 @@ class ShadowTracker:
             self._last_full_s = t_s
             self.full_searches += 1
         elif self.last is not None and self.last.confidence >= self.min_confidence:
-            self.last = shadow_direction(color_linear, depth, intrinsics, planes, anchor_T_cam_obj, params=self.params,
-                                         prior=self.last)
+            self.last = shadow_direction(
+                color_linear, depth, intrinsics, planes, anchor_T_cam_obj, params=self.params, prior=self.last
+            )
             self.local_refines += 1
         return self.last

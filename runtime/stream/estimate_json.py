@@ -22,8 +22,9 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -82,8 +83,14 @@ def _plain(v: Any) -> Any:
     return str(v)
 
 
-def estimate_dict(est: LightEstimate, *, seq: int, t_device_ns: int, t_host_ns: int | None = None,
-                  intrinsics: Intrinsics | None = None) -> dict[str, Any]:
+def estimate_dict(
+    est: LightEstimate,
+    *,
+    seq: int,
+    t_device_ns: int,
+    t_host_ns: int | None = None,
+    intrinsics: Intrinsics | None = None,
+) -> dict[str, Any]:
     """The JSON object of one frame's lighting estimate (see ``docs/estimate.md``).
 
     Parameters
@@ -128,16 +135,28 @@ def estimate_dict(est: LightEstimate, *, seq: int, t_device_ns: int, t_host_ns: 
         "hasPrimaryLight": bool(has_primary),
         "primaryLightPosition": _vec4(est.primary_pos, 1.0) if est.primary_pos is not None else None,
         "ambientIntensity": _num(luma),
-        "colorCorrection": {"r": _num(mean_px[0] / g), "g": _num(mean_px[1] / g), "b": _num(mean_px[2] / g),
-                            "a": _num(luma)},
+        "colorCorrection": {
+            "r": _num(mean_px[0] / g),
+            "g": _num(mean_px[1] / g),
+            "b": _num(mean_px[2] / g),
+            "a": _num(luma),
+        },
         "exposureScale": _num(k),
-        "coordinateFrame": dict(FRAME_DESCRIPTION, T_cam_obj=(
-            None if T is None else [_num(x) for x in np.asarray(T, np.float64).reshape(16)])),
-        "camera": None if intrinsics is None else {
-            "fx": _num(intrinsics.fx), "fy": _num(intrinsics.fy), "cx": _num(intrinsics.cx),
-            "cy": _num(intrinsics.cy), "width": int(intrinsics.width), "height": int(intrinsics.height)},
-        "confidence": {key: _num(np.clip(float(est.confidence.get(key, 0.0)), 0.0, 1.0))
-                       for key in CONFIDENCE_KEYS},
+        "coordinateFrame": dict(
+            FRAME_DESCRIPTION,
+            T_cam_obj=(None if T is None else [_num(x) for x in np.asarray(T, np.float64).reshape(16)]),
+        ),
+        "camera": None
+        if intrinsics is None
+        else {
+            "fx": _num(intrinsics.fx),
+            "fy": _num(intrinsics.fy),
+            "cx": _num(intrinsics.cx),
+            "cy": _num(intrinsics.cy),
+            "width": int(intrinsics.width),
+            "height": int(intrinsics.height),
+        },
+        "confidence": {key: _num(np.clip(float(est.confidence.get(key, 0.0)), 0.0, 1.0)) for key in CONFIDENCE_KEYS},
         "observed": _plain(dict(est.observed)),
         "method": str(est.method),
     }
@@ -149,8 +168,9 @@ def frame_estimate(frame: Frame) -> dict[str, Any] | None:
     est = frame.results.get(LIGHT.name)
     if est is None:
         return None
-    return estimate_dict(est, seq=frame.seq, t_device_ns=frame.t_device_ns, t_host_ns=frame.t_host_ns,
-                         intrinsics=frame.intrinsics)
+    return estimate_dict(
+        est, seq=frame.seq, t_device_ns=frame.t_device_ns, t_host_ns=frame.t_host_ns, intrinsics=frame.intrinsics
+    )
 
 
 def to_line(obj: Mapping[str, Any]) -> str:
@@ -174,8 +194,11 @@ def estimate_from_dict(d: Mapping[str, Any]) -> LightEstimate:
         primary_dir=np.array([p["x"], p["y"], p["z"]]) if d["hasPrimaryLight"] else None,
         primary_rgb=np.array([i["x"], i["y"], i["z"]]) / k,
         primary_pos=None if pos is None else np.array([pos["x"], pos["y"], pos["z"]]),
-        confidence=dict(d["confidence"]), observed=dict(d["observed"]), exposure_scale=k,
-        method=str(d["method"]), T_cam_obj=None if T is None else np.asarray(T, np.float64).reshape(4, 4),
+        confidence=dict(d["confidence"]),
+        observed=dict(d["observed"]),
+        exposure_scale=k,
+        method=str(d["method"]),
+        T_cam_obj=None if T is None else np.asarray(T, np.float64).reshape(4, 4),
     )
 
 

@@ -265,8 +265,10 @@ def _signals_stop(stop: threading.Event, enabled: bool):
     def handler(signum, _frame):
         if stop.is_set():  # second signal: the user really wants out now
             raise KeyboardInterrupt
-        log.info("%s received: stopping after this frame and finalising outputs (again to abort)",
-                 signal.Signals(signum).name)
+        log.info(
+            "%s received: stopping after this frame and finalising outputs (again to abort)",
+            signal.Signals(signum).name,
+        )
         stop.set()
 
     previous = {}
@@ -299,7 +301,11 @@ class _FailureLog:
             "%s failed on %s: %s: %s. %s This is logged once per kind; the count is in the final "
             "statistics. To stop at the first failure with a traceback use --strict ([logging] strict = true); "
             "--log-level debug logs every occurrence.",
-            key.split(": ")[0], where, type(err).__name__, err, what_next,
+            key.split(": ")[0],
+            where,
+            type(err).__name__,
+            err,
+            what_next,
         )
 
     def report_skip(self, key: str, frame: Frame) -> None:
@@ -308,9 +314,13 @@ class _FailureLog:
             return
         self.seen.add(key)
         stage, _, what = key.partition(": ")
-        log.warning("%s skipped on frame %d: %s (its producer failed on this frame and had no earlier result); "
-                    "the frame goes on with this stage's last good result. Logged once per kind.",
-                    stage, frame.seq, what)
+        log.warning(
+            "%s skipped on frame %d: %s (its producer failed on this frame and had no earlier result); "
+            "the frame goes on with this stage's last good result. Logged once per kind.",
+            stage,
+            frame.seq,
+            what,
+        )
 
 
 class _StreamEnded(Exception):
@@ -324,9 +334,19 @@ class _StreamEnded(Exception):
 class _Loop:
     """One run of :func:`run_loop`: its components, its state, and one method per step of a frame."""
 
-    def __init__(self, source: Source, stages: Sequence[Stage], sinks: Sequence[Sink], *, strict: bool,
-                 max_frames: int, stop: threading.Event, on_stats: Callable[[dict[str, Any]], None] | None,
-                 stats: LoopStats, stats_interval_s: float) -> None:
+    def __init__(
+        self,
+        source: Source,
+        stages: Sequence[Stage],
+        sinks: Sequence[Sink],
+        *,
+        strict: bool,
+        max_frames: int,
+        stop: threading.Event,
+        on_stats: Callable[[dict[str, Any]], None] | None,
+        stats: LoopStats,
+        stats_interval_s: float,
+    ) -> None:
         self.source = source
         self.stages = list(stages)
         self.sinks = list(sinks)
@@ -364,8 +384,12 @@ class _Loop:
             stack.enter_context(sk)
         if getattr(self.source, "live", False):
             self.slot = _NewestFrameSlot()
-            self.reader = threading.Thread(target=_reader, args=(self.source, self.slot, self.stats, self.reader_stop),
-                                           name="illuminet-source-reader", daemon=True)
+            self.reader = threading.Thread(
+                target=_reader,
+                args=(self.source, self.slot, self.stats, self.reader_stop),
+                name="illuminet-source-reader",
+                daemon=True,
+            )
 
     def _stop_reader(self) -> None:
         self.reader_stop.set()
@@ -376,8 +400,9 @@ class _Loop:
         if self.reader is not None:
             self.reader.join(timeout=2.0)
             if self.reader.is_alive():
-                log.warning("source %r did not return from read() within 2 s of being closed",
-                            _name(self.source, "source"))
+                log.warning(
+                    "source %r did not return from read() within 2 s of being closed", _name(self.source, "source")
+                )
 
     # -- running
 
@@ -545,9 +570,17 @@ def run_loop(
         :class:`~illuminet.runtime.stage.EndOfStream` (which ends the stream with a logged error).
     """
     stats = stats if stats is not None else LoopStats()
-    loop = _Loop(source, stages, sinks, strict=strict, max_frames=max_frames,
-                 stop=stop_event if stop_event is not None else threading.Event(), on_stats=on_stats,
-                 stats=stats, stats_interval_s=stats_interval_s)
+    loop = _Loop(
+        source,
+        stages,
+        sinks,
+        strict=strict,
+        max_frames=max_frames,
+        stop=stop_event if stop_event is not None else threading.Event(),
+        on_stats=on_stats,
+        stats=stats,
+        stats_interval_s=stats_interval_s,
+    )
     # signal handlers stay installed until everything is closed: a SIGTERM during finalisation must
     # not kill the process with the default handler half-way through closing a recording
     with _signals_stop(loop.stop, install_signals), contextlib.ExitStack() as stack:

@@ -87,7 +87,7 @@ class _Hub:
         self.quality = int(quality)
         self.min_interval = 1.0 / max_fps if max_fps > 0 else 0.0
         self.lock = threading.Lock()
-        self.cond = threading.Condition(self.lock)        # new JPEG -> client threads
+        self.cond = threading.Condition(self.lock)  # new JPEG -> client threads
         self.frame_cond = threading.Condition(self.lock)  # new frame / new client -> encoder
         self.closed_event = threading.Event()
         self.pending: np.ndarray | None = None  # newest RGB image not yet encoded
@@ -243,7 +243,7 @@ class _EstimateBox:
             self.cond.notify_all()
 
 
-def _make_handler(sink: "MjpegSink"):
+def _make_handler(sink: MjpegSink):
     box = sink._estimates
 
     class Handler(BaseHTTPRequestHandler):
@@ -254,8 +254,14 @@ def _make_handler(sink: "MjpegSink"):
         def log_message(self, fmt: str, *args: Any) -> None:  # route to logging, not stderr
             log.debug("MJPEG %s: " + fmt, self.address_string(), *args)
 
-        def _send_bytes(self, body: bytes, ctype: str, status: HTTPStatus = HTTPStatus.OK,
-                        cors: bool = False, cache: str = "no-store") -> None:
+        def _send_bytes(
+            self,
+            body: bytes,
+            ctype: str,
+            status: HTTPStatus = HTTPStatus.OK,
+            cors: bool = False,
+            cache: str = "no-store",
+        ) -> None:
             self.send_response(status)
             self.send_header("Content-Type", ctype)
             self.send_header("Content-Length", str(len(body)))
@@ -275,8 +281,11 @@ def _make_handler(sink: "MjpegSink"):
             self._send_bytes(f[0], f[1], cache=cache)
 
         def _not_found(self) -> None:
-            self._send_bytes(b"not found; try / (stream), /viewer, /stream.mjpg, /estimates, /estimate.json "
-                             b"or /stats.json\n", "text/plain; charset=utf-8", HTTPStatus.NOT_FOUND)
+            self._send_bytes(
+                b"not found; try / (stream), /viewer, /stream.mjpg, /estimates, /estimate.json or /stats.json\n",
+                "text/plain; charset=utf-8",
+                HTTPStatus.NOT_FOUND,
+            )
 
         def do_GET(self) -> None:  # noqa: N802 (http.server naming)
             path, _, query = self.path.partition("?")
@@ -285,7 +294,7 @@ def _make_handler(sink: "MjpegSink"):
             elif path in ("/viewer", "/viewer.html"):
                 self._static("viewer.html")
             elif path.startswith("/static/"):
-                self._static(path[len("/static/"):])
+                self._static(path[len("/static/") :])
             elif path == "/stats.json":
                 body = json.dumps(sink.status(), default=str).encode()
                 self._send_bytes(body, "application/json", cors=True)
@@ -297,8 +306,11 @@ def _make_handler(sink: "MjpegSink"):
             elif path == "/stream.mjpg":
                 src = parse_qs(query).get("source", ["composite"])[0]
                 if src not in ("composite", "camera"):
-                    self._send_bytes(f"unknown source {src!r}; expected composite or camera\n".encode(),
-                                     "text/plain; charset=utf-8", HTTPStatus.BAD_REQUEST)
+                    self._send_bytes(
+                        f"unknown source {src!r}; expected composite or camera\n".encode(),
+                        "text/plain; charset=utf-8",
+                        HTTPStatus.BAD_REQUEST,
+                    )
                     return
                 self._stream(sink._hub if src == "composite" else sink._camera_hub)
             elif path == "/model.glb":
@@ -306,8 +318,11 @@ def _make_handler(sink: "MjpegSink"):
                     body = sink.model_bytes()
                 except Exception as e:  # a broken model file must not take the server down
                     log.error("viewer model %s: %s", sink.viewer_model, e)
-                    self._send_bytes(f"viewer model {sink.viewer_model}: {e}\n".encode(), "text/plain; charset=utf-8",
-                                     HTTPStatus.INTERNAL_SERVER_ERROR)
+                    self._send_bytes(
+                        f"viewer model {sink.viewer_model}: {e}\n".encode(),
+                        "text/plain; charset=utf-8",
+                        HTTPStatus.INTERNAL_SERVER_ERROR,
+                    )
                     return
                 self._send_bytes(body, "model/gltf-binary", cache="no-cache")
             elif path == "/light_estimate.schema.json":
@@ -358,7 +373,7 @@ def _make_handler(sink: "MjpegSink"):
             finally:
                 box.add_listener(-1)
 
-        def _stream(self, hub: "_Hub") -> None:
+        def _stream(self, hub: _Hub) -> None:
             self.close_connection = True
             self.send_response(HTTPStatus.OK)
             self.send_header("Content-Type", f"multipart/x-mixed-replace; boundary={BOUNDARY}")
@@ -377,8 +392,7 @@ def _make_handler(sink: "MjpegSink"):
                     if jpeg is None:
                         continue
                     seq = new_seq
-                    head = (f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\n"
-                            f"Content-Length: {len(jpeg)}\r\n\r\n").encode()
+                    head = (f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n\r\n").encode()
                     self.wfile.write(head + jpeg + b"\r\n")
                     self.wfile.flush()
                     with hub.cond:
@@ -429,10 +443,17 @@ class MjpegSink(Sink):
 
     name = "mjpeg"
 
-    def __init__(self, listen: str = "127.0.0.1", port: int = 8080,
-                 stats: Callable[[], dict[str, Any]] | None = None, quality: int = 80,
-                 client_timeout_s: float = 10.0, max_fps: float = 30.0, viewer_model: str = "builtin:vase",
-                 object_scale: float = 1.0):
+    def __init__(
+        self,
+        listen: str = "127.0.0.1",
+        port: int = 8080,
+        stats: Callable[[], dict[str, Any]] | None = None,
+        quality: int = 80,
+        client_timeout_s: float = 10.0,
+        max_fps: float = 30.0,
+        viewer_model: str = "builtin:vase",
+        object_scale: float = 1.0,
+    ):
         if not (1 <= int(quality) <= 100):
             raise ValueError(f"MjpegSink quality must be within 1..100, got {quality!r}")
         if not (0 <= int(port) <= 65535):
@@ -486,19 +507,31 @@ class MjpegSink(Sink):
         self._server = server
         self.port = server.server_address[1]
         self._threads = [
-            threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.2},
-                             name="illuminet-mjpeg-http", daemon=True),
+            threading.Thread(
+                target=server.serve_forever, kwargs={"poll_interval": 0.2}, name="illuminet-mjpeg-http", daemon=True
+            ),
             threading.Thread(target=self._hub.encoder, name="illuminet-mjpeg-encoder", daemon=True),
             threading.Thread(target=self._camera_hub.encoder, name="illuminet-mjpeg-encoder-camera", daemon=True),
         ]
         for t in self._threads:
             t.start()
         if self.listen in ("0.0.0.0", "", "::"):
-            log.info("MJPEG server on all interfaces, port %d: open http://<this machine's address>:%d/ "
-                     "on the headset (locally %s; viewer %sviewer)", self.port, self.port, self.url, self.url)
+            log.info(
+                "MJPEG server on all interfaces, port %d: open http://<this machine's address>:%d/ "
+                "on the headset (locally %s; viewer %sviewer)",
+                self.port,
+                self.port,
+                self.url,
+                self.url,
+            )
         else:
-            log.info("MJPEG stream at %sstream.mjpg (page %s, lit viewer %sviewer, estimates %sestimates)",
-                     self.url, self.url, self.url, self.url)
+            log.info(
+                "MJPEG stream at %sstream.mjpg (page %s, lit viewer %sviewer, estimates %sestimates)",
+                self.url,
+                self.url,
+                self.url,
+                self.url,
+            )
 
     def write(self, frame: Frame) -> None:
         """Offer ``frame.results["composite"]`` (or the camera colour), the camera colour and the
@@ -538,8 +571,13 @@ class MjpegSink(Sink):
 
     def stats(self) -> dict[str, Any]:
         hub = self._hub
-        return {"clients": hub.clients, "encoded": hub.encoded, "sent": hub.sent, "port": self.port,
-                "estimates_sent": self._estimates.sent}
+        return {
+            "clients": hub.clients,
+            "encoded": hub.encoded,
+            "sent": hub.sent,
+            "port": self.port,
+            "estimates_sent": self._estimates.sent,
+        }
 
     def close(self) -> None:
         """Stop serving: clients are disconnected, threads end, the port is released. Idempotent."""

@@ -149,8 +149,7 @@ def safe_relpath(root: Path, rel: Any, what: str) -> Path:
     p = PurePosixPath(rel)
     if p.is_absolute() or "\\" in rel or (len(rel) > 1 and rel[1] == ":") or ".." in p.parts:
         raise SessionError(
-            f"{what}: path {rel!r} escapes the session folder {root}; only relative paths without "
-            f"'..' are allowed"
+            f"{what}: path {rel!r} escapes the session folder {root}; only relative paths without '..' are allowed"
         )
     full = root.joinpath(*p.parts)
     try:
@@ -163,13 +162,25 @@ def safe_relpath(root: Path, rel: Any, what: str) -> Path:
 
 
 def _png_color_params(level: int) -> list[int]:
-    return [cv2.IMWRITE_PNG_COMPRESSION, int(level), cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FAST_FILTERS,
-            cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY]
+    return [
+        cv2.IMWRITE_PNG_COMPRESSION,
+        int(level),
+        cv2.IMWRITE_PNG_FILTER,
+        cv2.IMWRITE_PNG_FAST_FILTERS,
+        cv2.IMWRITE_PNG_STRATEGY,
+        cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY,
+    ]
 
 
 #: 16-bit depth: unfiltered Huffman-only is both smaller and faster than filtering (noise defeats filters)
-_PNG_DEPTH_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE,
-                     cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY]
+_PNG_DEPTH_PARAMS = [
+    cv2.IMWRITE_PNG_COMPRESSION,
+    1,
+    cv2.IMWRITE_PNG_FILTER,
+    cv2.IMWRITE_PNG_FILTER_NONE,
+    cv2.IMWRITE_PNG_STRATEGY,
+    cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY,
+]
 # OpenCV >= 4.10 decodes straight to RGB (saves a colour conversion per frame)
 _IMREAD_RGB = getattr(cv2, "IMREAD_COLOR_RGB", None)
 
@@ -263,9 +274,16 @@ class SessionWriter:
         # level 1: Huffman-only (fast, the recording default); higher levels: LZ77 matching too, which
         # finds the repeated millimetre values of smooth surfaces (~60 % smaller at 9, slower to encode,
         # as fast to decode), no filter either way
-        self._depth_params = (list(_PNG_DEPTH_PARAMS) if int(depth_png_compression) == 1 else
-                              [cv2.IMWRITE_PNG_COMPRESSION, int(depth_png_compression),
-                               cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE])
+        self._depth_params = (
+            list(_PNG_DEPTH_PARAMS)
+            if int(depth_png_compression) == 1
+            else [
+                cv2.IMWRITE_PNG_COMPRESSION,
+                int(depth_png_compression),
+                cv2.IMWRITE_PNG_FILTER,
+                cv2.IMWRITE_PNG_FILTER_NONE,
+            ]
+        )
         self.meta = None if meta is None else dict(meta)
         self.count = 0
         self._manifest: dict[str, Any] | None = None
@@ -303,8 +321,11 @@ class SessionWriter:
             "height": int(h),
             "intrinsics": frame.intrinsics.to_dict(),
             "color": color,
-            "depth": ({"encoding": "png16", "unit": "mm", **({"scale": k} if k > 1 else {})}
-                      if frame.depth is not None else None),
+            "depth": (
+                {"encoding": "png16", "unit": "mm", **({"scale": k} if k > 1 else {})}
+                if frame.depth is not None
+                else None
+            ),
             "index": INDEX,
             "finalized": False,
             "frame_count": None,
@@ -344,8 +365,9 @@ class SessionWriter:
             if k > 1:
                 h, w = mm.shape
                 if w % k or h % k:
-                    raise SessionError(f"{self.path}: depth_scale {k} does not divide the depth size {w}x{h} "
-                                       f"of frame {frame.seq}")
+                    raise SessionError(
+                        f"{self.path}: depth_scale {k} does not divide the depth size {w}x{h} of frame {frame.seq}"
+                    )
                 mm = np.ascontiguousarray(mm[::k, ::k])  # top-left of each block: no mixing across edges
             ok, buf = cv2.imencode(".png", mm, self._depth_params)
             if not ok:
@@ -384,8 +406,12 @@ class SessionWriter:
             )
         i = self.count
         stem = f"{FRAMES_DIR}/{i:06d}"
-        entry: dict[str, Any] = {"i": i, "seq": int(frame.seq), "t_device_ns": int(frame.t_device_ns),
-                                 "t_host_ns": int(frame.t_host_ns)}
+        entry: dict[str, Any] = {
+            "i": i,
+            "seq": int(frame.seq),
+            "t_device_ns": int(frame.t_device_ns),
+            "t_host_ns": int(frame.t_host_ns),
+        }
         # 1) the frame's files, complete (and durable) before the index mentions them
         crel = stem + _COLOR_EXT[self.color]
         _write_file(self.path / crel, enc.color, self.fsync)
@@ -399,8 +425,11 @@ class SessionWriter:
         entry["exposure"] = frame.exposure.to_dict()
         entry["gravity"] = None if frame.gravity is None else [float(x) for x in np.asarray(frame.gravity).ravel()]
         entry["imu"] = [
-            {"t_ns": int(s.t_ns), "accel": [float(x) for x in s.accel],
-             "gyro": None if s.gyro is None else [float(x) for x in s.gyro]}
+            {
+                "t_ns": int(s.t_ns),
+                "accel": [float(x) for x in s.accel],
+                "gyro": None if s.gyro is None else [float(x) for x in s.gyro],
+            }
             for s in frame.imu
         ]
         if frame.intrinsics.to_dict() != m["intrinsics"]:
@@ -426,12 +455,14 @@ class SessionWriter:
         if self._closed:
             raise SessionError(f"{self.path}: session writer is closed")
         if not 0 <= int(i) < self.count:
-            raise SessionError(f"{self.path}: estimate for frame {i}, but only frames 0..{self.count - 1} "
-                               f"are committed")
+            raise SessionError(
+                f"{self.path}: estimate for frame {i}, but only frames 0..{self.count - 1} are committed"
+            )
         if self._estimates_fd is None:
             self._estimates_fd = os.open(self.path / ESTIMATES, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
-        line = (json.dumps({"i": int(i), "estimate": estimate}, separators=(",", ":"), allow_nan=False)
-                + "\n").encode("utf-8")
+        line = (json.dumps({"i": int(i), "estimate": estimate}, separators=(",", ":"), allow_nan=False) + "\n").encode(
+            "utf-8"
+        )
         os.write(self._estimates_fd, line)
         if self.fsync:
             _datasync(self._estimates_fd)
@@ -543,8 +574,11 @@ class SessionReader:
         self.finalized = bool(m.get("finalized", False))
         self.entries = self._read_index()
         if not self.finalized:
-            self.problems.insert(0, f"{self.path}: recording was not finalised (interrupted or killed); "
-                                    f"{len(self.entries)} complete frames are replayable")
+            self.problems.insert(
+                0,
+                f"{self.path}: recording was not finalised (interrupted or killed); "
+                f"{len(self.entries)} complete frames are replayable",
+            )
         count = m.get("frame_count")
         if self.finalized and isinstance(count, int) and count != self._index_lines:
             self.problems.append(
@@ -556,8 +590,14 @@ class SessionReader:
         if self.problems:
             shown = self.problems[:5]
             more = f"\n  ... and {len(self.problems) - 5} more" if len(self.problems) > 5 else ""
-            log.warning("session %s: %d problem(s); replaying the %d intact frames:\n  %s%s",
-                        self.path, len(self.problems), len(self.entries), "\n  ".join(shown), more)
+            log.warning(
+                "session %s: %d problem(s); replaying the %d intact frames:\n  %s%s",
+                self.path,
+                len(self.problems),
+                len(self.entries),
+                "\n  ".join(shown),
+                more,
+            )
 
     # -- manifest
 
@@ -592,7 +632,8 @@ class SessionReader:
             Intrinsics.from_dict(intr)
         except (KeyError, TypeError, ValueError) as e:
             raise SessionError(
-                f"{where}: key 'intrinsics': expected fx, fy, cx, cy, width, height numbers ({e!r})") from None
+                f"{where}: key 'intrinsics': expected fx, fy, cx, cy, width, height numbers ({e!r})"
+            ) from None
         color = _need(m, "color", (dict,), where)
         if color.get("encoding") not in COLOR_ENCODINGS:
             raise SessionError(
@@ -600,14 +641,14 @@ class SessionReader:
             )
         depth = _need(m, "depth", (dict, type(None)), where)
         if depth is not None and (depth.get("encoding"), depth.get("unit")) != ("png16", "mm"):
-            raise SessionError(
-                f"{where}: key 'depth': expected encoding 'png16' with unit 'mm', got {depth!r}"
-            )
+            raise SessionError(f"{where}: key 'depth': expected encoding 'png16' with unit 'mm', got {depth!r}")
         if depth is not None and "scale" in depth:
             k = depth["scale"]
             if ver < FORMAT_VERSION_DEPTH_SCALE:
-                raise SessionError(f"{where}: key 'depth.scale' needs format version {FORMAT_VERSION_DEPTH_SCALE}, "
-                                   f"the manifest says version {ver}")
+                raise SessionError(
+                    f"{where}: key 'depth.scale' needs format version {FORMAT_VERSION_DEPTH_SCALE}, "
+                    f"the manifest says version {ver}"
+                )
             if isinstance(k, bool) or not isinstance(k, int) or k < 1:
                 raise SessionError(f"{where}: key 'depth.scale': expected an int >= 1, got {k!r}")
             if m["width"] % k or m["height"] % k:
@@ -690,20 +731,34 @@ class SessionReader:
             w2 = f"{where}: imu[{k}]"
             if not isinstance(s, dict):
                 raise SessionError(f"{w2}: expected an object, got {s!r}")
-            imu.append(ImuSample(
-                t_ns=_need(s, "t_ns", (int,), w2),
-                accel=_vec(s.get("accel"), 3, f"{w2}.accel"),
-                gyro=None if s.get("gyro") is None else _vec(s["gyro"], 3, f"{w2}.gyro"),
-            ))
+            imu.append(
+                ImuSample(
+                    t_ns=_need(s, "t_ns", (int,), w2),
+                    accel=_vec(s.get("accel"), 3, f"{w2}.accel"),
+                    gyro=None if s.get("gyro") is None else _vec(s["gyro"], 3, f"{w2}.gyro"),
+                )
+            )
         intr = None
         if d.get("intrinsics") is not None:
             try:
                 intr = Intrinsics.from_dict(d["intrinsics"])
             except (KeyError, TypeError, ValueError, AttributeError) as ex:
                 raise SessionError(f"{where}: key 'intrinsics': {ex!r}") from None
-        return FrameEntry(i=i, line=no, seq=seq, t_device_ns=t_dev, t_host_ns=t_host, color=color,
-                          color_bytes=cbytes, depth=depth, depth_bytes=dbytes, exposure=exposure,
-                          gravity=gravity, imu=tuple(imu), intrinsics=intr)
+        return FrameEntry(
+            i=i,
+            line=no,
+            seq=seq,
+            t_device_ns=t_dev,
+            t_host_ns=t_host,
+            color=color,
+            color_bytes=cbytes,
+            depth=depth,
+            depth_bytes=dbytes,
+            exposure=exposure,
+            gravity=gravity,
+            imu=tuple(imu),
+            intrinsics=intr,
+        )
 
     @staticmethod
     def _check_file(path: Path, expected: int, what: str) -> None:
@@ -782,8 +837,15 @@ class SessionReader:
                 # first touches k^2 fewer pixels: ~1 ms less per 1280x800 frame, same values
                 depth = cv2.resize(depth, (self.width, self.height), interpolation=cv2.INTER_NEAREST)
         return Frame(
-            seq=e.seq, t_device_ns=e.t_device_ns, t_host_ns=e.t_host_ns, color=color, depth=depth,
-            intrinsics=e.intrinsics or self.intrinsics, exposure=e.exposure, gravity=e.gravity, imu=e.imu,
+            seq=e.seq,
+            t_device_ns=e.t_device_ns,
+            t_host_ns=e.t_host_ns,
+            color=color,
+            depth=depth,
+            intrinsics=e.intrinsics or self.intrinsics,
+            exposure=e.exposure,
+            gravity=e.gravity,
+            imu=e.imu,
         )
 
     def __iter__(self) -> Iterator[Frame]:
@@ -817,8 +879,12 @@ class SessionReader:
             else:
                 bad += 1
         if bad:
-            log.warning("session %s: %d line(s) of %s skipped (torn, malformed, or for no intact frame)",
-                        self.path, bad, ESTIMATES)
+            log.warning(
+                "session %s: %d line(s) of %s skipped (torn, malformed, or for no intact frame)",
+                self.path,
+                bad,
+                ESTIMATES,
+            )
         return out
 
     def check(self) -> list[str]:

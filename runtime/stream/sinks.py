@@ -97,8 +97,9 @@ class _PyAvWriter:
     """
 
     def __init__(self, path: Path, size: tuple[int, int], fps: float):
-        import av
         from fractions import Fraction
+
+        import av
 
         # +faststart: the index (moov) goes first, so a browser plays the file while it downloads
         opts = {"movflags": "+faststart"} if path.suffix.lower() != ".mkv" else {}
@@ -187,21 +188,22 @@ class VideoSink(Sink):
 
     name = "video"
 
-    def __init__(self, path: str | os.PathLike, fps: float = 30.0, codecs: tuple[str, ...] | None = None,
-                 backend: str = "auto"):
+    def __init__(
+        self, path: str | os.PathLike, fps: float = 30.0, codecs: tuple[str, ...] | None = None, backend: str = "auto"
+    ):
         self.path = Path(path)
         ext = self.path.suffix.lower()
         if ext not in VIDEO_CODECS and codecs is None:
-            raise SinkError(
-                f"video {self.path}: unknown extension {ext!r}; expected one of {', '.join(VIDEO_CODECS)}"
-            )
+            raise SinkError(f"video {self.path}: unknown extension {ext!r}; expected one of {', '.join(VIDEO_CODECS)}")
         if backend not in ("auto", "pyav", "opencv"):
             raise SinkError(f"video {self.path}: backend must be auto, pyav or opencv, got {backend!r}")
         if not fps > 0:
             raise SinkError(f"video {self.path}: fps must be > 0, got {fps!r}")
         if backend == "pyav" and (ext not in PYAV_CONTAINERS or codecs is not None):
-            raise SinkError(f"video {self.path}: the PyAV backend writes H.264 into {', '.join(PYAV_CONTAINERS)} "
-                            f"(without OpenCV FourCC codes)")
+            raise SinkError(
+                f"video {self.path}: the PyAV backend writes H.264 into {', '.join(PYAV_CONTAINERS)} "
+                f"(without OpenCV FourCC codes)"
+            )
         if backend == "pyav" and not pyav_available():
             raise SinkError(f"video {self.path}: PyAV is not installed; pip install av (or use backend 'opencv')")
         if backend == "auto":
@@ -219,8 +221,10 @@ class VideoSink(Sink):
             try:
                 return _PyAvWriter(path, size, self.fps), "h264"
             except Exception as e:  # PyAV/FFmpeg raise their own types (av.error.*)
-                raise SinkError(f"video {self.path}: PyAV could not open an H.264 writer at {size[0]}x{size[1]}: "
-                                f"{e}; check that the folder is writable, or write .avi (OpenCV MJPG)") from None
+                raise SinkError(
+                    f"video {self.path}: PyAV could not open an H.264 writer at {size[0]}x{size[1]}: "
+                    f"{e}; check that the folder is writable, or write .avi (OpenCV MJPG)"
+                ) from None
         tried = []
         for cc in self.codecs:
             w = cv2.VideoWriter(str(path), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*cc), self.fps, size)
@@ -252,12 +256,21 @@ class VideoSink(Sink):
             even = (size[0] + size[0] % 2, size[1] + size[1] % 2) if self.backend == "pyav" else size
             self._writer, self.codec = self._create(self.path, even)
             self._size = size
-            log.info("video %s: %dx%d at %.3g fps, codec %s (%s)", self.path, size[0], size[1], self.fps,
-                     self.codec, "PyAV" if self.backend == "pyav" else "OpenCV")
+            log.info(
+                "video %s: %dx%d at %.3g fps, codec %s (%s)",
+                self.path,
+                size[0],
+                size[1],
+                self.fps,
+                self.codec,
+                "PyAV" if self.backend == "pyav" else "OpenCV",
+            )
         elif size != self._size:
             # VideoWriter would silently drop a frame of another size; say so instead
-            raise SinkError(f"video {self.path}: frame {frame.seq} is {size[0]}x{size[1]}, the video is "
-                            f"{self._size[0]}x{self._size[1]}")
+            raise SinkError(
+                f"video {self.path}: frame {frame.seq} is {size[0]}x{size[1]}, the video is "
+                f"{self._size[0]}x{self._size[1]}"
+            )
         if self.backend == "pyav":
             try:
                 self._writer.write(_even(img))
@@ -309,8 +322,14 @@ class PngSequenceSink(Sink):
         path = self.directory / f"frame_{frame.seq:06d}.png"
         bgr = cv2.cvtColor(output_picture(frame), cv2.COLOR_RGB2BGR)
         # fast filter set + Huffman-only: ~4x faster to encode than OpenCV's default, ~15 % larger
-        params = [cv2.IMWRITE_PNG_COMPRESSION, self.compression, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FAST_FILTERS,
-                  cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY]
+        params = [
+            cv2.IMWRITE_PNG_COMPRESSION,
+            self.compression,
+            cv2.IMWRITE_PNG_FILTER,
+            cv2.IMWRITE_PNG_FAST_FILTERS,
+            cv2.IMWRITE_PNG_STRATEGY,
+            cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY,
+        ]
         if not cv2.imwrite(str(path), bgr, params):
             raise SinkError(f"PNG sequence: OpenCV could not write {path} (disk full or not writable?)")
         self.frames += 1
@@ -420,8 +439,9 @@ class SessionRecorderSink(Sink):
         encoders: int = 2,
     ):
         self.path = Path(path)
-        self._writer_args = dict(source=source, color=color, jpeg_quality=jpeg_quality,
-                                 png_compression=png_compression, fsync=fsync)
+        self._writer_args = dict(
+            source=source, color=color, jpeg_quality=jpeg_quality, png_compression=png_compression, fsync=fsync
+        )
         self._queue_size = queue_size
         self._encoders = max(1, int(encoders))
         self._writer: SessionWriter | None = None

@@ -25,9 +25,15 @@ import numpy as np
 STATIC_DIR = Path(__file__).with_name("static")
 
 #: content types of the static files (mimetypes' table differs between systems for .js and .glb)
-_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
-          ".json": "application/json", ".css": "text/css; charset=utf-8", ".glb": "model/gltf-binary",
-          ".png": "image/png", ".txt": "text/plain; charset=utf-8"}
+_TYPES = {
+    ".html": "text/html; charset=utf-8",
+    ".js": "text/javascript; charset=utf-8",
+    ".json": "application/json",
+    ".css": "text/css; charset=utf-8",
+    ".glb": "model/gltf-binary",
+    ".png": "image/png",
+    ".txt": "text/plain; charset=utf-8",
+}
 #: mesh files the viewer can draw (a .glb is served as it is; the others are converted)
 MODEL_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".stl", ".off")
 
@@ -69,16 +75,22 @@ def check_model_spec(spec: str) -> None:
 
         name = str(spec).split(":", 1)[1]
         if name not in BUILTIN_OBJECTS:
-            raise ValueError(f"[output] viewer_model = {spec!r}: unknown built-in object; expected "
-                             f"builtin:{'|'.join(BUILTIN_OBJECTS)} or a mesh file")
+            raise ValueError(
+                f"[output] viewer_model = {spec!r}: unknown built-in object; expected "
+                f"builtin:{'|'.join(BUILTIN_OBJECTS)} or a mesh file"
+            )
         return
     path = Path(spec)
     if not path.is_file():
-        raise ValueError(f"[output] viewer_model = {spec!r}: no such file; give a .glb/.gltf/.obj/.ply/.stl/.off "
-                         f"file (--viewer-model PATH) or builtin:NAME")
+        raise ValueError(
+            f"[output] viewer_model = {spec!r}: no such file; give a .glb/.gltf/.obj/.ply/.stl/.off "
+            f"file (--viewer-model PATH) or builtin:NAME"
+        )
     if path.suffix.lower() not in MODEL_SUFFIXES:
-        raise ValueError(f"[output] viewer_model = {spec!r}: unknown mesh format {path.suffix!r}; expected one of "
-                         f"{', '.join(MODEL_SUFFIXES)}")
+        raise ValueError(
+            f"[output] viewer_model = {spec!r}: unknown mesh format {path.suffix!r}; expected one of "
+            f"{', '.join(MODEL_SUFFIXES)}"
+        )
 
 
 def model_glb(spec: str, scale: float = 1.0) -> bytes:
@@ -108,7 +120,10 @@ def model_glb(spec: str, scale: float = 1.0) -> bytes:
     plain = visual is None or (getattr(visual, "kind", None) is None)
     if plain:  # no texture or colours of its own: the grey the project's renderer gives it
         a = float(DEFAULT_ALBEDO)
-        mesh.visual = trimesh.visual.TextureVisuals(material=trimesh.visual.material.PBRMaterial(
-            baseColorFactor=np.array([a, a, a, 1.0]), metallicFactor=0.0, roughnessFactor=0.9))
+        mesh.visual = trimesh.visual.TextureVisuals(
+            material=trimesh.visual.material.PBRMaterial(
+                baseColorFactor=np.array([a, a, a, 1.0]), metallicFactor=0.0, roughnessFactor=0.9
+            )
+        )
     # with normals: without them glTF viewers shade flat (faceted)
     return trimesh.exchange.gltf.export_glb(trimesh.Scene(mesh), include_normals=True)
