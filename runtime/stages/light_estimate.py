@@ -28,8 +28,9 @@ Observations (each switchable in ``[light]`` for the ablation in ``illuminet eva
   distance and (from the fit's slope against the intercepts) the primary/ambient split and colour.
 * **emitters** -- bins far brighter than the rest of the map (a lamp shade, a window, the sky's sun
   region) give a direction.
-* **shadows** -- (when :mod:`illuminet.runtime.stages.shadow_cue` is present) real cast shadows
-  scored against the caster geometry from depth: the sun's azimuth on a uniform floor.
+* **shadows** -- real cast shadows scored against the caster geometry from depth
+  (:mod:`illuminet.runtime.stages.shadow_cue`): the sun's azimuth on a uniform floor. A full search
+  about once a second, refined locally in between; used when its confidence reaches 0.3.
 
 Solve
 -----
@@ -64,6 +65,7 @@ from illuminet.runtime.physics import linearize
 from illuminet.runtime.scene import ANCHOR, LIGHT, ODOMETRY, PLANE_LIGHT, PLANES, Anchor, LightEstimate, PlaneLight
 from illuminet.runtime.sh import SH_A_HAT, sh9
 from illuminet.runtime.stage import LogOnce, Stage
+from illuminet.runtime.stages.shadow_cue import ShadowTracker
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +82,9 @@ FAR_M = 8.0
 _NEAR_XZ = np.linspace(-1.2, 1.2, 13)
 _NEAR_Y = np.array([0.12, 0.3, 0.55, 0.9, 1.4])
 NEAR_GRID = np.stack([a.ravel() for a in np.meshgrid(_NEAR_XZ, _NEAR_Y, _NEAR_XZ, indexing="ij")], 1)
+#: a shadow cue below this confidence does not set the primary light (bench shadows: wrong answers
+#: came with confidence <= 0.04, sunny scenes with >= 0.3)
+SHADOW_MIN_CONFIDENCE = 0.3
 #: plane samples the near-light fit uses per frame (a random subset, fixed per frame number)
 NEAR_ROWS = 300
 
@@ -343,6 +348,8 @@ class LightEstimateStage(Stage):
             raise ValueError(f"[plane_light] assumed_albedo: expected a number in (0, 1], got {self.albedo!r}")
         self.lut = response_lut
         self.env = EnvMap()
+        self._shadows = ShadowTracker()
+        self.last_shadow = None
         self._warn = LogOnce(log, "light")
         self._near: NearFit | None = None
         self._shadow_prior: np.ndarray | None = None
@@ -443,7 +450,7 @@ class LightEstimateStage(Stage):
             cues.append("near_light")
         shadow = None
         if primary_dir is None and self.use_shadows:
-            shadow = self._shadow_cue(frame, anchor, planes, s)
+            shadow = self._shadow_cue(frame, anchor, planes)
             if shadow is not None:
                 primary_dir = shadow[0]
                 cues.append("shadow")
@@ -533,6 +540,7 @@ class LightEstimateStage(Stage):
                 self.env.reset()
                 self._state = None
                 self._near = None
+                self._shadows.reset()
         elif self._anchor_T is not None and odo is None:
             # camera-locked anchor: the object frame moves with the camera; keep the map short-lived
             self.env.keep = 0.5
@@ -629,12 +637,29 @@ class LightEstimateStage(Stage):
         nd = float(np.linalg.norm(d))
         return (d / nd if nd > 0 else None), int(hot.sum())
 
-    def _shadow_cue(self, frame, anchor, planes, s) -> tuple[np.ndarray, float] | None:
-        try:
-            from illuminet.runtime.stages import shadow_cue
-        except ImportError:  # the shadow cue module is optional in this build
+    def _shadow_cue(self, frame: Frame, anchor: Anchor, planes: tuple) -> tuple[np.ndarray, float] | None:
+        """Direction and confidence from real cast shadows (:mod:`~illuminet.runtime.stages.shadow_cue`):
+        a full search about once a second, a local refinement in between (:class:`ShadowTracker`)."""
+        if frame.depth is None or not planes:
             return None
-        return shadow_cue.from_stage(self, frame, anchor, planes, self.lut)
+        depth = frame.depth
+        if depth.dtype == np.uint16:
+            depth = depth.astype(np.float32) * np.float32(0.001)
+        dH, dW = depth.shape[:2]
+        color = frame.color
+        if color.shape[:2] != (dH, dW):  # the cue works at the depth's resolution
+            import cv2
+
+            color = cv2.resize(color, (dW, dH), interpolation=cv2.INTER_AREA)
+        intr = frame.intrinsics
+        if (intr.width, intr.height) != (dW, dH):
+            intr = intr.scaled(dW, dH)
+        t_ns = frame.t_device_ns or frame.t_host_ns or 0
+        cue = self._shadows.update(linearize(color, self.lut), depth, intr, planes, anchor.T_cam_obj, t_ns * 1e-9)
+        self.last_shadow = cue
+        if cue is None or cue.confidence < SHADOW_MIN_CONFIDENCE:
+            return None
+        return np.asarray(cue.direction, np.float64), float(cue.confidence)
 
     def _solve(self, xs, ns, es, ws, primary_dir, primary_pos) -> tuple[np.ndarray, np.ndarray]:
         """Ambient radiance SH (9, 3) and primary RGB irradiance (3,) by one weighted least squares."""
