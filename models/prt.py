@@ -9,7 +9,8 @@ Per lighting-proxy vertex (the layout and the run-time side are in :mod:`illumin
   directions, ``4 pi / N`` each). A vertex the object does not occlude therefore gets the exact
   no-visibility value, and the quadrature error only touches the occluded part. The floor (y = 0)
   is deliberately not an occluder here: what a ray sees below the horizon is the floor, whose
-  radiance is the lower hemisphere of the light estimate's ambient SH (the floor bounce);
+  radiance is the lower hemisphere of the light estimate's ambient SH (the floor bounce), darkened
+  where the object shadows the floor (:func:`floor_occlusion`: nothing under the base);
 * the primary light's visibility over K table directions: the object and the vertex's own tangent
   plane (``n_i . w <= 0``) block; the floor is applied at run time, exactly at the horizon (a table
   entry for it would blur the horizon over the interpolation kernel, dimming a low sun);
@@ -93,6 +94,7 @@ def compute_prt(
     albedo: float = 0.0,
     eps: float = DEFAULT_EPS,
     progress: Callable[[str, int, int], None] | None = None,
+    floor_shadow: bool = True,
 ) -> PrtResult:
     """PRT tables of ``points`` on ``mesh`` (see the module docstring).
 
@@ -112,6 +114,9 @@ def compute_prt(
     eps : float
         Ray start offset along the normal, metres.
     progress : callable ``(step, done, total)``, optional
+    floor_shadow : bool
+        Darken the floor a downward ray meets by the object's shadow on it (:func:`floor_occlusion`);
+        False gives the object's self-visibility alone (an object floating in the light).
 
     Returns
     -------
@@ -142,6 +147,14 @@ def compute_prt(
     b = np.flatnonzero(blocked)
     lost = np.zeros((len(P), transfer_rays))  # dw cos of every blocked (vertex, direction)
     lost[vi[b], ki[b]] = dw * cos[b]
+    # the floor a downward ray meets is the object's own shadow near the object: its radiance there is
+    # the floor's ambient radiance times the floor's unoccluded share (cosine-weighted sky visibility)
+    free_down = np.flatnonzero(~blocked & (D[ki, 1] < -1e-6))
+    if floor_shadow and len(free_down):
+        ao = floor_occlusion(mesh, eps=eps)
+        p0, d = P[vi[free_down]], D[ki[free_down]]
+        hit = p0 + (-np.maximum(p0[:, 1], 0.0) / d[:, 1])[:, None] * d
+        lost[vi[free_down], ki[free_down]] += dw * cos[free_down] * (1.0 - ao(hit[:, [0, 2]]))
     T = unoccluded_transfer(N) - lost @ Y
     timings["transfer_s"] = time.perf_counter() - t0
 
@@ -195,6 +208,48 @@ def compute_prt(
         timings_s=timings,
         bounce_operator=op,
     )
+
+
+def floor_occlusion(
+    mesh, cells: int = 48, rays: int = 128, eps: float = DEFAULT_EPS
+) -> Callable[[np.ndarray], np.ndarray]:
+    """The floor's sky visibility around the object standing on it: ``ao(xz) -> (N,)`` in [0, 1].
+
+    Cosine-weighted share of the upper hemisphere the object leaves open at floor points (y = 0),
+    on a ``cells`` x ``cells`` grid over the object's footprint widened by its height on every side
+    (beyond it the object's shadow on the floor is negligible: 1), bilinearly interpolated. Under
+    the object's base it is 0: a vertex resting on the floor gets no light from below.
+    """
+    v = np.asarray(mesh.vertices, np.float64)
+    h = float(max(v[:, 1].max(), 1e-3))
+    lo, hi = v[:, [0, 2]].min(0) - h, v[:, [0, 2]].max(0) + h
+    gx, gz = np.linspace(lo[0], hi[0], cells), np.linspace(lo[1], hi[1], cells)
+    X, Z = np.meshgrid(gx, gz, indexing="ij")
+    pts = np.stack([X.ravel(), np.full(X.size, eps), Z.ravel()], 1)
+    D = fibonacci_sphere(2 * rays)
+    D = D[D[:, 1] > 0]
+    w = D[:, 1] / D[:, 1].sum()
+    tri, _ = first_hits(mesh, np.repeat(pts, len(D), 0), np.tile(D, (len(pts), 1)))
+    open_ = (tri.reshape(len(pts), len(D)) < 0).astype(np.float64) @ w
+    grid = open_.reshape(cells, cells)
+
+    def ao(xz: np.ndarray) -> np.ndarray:
+        xz = np.asarray(xz, np.float64)
+        fx = (xz[:, 0] - lo[0]) / (hi[0] - lo[0]) * (cells - 1)
+        fz = (xz[:, 1] - lo[1]) / (hi[1] - lo[1]) * (cells - 1)
+        inside = (fx >= 0) & (fx <= cells - 1) & (fz >= 0) & (fz <= cells - 1)
+        i0 = np.clip(np.floor(fx).astype(np.int64), 0, cells - 2)
+        j0 = np.clip(np.floor(fz).astype(np.int64), 0, cells - 2)
+        tx, tz = np.clip(fx - i0, 0, 1), np.clip(fz - j0, 0, 1)
+        val = (
+            (1 - tx) * (1 - tz) * grid[i0, j0]
+            + tx * (1 - tz) * grid[i0 + 1, j0]
+            + (1 - tx) * tz * grid[i0, j0 + 1]
+            + tx * tz * grid[i0 + 1, j0 + 1]
+        )
+        return np.where(inside, val, 1.0)
+
+    return ao
 
 
 def interreflection(result: PrtResult, albedo: float, bounces: int) -> np.ndarray:
@@ -254,7 +309,8 @@ def prt_meta(result: PrtResult, transfer_rays: int, table_directions: int, comma
         "timings_s": {k: round(v, 3) for k, v in result.timings_s.items()},
         "convention": "E = transfer @ L_radiance (9 SH coefficients, no 1/pi; LightEstimate.radiance_sh9()), object "
         "frame +Y up; unoccluded: transfer = A_hat_l Y_lm(n)",
-        "floor": "transfer: the floor does not occlude (its radiance is the ambient SH's lower hemisphere); "
+        "floor": "transfer: the floor does not occlude (its radiance is the ambient SH's lower hemisphere, "
+        "darkened where the object shadows it: floor_occlusion); "
         "visibility table: object and facing only; the floor blocks the primary light below the "
         "horizon at run time (runtime/prt.py floor_factor)",
     }

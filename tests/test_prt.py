@@ -26,10 +26,30 @@ from ._learn_helpers import plane_light
 FAST = {"transfer_rays": 1024, "table_directions": 512}
 
 
-def _mesh_prt(name: str, albedo: float = 0.0):
+def _mesh_prt(name: str, albedo: float = 0.0, floor_shadow: bool = False):
+    """PRT of a built-in proxy; without the floor's shadow by default (the formula tests: the object's
+    self-visibility alone), see test_floor_under_the_object_is_its_shadow for the floor."""
     mesh = builtin_object(name, "proxy")
-    res = compute_prt(mesh, mesh.vertices, mesh.vertex_normals, albedo=albedo, **FAST)
+    res = compute_prt(mesh, mesh.vertices, mesh.vertex_normals, albedo=albedo, floor_shadow=floor_shadow, **FAST)
     return mesh, res
+
+
+def test_floor_under_the_object_is_its_shadow():
+    """A vertex resting on the floor sees no light from below (the floor there is under the object);
+    a down-facing vertex higher up sees the floor lit around the object."""
+    mesh, res = _mesh_prt("sphere", floor_shadow=True)
+    _, free = _mesh_prt("sphere", floor_shadow=False)
+    v, n = np.asarray(mesh.vertices), np.asarray(mesh.vertex_normals)
+    # uniform radiance 1 from every direction: the DC transfer is the irradiance. The lowest vertex
+    # looks at the contact point; the ring just above it at the floor in the sphere's own shadow
+    lowest = np.argmin(v[:, 1])
+    assert res.transfer[lowest, 0] < 0.05 * free.transfer[lowest, 0]
+    bottom = v[:, 1] < 0.01
+    assert res.transfer[bottom, 0].mean() < 0.3 * free.transfer[bottom, 0].mean()
+    side_down = (n[:, 1] < -0.3) & (n[:, 1] > -0.7) & (v[:, 1] > 0.05)
+    assert side_down.any()
+    ratio = res.transfer[side_down, 0] / free.transfer[side_down, 0]
+    assert (ratio > 0.3).all() and (ratio < 1.0).all(), ratio
 
 
 @pytest.fixture(scope="module")
