@@ -39,9 +39,8 @@ def test_every_python_folder_is_a_declared_package():
                 assert (py / "__init__.py").is_file(), f"{py.relative_to(REPO)} has modules but no __init__.py"
 
 
-@pytest.mark.slow
 def test_built_wheel_imports_every_package(tmp_path):
-    """Build the wheel (no network: the build backend is already installed), install it into a fresh
+    """Build the wheel (pip fetches the build backend pyproject names: setuptools>=69), unpack it into a fresh
     target folder and import every declared package from there."""
     packages, _ = _declared()
     r = subprocess.run(
@@ -51,7 +50,6 @@ def test_built_wheel_imports_every_package(tmp_path):
             "pip",
             "wheel",
             "--no-deps",
-            "--no-build-isolation",
             "-q",
             "-w",
             str(tmp_path / "dist"),
