@@ -6,7 +6,6 @@ import subprocess
 import sys
 import zipfile
 
-import pytest
 import tomllib
 
 from .conftest import REPO
