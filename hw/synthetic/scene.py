@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from illuminet.hw.synthetic.textures import make_albedo_tile
+from illuminet.runtime.errors import SourceURLError
 from illuminet.runtime.frame import Intrinsics
 from illuminet.runtime.groundtruth import lighting as L
 from illuminet.runtime.scene import Plane
@@ -25,7 +26,7 @@ ROOM_LABELS = ("floor", "wall", "ceiling")
 OAKD_INTRINSICS_1280 = Intrinsics(fx=800.0, fy=800.0, cx=639.5, cy=399.5, width=1280, height=800)
 
 
-class SyntheticError(ValueError):
+class SyntheticError(SourceURLError):
     """A ``synthetic://`` URL is invalid; the message names the parameter and what was expected."""
 
 

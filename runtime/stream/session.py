@@ -81,8 +81,8 @@ _COLOR_EXT = {"png": ".color.png", "jpeg": ".color.jpg", "raw": ".color.rgb"}
 DEFAULT_PNG_COMPRESSION = 1
 
 
-class SessionError(ValueError):
-    """A session folder, manifest, index line or frame file is invalid; the message says which and why."""
+# defined in runtime/errors.py (one hierarchy for every error a user can meet); re-exported here
+from illuminet.runtime.errors import SessionError  # noqa: E402,F401
 
 
 class CorruptFrame(SessionError):
