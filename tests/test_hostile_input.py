@@ -9,6 +9,8 @@ program wait for minutes or build huge tables. Class 7: output paths are checked
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 import time
 import tracemalloc
 
@@ -18,7 +20,9 @@ from illuminet.cli import main
 from illuminet.runtime import errors
 from illuminet.runtime.stream.session import SessionReader
 
+from . import _sessions
 from ._sessions import make_session
+from .conftest import REPO
 
 # (argv, exit status, text the one line must contain); paths under "{tmp}" are made per test
 BAD_INPUTS = [
@@ -73,14 +77,23 @@ def test_a_mistake_is_one_line_with_its_exit_status(tmp_path, capsys, argv, code
     assert not (tmp_path / "missing").exists()
 
 
-def test_a_gl_backend_that_cannot_start_is_one_line(tmp_path, capsys, monkeypatch):
-    monkeypatch.delenv("DISPLAY", raising=False)
-    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
-    rc = main(["--set", "render.gl_backend=default", "run", "synthetic://indoor?size=64x48", "--max-frames", "1"])
-    err = capsys.readouterr().err
-    lines = [ln for ln in err.splitlines() if ln.startswith("illuminet:")]
-    assert rc == 1 and len(lines) == 1 and "OpenGL" in lines[0], err
-    assert "Traceback" not in err
+def test_a_gl_backend_that_cannot_start_is_one_line():
+    # in a fresh process: the test process's GL tests share one context, which would hide the failure
+    env = _sessions.env()
+    env.pop("DISPLAY", None)
+    env.pop("WAYLAND_DISPLAY", None)
+    p = subprocess.run(
+        [sys.executable, "-m", "illuminet", "--set", "render.gl_backend=default", "run"]
+        + ["synthetic://indoor?size=64x48", "--max-frames", "1"],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    lines = [ln for ln in p.stderr.splitlines() if ln.startswith("illuminet:")]
+    assert p.returncode == 1 and len(lines) == 1 and "OpenGL" in lines[0], p.stderr
+    assert "Traceback" not in p.stderr
 
 
 def test_debug_log_level_shows_the_traceback(capsys):
