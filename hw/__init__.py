@@ -16,6 +16,7 @@ from typing import Any
 from urllib.parse import parse_qsl, urlsplit
 
 from illuminet.runtime.config import Config, defaults
+from illuminet.runtime.errors import EXIT_USAGE, IllumiNetError, SourceError, SourceURLError
 from illuminet.runtime.stage import Source
 
 #: URL scheme -> module of this package implementing ``open_url(url: str, config: Config) -> Source``
@@ -37,7 +38,7 @@ URL_FALSE = ("0", "false", "no", "off")
 
 
 def parse_query(
-    url: str, parsers: Mapping[str, Callable[[str], Any]], error: Callable[[str], Exception] = ValueError
+    url: str, parsers: Mapping[str, Callable[[str], Any]], error: Callable[[str], Exception] = SourceURLError
 ) -> dict[str, Any]:
     """The query of a source URL as ``{key: parsed value}``, for the keys present.
 
@@ -50,7 +51,8 @@ def parse_query(
         ...")`` for a bad one (:func:`query_bool`, :func:`query_int`, :func:`query_float`,
         :func:`query_size`, :func:`query_choice`, ``str``).
     error : exception class
-        What to raise (the source's own error type).
+        What to raise (the source's own error type). An :class:`IllumiNetError` gets exit status 2: a
+        malformed URL is a usage mistake.
 
     Raises
     ------
@@ -61,12 +63,19 @@ def parse_query(
     for key, value in parse_qsl(urlsplit(url).query, keep_blank_values=True):
         parse = parsers.get(key)
         if parse is None:
-            raise error(f"{url}: unknown parameter {key!r}; known: {', '.join(parsers)}")
+            raise _usage(error(f"{url}: unknown parameter {key!r}; known: {', '.join(parsers)}"))
         try:
             out[key] = parse(value)  # a repeated key: the last one wins
         except ValueError as e:
-            raise error(f"{url}: {key}={value!r}: {e}") from None
+            raise _usage(error(f"{url}: {key}={value!r}: {e}")) from None
     return out
+
+
+def _usage(exc: Exception) -> Exception:
+    """``exc`` marked as a usage mistake (exit status 2) when it is one of this project's errors."""
+    if isinstance(exc, IllumiNetError):
+        exc.exit_code = EXIT_USAGE
+    return exc
 
 
 def query_bool(value: str) -> bool:
@@ -140,18 +149,25 @@ def query_choice(*choices: str, lower: bool = False) -> Callable[[str], str]:
     return parse
 
 
-class SourceError(RuntimeError):
-    """A source URL cannot be opened; the message says why and what to do."""
-
-
 def open_source(url: str, config: Config | None = None) -> Source:
     """Create the source for ``url`` (not yet opened; use it as a context manager)."""
     scheme = urlsplit(url).scheme
     if not scheme:
-        raise SourceError(f"source {url!r} has no scheme; expected one of " + ", ".join(f"{s}://" for s in SCHEMES))
+        raise SourceURLError(f"source {url!r} has no scheme; expected one of " + ", ".join(f"{s}://" for s in SCHEMES))
     if scheme not in SCHEMES:
-        raise SourceError(
+        raise SourceURLError(
             f"unknown source scheme {scheme!r} in {url!r}; expected one of " + ", ".join(f"{s}://" for s in SCHEMES)
         )
-    module = importlib.import_module(f"{__name__}.{SCHEMES[scheme]}")
-    return module.open_url(url, config if config is not None else defaults())
+    try:
+        module = importlib.import_module(f"{__name__}.{SCHEMES[scheme]}")
+    except ModuleNotFoundError as e:  # e.g. oakd:// without the depthai package installed
+        raise SourceError(
+            f"source {url!r} needs the Python package {e.name!r}, which is not installed (pip install {e.name})"
+        ) from e
+    try:
+        return module.open_url(url, config if config is not None else defaults())
+    except IllumiNetError:
+        raise
+    except ValueError as e:
+        # the sources' own checks of a URL's values raise ValueError("URL: key=value: expected ...")
+        raise SourceURLError(str(e)) from e

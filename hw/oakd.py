@@ -45,6 +45,7 @@ import depthai as dai  # noqa: E402
 import numpy as np  # noqa: E402
 
 from illuminet.hw import (  # noqa: E402
+    SourceError,
     parse_query,
     query_bool,
     query_choice,
@@ -66,7 +67,7 @@ RIGHT_SOCKET = dai.CameraBoardSocket.CAM_C
 _PRESETS = {p.lower(): getattr(dai.node.StereoDepth.PresetMode, p) for p in dai.node.StereoDepth.PresetMode.__members__}
 
 
-class OakdError(RuntimeError):
+class OakdError(SourceError):
     """The OAK device cannot be used; the message says why and what to do."""
 
 

@@ -29,7 +29,7 @@ from illuminet.hw import SourceError, parse_query, query_bool, query_choice, que
 from illuminet.runtime.config import Config
 from illuminet.runtime.frame import Frame
 from illuminet.runtime.stage import EndOfStream, Source
-from illuminet.runtime.stream.session import CorruptFrame, SessionError, SessionReader
+from illuminet.runtime.stream.session import MAX_FRAME_GAP_NS, CorruptFrame, SessionError, SessionReader
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +107,10 @@ class ReplaySource(Source):
         self._first_t = e[0].t_device_ns
         gaps = np.diff([x.t_device_ns for x in e])
         self._period = int(np.median(gaps)) if gaps.size else 33_333_333
+        if not 0 < self._period <= MAX_FRAME_GAP_NS:  # a session made mostly of gaps: pace at 30 fps
+            self._period = 33_333_333
+        for gap in self.session.gaps:
+            log.warning("replay %s: %s", self.path, gap)
         # a loop round lasts the recording plus one frame period, so the restart keeps the frame rate
         self._round_ns = e[-1].t_device_ns - e[0].t_device_ns + self._period
         self._round_seq = e[-1].seq - e[0].seq + 1
@@ -116,6 +120,8 @@ class ReplaySource(Source):
         self._pending.clear()
         self._next_pos = self._next_round = self._emitted = self._corrupt = self._bad_in_row = 0
         self._t0_wall = None
+        self._t_wall = 0  # wall-clock time (monotonic ns) the previous frame was due
+        self._t_prev = 0  # its device timestamp
         self._fill()
 
     def _fill(self) -> None:
@@ -167,8 +173,17 @@ class ReplaySource(Source):
         if self.timing == "recorded":
             now = time.monotonic_ns()
             if self._t0_wall is None:
-                self._t0_wall = now
-            delay = self._t0_wall + (t_dev - self._first_t) - now
+                self._t0_wall = self._t_wall = now
+            else:
+                # each frame is due one recorded interval after the previous one's due time (no drift),
+                # but a jump over MAX_FRAME_GAP_NS (a corrupt or edited index) is a gap, not minutes to
+                # centuries of waiting: it counts as one frame period (logged once per gap at open())
+                step = t_dev - self._t_prev
+                if not 0 <= step <= MAX_FRAME_GAP_NS:
+                    step = self._period
+                self._t_wall += step
+            self._t_prev = t_dev
+            delay = self._t_wall - now
             if delay > 0 and self._closing.wait(delay * 1e-9):
                 return None  # closed while waiting
         self._emitted += 1

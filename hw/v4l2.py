@@ -43,13 +43,14 @@ import numpy as np
 
 from illuminet.hw import parse_query, query_bool, query_choice, query_float, query_int, query_size
 from illuminet.runtime.config import Config
+from illuminet.runtime.errors import SourceError
 from illuminet.runtime.frame import Exposure, Frame
 from illuminet.runtime.stage import EndOfStream, Source
 
 log = logging.getLogger(__name__)
 
 
-class V4l2Error(RuntimeError):
+class V4l2Error(SourceError):
     """A V4L2 device or URL cannot be used; the message says why and what to do."""
 
 

@@ -3,6 +3,11 @@
 Each command module in this package defines ``register(subparsers)``, which adds its parser and sets
 ``func`` (called with the parsed ``args`` and the validated :class:`Config`, returning an exit
 code). Adding a command is adding a module name to :data:`COMMAND_MODULES`.
+
+Errors: every mistake or failure a user can meet is an
+:class:`~illuminet.runtime.errors.IllumiNetError`; :func:`main` catches it at the top and prints one
+line (``illuminet: MESSAGE``) with its exit status (2 usage/configuration, 1 run-time failure).
+``--log-level debug`` prints the traceback too. docs/runtime.md ("Errors") lists the classes.
 """
 
 from __future__ import annotations
@@ -12,9 +17,11 @@ import importlib
 import logging
 import os
 import sys
+import traceback
 
 from illuminet import __version__
 from illuminet.runtime.config import Config, ConfigError, apply_overrides, load
+from illuminet.runtime.errors import IllumiNetError
 
 # The runtime must not phone home: DepthAI sends telemetry unless told not to.
 os.environ.setdefault("DEPTHAI_TELEMETRY", "0")
@@ -76,14 +83,25 @@ def resolve_config(args: argparse.Namespace) -> Config:
     return apply_overrides(cfg, overrides)
 
 
+def report_error(e: IllumiNetError, *, debug: bool) -> int:
+    """Print ``e`` as one line on stderr (after its traceback when ``debug``); return its exit status."""
+    if debug:
+        traceback.print_exception(e, file=sys.stderr)
+    prefix = "configuration error: " if isinstance(e, ConfigError) else ""
+    print(f"illuminet: {prefix}{e.one_line()}", file=sys.stderr)
+    return e.exit_code
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run the command line; returns the exit status (0 done, 1 run-time failure, 2 usage/configuration)."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    # --log-level debug shows tracebacks even when the configuration itself is the mistake
+    debug = args.log_level == "debug"
     try:
         cfg = resolve_config(args)
     except ConfigError as e:
-        print(f"illuminet: configuration error: {e}", file=sys.stderr)
-        return 2
+        return report_error(e, debug=debug)
     level = getattr(logging, cfg.logging.level.upper())
     logging.basicConfig(level=level, format="%(asctime)s %(levelname).1s %(name)s: %(message)s")
     if level > logging.DEBUG:
@@ -92,8 +110,7 @@ def main(argv: list[str] | None = None) -> int:
         logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)
     try:
         return int(args.func(args, cfg) or 0)
-    except ConfigError as e:
-        print(f"illuminet: configuration error: {e}", file=sys.stderr)
-        return 2
+    except IllumiNetError as e:
+        return report_error(e, debug=debug or level <= logging.DEBUG)
     except KeyboardInterrupt:
         return 130

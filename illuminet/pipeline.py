@@ -7,10 +7,13 @@ frames identically; :func:`chain_diagram` draws the chain with each stage's decl
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from illuminet.runtime.config import Config, ConfigError
+from illuminet.runtime.errors import OutputPathError
 from illuminet.runtime.stage import Sink, Stage
 from illuminet.runtime.stream.sinks import EstimateSink, PngSequenceSink, SessionRecorderSink, VideoSink
 
@@ -53,6 +56,63 @@ def build_stages(cfg: Config, *, render: bool = True) -> list[Stage]:
 
         stages.append(RenderStage(cfg, response_lut=lut))
     return stages
+
+
+#: output keys whose file is written into an existing folder: (section, key, what it is)
+_OUTPUT_FILES = (
+    ("output", "video", "video file"),
+    ("output", "estimates", "estimates file"),
+    ("logging", "stats_json", "statistics file"),
+)
+#: output keys naming a folder the run creates (with its parents) when missing
+_OUTPUT_DIRS = (
+    ("output", "png_dir", "PNG folder"),
+    ("output", "record", "session folder"),
+)
+
+
+def check_output_paths(cfg: Config) -> None:
+    """Refuse, before anything is opened, every configured output that could not be written.
+
+    A statistics file is written only at the end of a run, so a typo in its folder would otherwise
+    lose the whole run's statistics; a video or estimates file in a missing folder fails only after
+    the source (a camera) is open. Files need their folder to exist; folders the run creates need
+    their nearest existing ancestor to be a writable folder.
+
+    Raises
+    ------
+    OutputPathError
+        One line naming the key, the path and the fix.
+    """
+    for section, key, what in _OUTPUT_FILES:
+        value = cfg[section][key]
+        if not value or (key == "estimates" and value == "-"):
+            continue
+        path = Path(value)
+        parent = path.parent if str(path.parent) else Path(".")
+        if path.is_dir():
+            raise OutputPathError(f"[{section}] {key}: {value} is a folder; expected a {what} path")
+        if not parent.is_dir():
+            raise OutputPathError(
+                f"[{section}] {key}: folder {parent} of the {what} {value} does not exist; create it or "
+                "choose another path"
+            )
+        if not os.access(parent, os.W_OK):
+            raise OutputPathError(f"[{section}] {key}: folder {parent} of the {what} {value} is not writable")
+    for section, key, what in _OUTPUT_DIRS:
+        value = cfg[section][key]
+        if not value:
+            continue
+        path = Path(value)
+        if path.exists() and not path.is_dir():
+            raise OutputPathError(f"[{section}] {key}: {value} exists and is not a folder; expected a {what}")
+        ancestor = path
+        while not ancestor.exists() and ancestor != ancestor.parent:
+            ancestor = ancestor.parent
+        if ancestor.exists() and (not ancestor.is_dir() or not os.access(ancestor, os.W_OK)):
+            raise OutputPathError(
+                f"[{section}] {key}: cannot create the {what} {value}: {ancestor} is not a writable folder"
+            )
 
 
 def build_sinks(

@@ -10,6 +10,7 @@ value given. Command-line flags override file values through :func:`apply_overri
 from __future__ import annotations
 
 import copy
+import math
 import sys
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
@@ -22,8 +23,8 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 
-class ConfigError(ValueError):
-    """A configuration file or override is invalid; the message says where and what was expected."""
+# defined in runtime/errors.py (one hierarchy for every error a user can meet); re-exported here
+from illuminet.runtime.errors import ConfigError  # noqa: E402,F401
 
 
 @dataclass(frozen=True)
@@ -35,21 +36,49 @@ class Field:
     doc: str
     choices: tuple[Any, ...] | None = None
     length: int | None = None  # for lists: required length
+    # numbers (and every element of a numeric list): inclusive bounds; ``gt`` is an exclusive lower
+    # bound (a length that must be positive). Floats must always be finite: NaN passes every
+    # comparison as False, so a NaN scale would otherwise slip through any range.
+    min: float | None = None
+    max: float | None = None
+    gt: float | None = None
 
     def type_name(self) -> str:
         names = {bool: "bool", int: "int", float: "float", str: "string", list: "list"}
         s = " or ".join(names.get(t, t.__name__) for t in self.types)
         if self.length is not None:
             s += f" of length {self.length}"
+        if float in self.types or (list in self.types and self.length is not None):
+            s += " (finite)" if list not in self.types else " (finite numbers)"
+        if self.gt is not None:
+            s += f" > {self.gt:g}"
+            if self.max is not None:
+                s += f" and <= {self.max:g}"
+        elif self.min is not None and self.max is not None:
+            s += f" in {self.min:g}..{self.max:g}"
+        elif self.min is not None:
+            s += f" >= {self.min:g}"
+        elif self.max is not None:
+            s += f" <= {self.max:g}"
         if self.choices is not None:
             s += " (one of " + ", ".join(repr(c) for c in self.choices) + ")"
         return s
 
+    def in_range(self, v: float) -> bool:
+        """Whether the number ``v`` is finite and inside this field's bounds."""
+        if isinstance(v, float) and not math.isfinite(v):
+            return False
+        if self.gt is not None and not v > self.gt:
+            return False
+        if self.min is not None and not v >= self.min:
+            return False
+        return not (self.max is not None and not v <= self.max)
 
-def _f(types, default, doc, choices=None, length=None) -> Field:
+
+def _f(types, default, doc, choices=None, length=None, *, min=None, max=None, gt=None) -> Field:  # noqa: A002
     if not isinstance(types, tuple):
         types = (types,)
-    return Field(types, default, doc, choices, length)
+    return Field(types, default, doc, choices, length, min, max, gt)
 
 
 #: section -> key -> Field. Keep config.toml in step with this table.
@@ -62,7 +91,7 @@ SCHEMA: dict[str, dict[str, Field]] = {
         ),
         "timing": _f(str, "recorded", "replay timing", choices=("recorded", "asap")),
         "loop": _f(bool, False, "replay: start again at the end"),
-        "max_frames": _f(int, 0, "stop after this many frames (0 = no limit)"),
+        "max_frames": _f(int, 0, "stop after this many frames (0 = no limit)", min=0),
         "calibration": _f(str, "", "calibration file for v4l2:// stereo cameras (see `illuminet calibrate`)"),
         "reconnect": _f(bool, True, "live sources: reconnect with backoff when the device is lost"),
         "response_curve": _f(str, "", "camera response curve from `illuminet calibrate photometric` ('' = sRGB)"),
@@ -71,20 +100,24 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "method": _f(
             str, "region", "plane segmentation (docs/planes.md compares them)", choices=("ransac", "region", "opencv")
         ),
-        "redetect_every": _f(int, 30, "full re-detection every N frames (tracking in between)"),
-        "max_planes": _f(int, 4, "most planes kept per frame"),
-        "min_area_m2": _f(float, 0.02, "smallest plane kept, square metres"),
+        "redetect_every": _f(int, 30, "full re-detection every N frames (tracking in between)", min=1),
+        "max_planes": _f(int, 4, "most planes kept per frame", min=1, max=64),
+        "min_area_m2": _f(float, 0.02, "smallest plane kept, square metres", min=0),
         "inlier_threshold_m": _f(
             float,
             0.03,
             "distance of an inlier at 1 m; grows with z^2 like stereo noise (0.045 for integer-disparity depth)",
+            gt=0,
+            max=1,
         ),
-        "smoothing": _f(float, 0.8, "temporal smoothing of plane parameters, 0 = none, <1"),
+        "smoothing": _f(float, 0.8, "temporal smoothing of plane parameters, 0 = none, <1", min=0, max=0.999),
     },
     "anchor": {
         "mode": _f(str, "auto", "where the object stands", choices=("auto", "pixel", "point")),
-        "pixel": _f(list, [320, 300], "mode=pixel: colour-image pixel (x, y)", length=2),
-        "point": _f(list, [0.0, 0.3, 1.5], "mode=point: 3D point in camera coordinates, metres", length=3),
+        "pixel": _f(list, [320, 300], "mode=pixel: colour-image pixel (x, y)", length=2, min=0, max=100_000),
+        "point": _f(
+            list, [0.0, 0.3, 1.5], "mode=point: 3D point in camera coordinates, metres", length=3, min=-1000, max=1000
+        ),
         "lock": _f(
             str,
             "world",
@@ -93,14 +126,20 @@ SCHEMA: dict[str, dict[str, Field]] = {
         ),
     },
     "plane_light": {
-        "grid": _f(int, 32, "plane OI grid is grid x grid vertices"),
-        "extent_m": _f(float, 1.0, "side of the square plane patch around the anchor, metres"),
-        "fusion": _f(float, 0.9, "temporal fusion weight of the previous estimate, 0 = none"),
-        "assumed_albedo": _f(float, 0.5, "mean albedo assumed for the plane (radiance -> irradiance)"),
+        "grid": _f(int, 32, "plane OI grid is grid x grid vertices", min=2, max=512),
+        "extent_m": _f(float, 1.0, "side of the square plane patch around the anchor, metres", gt=0, max=100),
+        "fusion": _f(float, 0.9, "temporal fusion weight of the previous estimate, 0 = none", min=0, max=0.999),
+        "assumed_albedo": _f(float, 0.5, "mean albedo assumed for the plane (radiance -> irradiance)", gt=0, max=1),
         "smoothing_cells": _f(
-            float, 1.5, "masked Gaussian over the grid against coarse albedo texture, sigma in cells (0 = off)"
+            float,
+            1.5,
+            "masked Gaussian over the grid against coarse albedo texture, sigma in cells (0 = off)",
+            min=0,
+            max=100,
         ),
-        "extra_planes": _f(int, 0, "also measure up to N more planes (walls first) as further PlaneLight slices"),
+        "extra_planes": _f(
+            int, 0, "also measure up to N more planes (walls first) as further PlaneLight slices", min=0, max=16
+        ),
     },
     "light": {
         "enabled": _f(
@@ -113,7 +152,9 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "near_light": _f(bool, True, "fit a near lamp to the planes' irradiance falloff"),
         "emitters": _f(bool, True, "take the primary light's direction from bright emitters in view"),
         "shadows": _f(bool, True, "take the primary light's direction from real cast shadows"),
-        "rate_hz": _f(float, 10.0, "estimates per second (frames in between reuse the last one; 0 = every frame)"),
+        "rate_hz": _f(
+            float, 10.0, "estimates per second (frames in between reuse the last one; 0 = every frame)", min=0, max=1000
+        ),
         "pipelined": _f(
             bool, True, "compute the estimate on a worker thread, collected one update later (deterministic)"
         ),
@@ -122,9 +163,13 @@ SCHEMA: dict[str, dict[str, Field]] = {
             0.1,
             "temporal filter time constant, seconds (with the pipeline's one update of delay, a switch is "
             "followed within 0.5 s)",
+            min=0,
+            max=3600,
         ),
-        "search_every": _f(int, 10, "frames between full near-light searches (local refinement in between)"),
-        "smoothness": _f(float, 0.02, "Laplacian penalty on the ambient SH bands (keeps unseen directions smooth)"),
+        "search_every": _f(int, 10, "frames between full near-light searches (local refinement in between)", min=1),
+        "smoothness": _f(
+            float, 0.02, "Laplacian penalty on the ambient SH bands (keeps unseen directions smooth)", min=0, max=1e6
+        ),
     },
     "model": {
         "bundle": _f(str, "builtin:vase", "object bundle: builtin:NAME or a bundle folder"),
@@ -137,12 +182,12 @@ SCHEMA: dict[str, dict[str, Field]] = {
             "else model)",
             choices=("auto", "prt", "model", "sh", "ambient", "constant"),
         ),
-        "temporal_smoothing": _f(float, 0.7, "exponential smoothing of predicted shading, 0 = none"),
+        "temporal_smoothing": _f(float, 0.7, "exponential smoothing of predicted shading, 0 = none", min=0, max=0.999),
     },
     "render": {
-        "object_scale": _f(float, 1.0, "extra scale applied to the object's mesh"),
+        "object_scale": _f(float, 1.0, "extra scale applied to the object's mesh", gt=0, max=1000),
         "shadow": _f(bool, True, "draw the object's shadow on the anchor plane"),
-        "shadow_map": _f(int, 1024, "shadow map resolution, pixels"),
+        "shadow_map": _f(int, 1024, "shadow map resolution, pixels", min=16, max=8192),
         "occlusion": _f(bool, True, "real geometry nearer than the object hides it"),
         "antialias": _f(
             str,
@@ -150,10 +195,12 @@ SCHEMA: dict[str, dict[str, Field]] = {
             "object edges: filtered silhouette (cheap), multisampling, or none",
             choices=("edge", "msaa", "off"),
         ),
-        "msaa": _f(int, 4, 'samples per pixel when antialias = "msaa" (0 = off)'),
-        "shadow_softness": _f(float, 0.05, "shadow penumbra radius as a fraction of the object's size"),
-        "contact_shadow": _f(float, 0.75, "strength of the contact shadow under the object's base, 0..1"),
-        "depth_tolerance_m": _f(float, 0.03, "real depth this much nearer (at 1 m; grows with z^2) hides the object"),
+        "msaa": _f(int, 4, 'samples per pixel when antialias = "msaa" (0 = off)', min=0, max=16),
+        "shadow_softness": _f(float, 0.05, "shadow penumbra radius as a fraction of the object's size", min=0, max=10),
+        "contact_shadow": _f(float, 0.75, "strength of the contact shadow under the object's base, 0..1", min=0, max=1),
+        "depth_tolerance_m": _f(
+            float, 0.03, "real depth this much nearer (at 1 m; grows with z^2) hides the object", min=0, max=10
+        ),
         "gl_backend": _f(
             str,
             "egl",
@@ -167,8 +214,8 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "record": _f(str, "", "record the input session into this folder ('' = off)"),
         "mjpeg": _f(bool, False, "serve MJPEG over HTTP with a status page"),
         "listen": _f(str, "127.0.0.1", "MJPEG bind address; 0.0.0.0 serves the local network"),
-        "port": _f(int, 8080, "MJPEG port"),
-        "fps": _f(float, 30.0, "frame rate written into video files"),
+        "port": _f(int, 8080, "MJPEG port (0 = a free port the system picks)", min=0, max=65535),
+        "fps": _f(float, 30.0, "frame rate written into video files", gt=0, max=1000),
         "record_color": _f(
             str,
             "raw",
@@ -176,7 +223,7 @@ SCHEMA: dict[str, dict[str, Field]] = {
             "PNG (lossless, ~40 % smaller), JPEG (lossy)",
             choices=("raw", "png", "jpeg"),
         ),
-        "record_jpeg_quality": _f(int, 95, "JPEG quality 1..100 when record_color = 'jpeg'"),
+        "record_jpeg_quality": _f(int, 95, "JPEG quality 1..100 when record_color = 'jpeg'", min=1, max=100),
         "record_fsync": _f(bool, True, "fsync every recorded frame (survives power loss; kill -9 is safe either way)"),
         "estimates": _f(
             str,
@@ -196,15 +243,19 @@ SCHEMA: dict[str, dict[str, Field]] = {
             "",
             "serial IMU: serial://PORT?baud=N, or any serial.serial_for_url URL (/dev/ttyUSB0, loop://); '' = none",
         ),
-        "baudrate": _f(int, 115200, "serial baud rate"),
-        "max_skew_ms": _f(float, 20.0, "largest IMU-to-frame timestamp gap accepted"),
+        "baudrate": _f(int, 115200, "serial baud rate", min=1, max=100_000_000),
+        "max_skew_ms": _f(float, 20.0, "largest IMU-to-frame timestamp gap accepted", gt=0, max=10_000),
         "rotation": _f(
             list,
             [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
             "IMU axes -> camera axes (x right, y down, z forward): 3x3 rotation, row-major",
             length=9,
+            min=-1,
+            max=1,
         ),
-        "gravity_tau_s": _f(float, 0.3, "time constant of the accelerometer low-pass that gives gravity, seconds"),
+        "gravity_tau_s": _f(
+            float, 0.3, "time constant of the accelerometer low-pass that gives gravity, seconds", gt=0, max=3600
+        ),
         "clock": _f(
             str,
             "device",
@@ -291,6 +342,10 @@ def _check_value(where: str, section: str, key: str, value: Any) -> Any:
         ok = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
     if ok and fld.choices is not None and value not in fld.choices:
         ok = False
+    if ok and isinstance(value, (int, float)) and not isinstance(value, bool):
+        ok = fld.in_range(value)
+    if ok and isinstance(value, list):
+        ok = all(fld.in_range(v) for v in value)
     if not ok:
         raise ConfigError(
             f"{where}: [{section}] {key}: expected {fld.type_name()}, got {type(value).__name__} {value!r}"

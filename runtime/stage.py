@@ -53,8 +53,8 @@ class MissingInput(FrameError):
     """A stage was given a frame without a result it requires (see :meth:`Stage.require`)."""
 
 
-class PipelineError(ValueError):
-    """A chain of stages is wired wrongly (a required result has no producer before its consumer)."""
+# defined in runtime/errors.py (one hierarchy for every error a user can meet); re-exported here
+from illuminet.runtime.errors import PipelineError  # noqa: E402,F401
 
 
 class EndOfStream(Exception):

@@ -199,7 +199,7 @@ def test_replay_of_a_damaged_session_plays_the_intact_part(tmp_path, capsys):
 def test_clear_errors(tmp_path, capsys):
     assert main(["replay", str(tmp_path / "nope")]) == 1
     assert "is not a folder" in capsys.readouterr().err
-    assert main(["run", "webcam://0"]) == 1
+    assert main(["run", "webcam://0"]) == 2  # a malformed URL is a usage mistake
     assert "unknown source scheme 'webcam'" in capsys.readouterr().err
     assert main(["--set", "output.port=80.5", "run", "replay://x"]) == 2
     assert "[output] port: expected int" in capsys.readouterr().err

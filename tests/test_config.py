@@ -45,11 +45,11 @@ def test_unknown_section_is_refused(tmp_path):
 @pytest.mark.parametrize(
     "toml, expect",
     [
-        ("[planes]\nredetect_every = 'often'\n", r"\[planes\] redetect_every: expected int, got str 'often'"),
+        ("[planes]\nredetect_every = 'often'\n", r"\[planes\] redetect_every: expected int >= 1, got str 'often'"),
         ("[render]\nshadow = 1\n", r"\[render\] shadow: expected bool, got int 1"),
         ("[planes]\nmethod = 'hough'\n", r"one of 'ransac', 'region', 'opencv'.*got str 'hough'"),
         ("[anchor]\npixel = [1, 2, 3]\n", r"\[anchor\] pixel: expected list of length 2"),
-        ("[output]\nport = 80.5\n", r"\[output\] port: expected int, got float 80.5"),
+        ("[output]\nport = 80.5\n", r"\[output\] port: expected int in 0..65535, got float 80.5"),
     ],
 )
 def test_wrong_types_name_key_expected_and_value(tmp_path, toml, expect):

@@ -55,6 +55,7 @@ FLOOR_MAY_IMPORT = (
     "illuminet.runtime.physics",
     "illuminet.runtime.config",
     "illuminet.runtime.sh",
+    "illuminet.runtime.errors",
 )
 
 

@@ -3,11 +3,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from illuminet.hw.synthetic.textures import make_albedo_tile
+from illuminet.runtime.errors import SourceURLError
 from illuminet.runtime.frame import Intrinsics
 from illuminet.runtime.groundtruth import lighting as L
 from illuminet.runtime.scene import Plane
@@ -25,7 +27,7 @@ ROOM_LABELS = ("floor", "wall", "ceiling")
 OAKD_INTRINSICS_1280 = Intrinsics(fx=800.0, fy=800.0, cx=639.5, cy=399.5, width=1280, height=800)
 
 
-class SyntheticError(ValueError):
+class SyntheticError(SourceURLError):
     """A ``synthetic://`` URL is invalid; the message names the parameter and what was expected."""
 
 
@@ -196,7 +198,7 @@ class SyntheticScene:
     occluders: list  # Occluder | BoxOccluder
     object_positions: np.ndarray
     intrinsics: Intrinsics
-    poses: list[np.ndarray]  # T_world_cam per frame
+    poses: Sequence[np.ndarray]  # T_world_cam per frame (a CameraPath, computed on demand)
     sky: _Sky | None = None
     room: tuple[np.ndarray, np.ndarray] | None = None
     hdr_path: str | None = None
@@ -492,20 +494,47 @@ def _camera_poses(rng, kind, target, n_frames, path, room):
             break
     else:
         raise RuntimeError("could not place the camera inside the room")
-    # look a little past the object so it sits in the lower half of the picture
-    aim = target + np.array([-0.35 * np.sin(az), 0.05, -0.35 * np.cos(az)])
-    poses = []
-    for i in range(max(n_frames, 1)):
-        if path == "static":
-            poses.append(_look_at(eye, aim))
-            continue
-        ph = 2 * np.pi * i / max(n_frames, 1)
-        a = az + np.deg2rad(25.0) * np.sin(ph)
+    return CameraPath(eye, az, dist, h, target, n_frames, path, room)
+
+
+class CameraPath(Sequence):
+    """T_world_cam of every frame of a synthetic camera path, computed when asked for.
+
+    A ``synthetic://...?frames=N`` stream may be allowed millions of frames; precomputing N 4x4
+    poses would stall start-up and take gigabytes, so a pose is made from its index on demand
+    (indexing and slicing work as on the list this replaces).
+    """
+
+    def __init__(self, eye, az, dist, h, target, n_frames, path, room):
+        self.eye, self.az, self.dist, self.h = eye, az, dist, h
+        self.target, self.path, self.room = target, path, room
+        self.n = max(int(n_frames), 1)
+        # look a little past the object so it sits in the lower half of the picture
+        self._static = _look_at(eye, target + np.array([-0.35 * np.sin(az), 0.05, -0.35 * np.cos(az)]))
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self._pose(k) for k in range(*i.indices(self.n))]
+        i = int(i)
+        if i < 0:
+            i += self.n
+        if not 0 <= i < self.n:
+            raise IndexError(f"frame {i} outside the path of {self.n} frames")
+        return self._pose(i)
+
+    def _pose(self, i: int) -> np.ndarray:
+        if self.path == "static":
+            return self._static.copy()
+        target, dist, h, room = self.target, self.dist, self.h, self.room
+        ph = 2 * np.pi * i / self.n
+        a = self.az + np.deg2rad(25.0) * np.sin(ph)
         e = target + np.array([dist * np.sin(a), h + 0.05 * np.sin(2 * ph), dist * np.cos(a)])
         if room is not None:
             e[[0, 2]] = np.clip(e[[0, 2]], room[0][[0, 2]] + 0.2, room[1][[0, 2]] - 0.2)
-        poses.append(_look_at(e, target + np.array([-0.35 * np.sin(a), 0.05, -0.35 * np.cos(a)])))
-    return poses
+        return _look_at(e, target + np.array([-0.35 * np.sin(a), 0.05, -0.35 * np.cos(a)]))
 
 
 def _lamp_lights(rng):
@@ -732,7 +761,8 @@ def _bake_irradiance(scene: SyntheticScene, p: SyntheticPlane, poses) -> None:
     lo, hi = p.lo.copy(), p.hi.copy()
     if not np.all(np.isfinite(lo)):
         # unbounded ground: bake what the camera can see, up to the depth limit, around the path
-        cams = np.array([T[:3, 3] for T in poses])
+        # the extent of the camera path: every pose of a short path, an even sample of a long one
+        cams = np.array([T[:3, 3] for T in poses[:: max(1, len(poses) // 4096)]])
         lo = np.array([cams[:, 0].min() - 10, cams[:, 2].min() - 10])
         hi = np.array([cams[:, 0].max() + 10, cams[:, 2].max() + 10])
     ext = hi - lo

@@ -22,9 +22,9 @@ from urllib.parse import quote
 
 from illuminet.progress import StatusLine
 from illuminet.runtime.config import Config, ConfigError, apply_overrides
+from illuminet.runtime.errors import IllumiNetError
 from illuminet.runtime.stream.loop import LoopStats, run_loop
 from illuminet.runtime.stream.session import SessionError, SessionReader
-from illuminet.runtime.stream.sinks import SinkError
 
 log = logging.getLogger("illuminet.run")
 
@@ -175,20 +175,21 @@ def config_with_flags(args: argparse.Namespace, cfg: Config) -> Config:
 
 
 def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
-    from illuminet.hw import SourceError, open_source
-    from illuminet.pipeline import build_sinks, build_stages
+    from illuminet.hw import open_source
+    from illuminet.pipeline import build_sinks, build_stages, check_output_paths
 
+    # before any device or file is opened: every output path can be written (a statistics file in a
+    # missing folder would otherwise lose the run's statistics at its end). Errors here and in the
+    # set-up below reach illuminet.cli.main, which prints them as one line.
+    check_output_paths(cfg)
+    if with_stages:
+        from illuminet.runtime.assets.bundle import resolve_bundle
+
+        resolve_bundle(cfg.model.bundle)  # a missing bundle: one line now, not after the camera is open
     stats = LoopStats()
-    try:
-        source = open_source(url, cfg)
-        sinks = build_sinks(cfg, stats=stats.snapshot, source_url=url)
-        stages = build_stages(cfg) if with_stages else []
-    except (SourceError, SinkError, SessionError) as e:
-        print(f"illuminet: {e}", file=sys.stderr)
-        return 1
-    except ModuleNotFoundError as e:  # e.g. oakd:// without the depthai package installed
-        print(f"illuminet: source {url!r} needs a Python package that is not installed ({e})", file=sys.stderr)
-        return 1
+    source = open_source(url, cfg)
+    sinks = build_sinks(cfg, stats=stats.snapshot, source_url=url)
+    stages = build_stages(cfg) if with_stages else []
     rc = 0
     status = StatusLine()  # a live line on a terminal; nothing when piped
     try:
@@ -202,10 +203,12 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
             on_stats=status.update,
             stats_interval_s=0.5,
         )
-    except (SourceError, SinkError, SessionError) as e:  # these messages say it all; no traceback
+    except IllumiNetError as e:  # these messages say it all; no traceback
         status.close()
-        print(f"illuminet: {e}", file=sys.stderr)
-        rc = 1
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug("traceback of the error below", exc_info=e)
+        print(f"illuminet: {e.one_line()}", file=sys.stderr)
+        rc = e.exit_code
     except OSError as e:
         status.close()
         if cfg.logging.strict:  # strict: the traceback, as for any failure
@@ -217,8 +220,12 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
         if stats.frames or stats.end_reason:
             print(stats.format_stats())
         if cfg.logging.stats_json:
-            Path(cfg.logging.stats_json).write_text(stats.to_json() + "\n")
-            print(f"statistics written to {cfg.logging.stats_json}")
+            try:
+                Path(cfg.logging.stats_json).write_text(stats.to_json() + "\n")
+                print(f"statistics written to {cfg.logging.stats_json}")
+            except OSError as e:  # checked before the start; the folder went away during the run
+                print(f"illuminet: [logging] stats_json: cannot write {cfg.logging.stats_json}: {e}", file=sys.stderr)
+                rc = 1
     if stats.end_reason.startswith("source error"):
         rc = 1
     return rc

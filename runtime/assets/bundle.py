@@ -52,8 +52,8 @@ MESH_KEYS = (
 )
 
 
-class BundleError(ValueError):
-    """A bundle is missing, damaged or inconsistent; the message names the file and the problem."""
+# defined in runtime/errors.py (one hierarchy for every error a user can meet); re-exported here
+from illuminet.runtime.errors import BundleError  # noqa: E402,F401
 
 
 def builtin_dir() -> Path:

@@ -77,8 +77,8 @@ _PROFILES = {
 _DETAIL = {"render": (96, 96), "proxy": (26, 32)}
 
 
-class ObjectLoadError(ValueError):
-    """A mesh spec cannot be turned into an object; the message names the spec or file."""
+# defined in runtime/errors.py (one hierarchy for every error a user can meet); re-exported here
+from illuminet.runtime.errors import ObjectLoadError  # noqa: E402,F401
 
 
 def _catmull_rom(points: np.ndarray, samples: int) -> np.ndarray:

@@ -31,8 +31,8 @@ _shared = None
 _shared_backend: str | None = None
 
 
-class GLError(RuntimeError):
-    """An OpenGL context cannot be created, or the driver reported an error; the message says where."""
+# defined in runtime/errors.py (one hierarchy for every error a user can meet); re-exported here
+from illuminet.runtime.errors import GLError  # noqa: E402,F401
 
 
 def create_context(backend: str = "egl", require: int = REQUIRED_GL):

@@ -70,6 +70,12 @@ INDEX = "frames.jsonl"
 #: not know it never open it, and a session without it is complete)
 ESTIMATES = "estimates.jsonl"
 FRAMES_DIR = "frames"
+#: timestamps are nanoseconds in a signed 64-bit integer (what numpy and the recorder use)
+MAX_TIMESTAMP_NS = 2**63 - 1
+#: a jump between consecutive frames' timestamps larger than this is a gap (a corrupt or edited
+#: index, a paused device), not time to wait: replay with recorded timing waits one frame period
+#: instead, and ``replay --check`` reports it
+MAX_FRAME_GAP_NS = 5_000_000_000
 #: colour encodings: raw (uncompressed RGB bytes, lossless, default), PNG (lossless), JPEG (lossy, small)
 COLOR_ENCODINGS = ("png", "jpeg", "raw")
 _COLOR_EXT = {"png": ".color.png", "jpeg": ".color.jpg", "raw": ".color.rgb"}
@@ -81,8 +87,8 @@ _COLOR_EXT = {"png": ".color.png", "jpeg": ".color.jpg", "raw": ".color.rgb"}
 DEFAULT_PNG_COMPRESSION = 1
 
 
-class SessionError(ValueError):
-    """A session folder, manifest, index line or frame file is invalid; the message says which and why."""
+# defined in runtime/errors.py (one hierarchy for every error a user can meet); re-exported here
+from illuminet.runtime.errors import SessionError  # noqa: E402,F401
 
 
 class CorruptFrame(SessionError):
@@ -561,6 +567,9 @@ class SessionReader:
         self.path = Path(path)
         self.strict = strict
         self.problems: list[str] = []
+        # timestamp jumps over MAX_FRAME_GAP_NS: the frames are intact and replay, so these are not
+        # problems of reading (strict readers accept them), but check() reports them
+        self.gaps: list[str] = []
         if not self.path.is_dir():
             raise SessionError(f"{self.path}: not a session folder (expected a folder with {MANIFEST} and {INDEX})")
         self.manifest = self._read_manifest()
@@ -690,6 +699,12 @@ class SessionReader:
                     f"{where}: timestamp {e.t_device_ns} ns does not increase (previous {last_t} ns); frame skipped"
                 )
                 continue
+            if last_t is not None and e.t_device_ns - last_t > MAX_FRAME_GAP_NS:
+                self.gaps.append(
+                    f"{where}: timestamp jumps {(e.t_device_ns - last_t) / 1e9:.6g} s after the previous frame "
+                    f"(over {MAX_FRAME_GAP_NS / 1e9:g} s: a gap; replay with recorded timing waits one frame "
+                    "period there)"
+                )
             last_t = e.t_device_ns
             entries.append(e)
         if tail.strip():
@@ -704,6 +719,9 @@ class SessionReader:
         seq = _need(d, "seq", (int,), where)
         t_dev = _need(d, "t_device_ns", (int,), where)
         t_host = _need(d, "t_host_ns", (int,), where)
+        for key, t in (("t_device_ns", t_dev), ("t_host_ns", t_host)):
+            if not 0 <= t <= MAX_TIMESTAMP_NS:
+                raise SessionError(f"{where}: key {key!r}: {t} is outside 0..2**63-1 ns")
         color = safe_relpath(self.path, _need(d, "color", (str,), where), f"{where}: key 'color'")
         cbytes = _need(d, "color_bytes", (int,), where)
         self._check_file(color, cbytes, f"{where}: colour")
@@ -889,7 +907,7 @@ class SessionReader:
 
     def check(self) -> list[str]:
         """Decode every frame too (slow): all problems, including undecodable images, one line each."""
-        problems = list(self.problems)
+        problems = list(self.problems) + list(self.gaps)
         for k in range(len(self.entries)):
             try:
                 self.read(k)

@@ -32,8 +32,8 @@ from illuminet.runtime.stream.session import DEFAULT_PNG_COMPRESSION, SessionWri
 log = logging.getLogger(__name__)
 
 
-class SinkError(RuntimeError):
-    """An output cannot be opened or written; the message names the path and what to do."""
+# defined in runtime/errors.py (one hierarchy for every error a user can meet); re-exported here
+from illuminet.runtime.errors import SinkError  # noqa: E402,F401
 
 
 def output_picture(frame: Frame) -> np.ndarray:

@@ -1,0 +1,201 @@
+"""Mistaken and hostile input (issue 13, classes 1, 2 and 7): one clear line, never a traceback or a hang.
+
+Class 1: every user mistake reaches ``illuminet.cli.main`` as an :class:`IllumiNetError` and is
+printed as exactly one stderr line naming the key, URL or file, with exit status 2 (usage,
+configuration) or 1 (run-time failure). Class 2: nothing a session or URL contains makes the
+program wait for minutes or build huge tables. Class 7: output paths are checked before a run starts.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+import tracemalloc
+
+import pytest
+
+from illuminet.cli import main
+from illuminet.runtime import errors
+from illuminet.runtime.stream.session import SessionReader
+
+from . import _sessions
+from ._sessions import make_session
+from .conftest import REPO
+
+# (argv, exit status, text the one line must contain); paths under "{tmp}" are made per test
+BAD_INPUTS = [
+    (["run", "synthetic://unknown"], 2, "'unknown'"),
+    (["run", "synthetic://indoor?frames=abc"], 2, "frames='abc'"),
+    (["run", "synthetic://indoor?frames=0"], 2, "frames='0'"),
+    (["run", "synthetic://indoor?colour=1"], 2, "unknown parameter 'colour'"),
+    (["run", "oakd://?fps=abc"], 2, "oakd://?fps=abc"),
+    (["run", "oakd://?fps=1000"], 2, "fps"),
+    (["run", "v4l2:///dev/null"], 1, "v4l2:///dev/null"),
+    (["run", "v4l2:///dev/null?stereo=maybe"], 2, "stereo='maybe'"),
+    (["run", "webcam://0"], 2, "'webcam'"),
+    (["run", "no-scheme-at-all"], 2, "no scheme"),
+    (["--set", "output.port=70000", "run", "synthetic://indoor"], 2, "[output] port"),
+    (["--set", "output.port=-1", "run", "synthetic://indoor"], 2, "[output] port"),
+    (["--set", "plane_light.grid=0", "run", "synthetic://indoor"], 2, "[plane_light] grid"),
+    (["--set", "render.object_scale=nan", "run", "synthetic://indoor"], 2, "[render] object_scale"),
+    (["--set", "render.object_scale=inf", "run", "synthetic://indoor"], 2, "[render] object_scale"),
+    (["--set", "imu.rotation=[1,0,0,0,1,0,0,0,nan]", "run", "synthetic://indoor"], 2, "[imu] rotation"),
+    (["--set", "render.msaa=64", "run", "synthetic://indoor"], 2, "[render] msaa"),
+    (["--set", "planes.smoothing=1.5", "run", "synthetic://indoor"], 2, "[planes] smoothing"),
+    (["--set", "model.bundle={tmp}/no-bundle", "run", "synthetic://indoor"], 2, "no-bundle"),
+    (["--set", "model.bundle=builtin:nope", "run", "synthetic://indoor"], 2, "builtin:nope"),
+    (["--config", "{tmp}/bad.toml", "run", "synthetic://indoor"], 2, "bad.toml: [render] msaa"),
+    (["--config", "{tmp}/missing.toml", "run", "synthetic://indoor"], 2, "missing.toml"),
+    (["run", "synthetic://indoor", "--fps", "inf", "--video", "{tmp}/v.mp4"], 2, "[output] fps"),
+    (["run", "synthetic://indoor", "--fps", "0", "--video", "{tmp}/v.mp4"], 2, "[output] fps"),
+    # class 7: output paths, checked before the source opens
+    (["run", "synthetic://indoor", "--stats-json", "{tmp}/missing/dir/x.json"], 2, "missing/dir/x.json"),
+    (["run", "synthetic://indoor", "--video", "{tmp}/missing/v.mp4"], 2, "missing/v.mp4"),
+    (["run", "synthetic://indoor", "--estimates", "{tmp}/missing/e.jsonl"], 2, "missing/e.jsonl"),
+    (["run", "synthetic://indoor", "--stats-json", "{tmp}"], 2, "is a folder"),
+    (["run", "synthetic://indoor", "--png-dir", "{tmp}/afile/pngs"], 2, "afile"),
+    (["replay", "{tmp}/no-session"], 1, "no-session"),
+]
+
+
+@pytest.mark.parametrize("argv,code,expect", BAD_INPUTS, ids=[" ".join(a) for a, _, _ in BAD_INPUTS])
+def test_a_mistake_is_one_line_with_its_exit_status(tmp_path, capsys, argv, code, expect):
+    (tmp_path / "bad.toml").write_text("[render]\nmsaa = 64\n")
+    (tmp_path / "afile").write_text("not a folder")
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    t0 = time.monotonic()
+    assert main(argv) == code
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    assert lines[0].startswith("illuminet: ") and expect.replace("{tmp}", str(tmp_path)) in lines[0], lines[0]
+    # refused up front: nothing was run (no synthetic scene was built, no statistics file)
+    assert time.monotonic() - t0 < 30
+    assert not (tmp_path / "missing").exists()
+
+
+def test_a_gl_backend_that_cannot_start_is_one_line():
+    # in a fresh process: the test process's GL tests share one context, which would hide the failure
+    env = _sessions.env()
+    env.pop("DISPLAY", None)
+    env.pop("WAYLAND_DISPLAY", None)
+    p = subprocess.run(
+        [sys.executable, "-m", "illuminet", "--set", "render.gl_backend=default", "run"]
+        + ["synthetic://indoor?size=64x48", "--max-frames", "1"],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    lines = [ln for ln in p.stderr.splitlines() if ln.startswith("illuminet:")]
+    assert p.returncode == 1 and len(lines) == 1 and "OpenGL" in lines[0], p.stderr
+    assert "Traceback" not in p.stderr
+
+
+def test_debug_log_level_shows_the_traceback(capsys):
+    assert main(["--log-level", "debug", "run", "synthetic://unknown"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" in err and err.rstrip().splitlines()[-1].startswith("illuminet: ")
+
+
+def test_every_error_class_derives_from_the_one_base():
+    from illuminet.hw import SourceError
+    from illuminet.hw.synthetic.scene import SyntheticError
+    from illuminet.hw.v4l2 import V4l2Error
+    from illuminet.runtime.assets.bundle import BundleError
+    from illuminet.runtime.assets.objects import ObjectLoadError
+    from illuminet.runtime.config import ConfigError
+    from illuminet.runtime.render.gl import GLError
+    from illuminet.runtime.stage import PipelineError
+    from illuminet.runtime.stream.session import CorruptFrame, SessionError
+    from illuminet.runtime.stream.sinks import SinkError
+
+    classes = [SourceError, SyntheticError, V4l2Error, BundleError, ObjectLoadError, ConfigError, GLError]
+    classes += [PipelineError, SessionError, CorruptFrame, SinkError, errors.OutputPathError]
+    for cls in classes:
+        assert issubclass(cls, errors.IllumiNetError), cls
+    # the built-in bases they had before stay, so older `except ValueError` code keeps working
+    assert issubclass(ConfigError, ValueError) and issubclass(SourceError, RuntimeError)
+    assert issubclass(SyntheticError, ValueError) and issubclass(GLError, RuntimeError)
+    assert ConfigError("x").exit_code == 2 and SinkError("x").exit_code == 1
+    assert SourceError("x", exit_code=2).exit_code == 2
+
+
+# ---------------------------------------------------------------------------------- class 2: hangs
+
+
+def _rewrite_index(session, change):
+    index = session / "frames.jsonl"
+    lines = [json.loads(ln) for ln in index.read_text().splitlines()]
+    for k, d in enumerate(lines):
+        change(k, d)
+    index.write_text("".join(json.dumps(d) + "\n" for d in lines))
+
+
+def test_replay_with_recorded_timing_does_not_sleep_through_a_timestamp_jump(tmp_path, capsys):
+    from illuminet.hw.replay import ReplaySource
+
+    make_session(tmp_path / "s", 6)
+    century = 100 * 365 * 86400 * 10**9
+
+    def jump(k, d):
+        if k >= 3:
+            d["t_device_ns"] += century
+
+    _rewrite_index(tmp_path / "s", jump)
+    t0 = time.monotonic()
+    with ReplaySource(tmp_path / "s", timing="recorded") as src:
+        got = []
+        while (f := src.read()) is not None:
+            got.append(f)
+    assert len(got) == 6
+    assert time.monotonic() - t0 < 3.0  # 6 frames at 30 fps, the jump counted as one period
+    # --check reports the jump (and so exits 1) instead of saying OK
+    assert main(["replay", str(tmp_path / "s"), "--check"]) == 1
+    out = capsys.readouterr().out
+    assert "timestamp jumps" in out and "line 4" in out, out
+
+
+def test_a_timestamp_of_2_to_the_64_is_a_problem_not_a_crash(tmp_path, capsys):
+    make_session(tmp_path / "s", 4)
+
+    def huge(k, d):
+        if k == 2:
+            d["t_device_ns"] = 2**64
+
+    _rewrite_index(tmp_path / "s", huge)
+    r = SessionReader(tmp_path / "s")
+    assert len(r) == 3 and any("2**63-1" in p for p in r.problems), r.problems
+    assert main(["replay", str(tmp_path / "s"), "--check"]) == 1
+    assert "outside 0..2**63-1" in capsys.readouterr().out
+    t0 = time.monotonic()
+    assert main(["replay", str(tmp_path / "s"), "--timing", "recorded"]) == 0
+    assert time.monotonic() - t0 < 60
+
+
+def test_synthetic_frames_n_is_lazy(tmp_path):
+    from illuminet.hw import open_source
+
+    tracemalloc.start()
+    t0 = time.monotonic()
+    try:
+        src = open_source("synthetic://indoor?seed=0&size=64x48&frames=10000000&path=orbit")
+        elapsed = time.monotonic() - t0
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    poses = src.scene.poses
+    assert len(poses) == 10_000_000
+    assert elapsed < 20 and peak < 300e6  # the eager list was 10M 4x4 arrays: ~2 GB and minutes
+    # on demand, the same path as a short one at the same phase: frame i of N is at phase i/N
+    short = open_source("synthetic://indoor?seed=0&size=64x48&frames=10&path=orbit").scene.poses
+    import numpy as np
+
+    np.testing.assert_allclose(poses[5_000_000], short[5])
+    assert len(poses[::2_500_000]) == 4
+    with pytest.raises(IndexError):
+        poses[10_000_000]
