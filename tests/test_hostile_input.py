@@ -199,3 +199,92 @@ def test_synthetic_frames_n_is_lazy(tmp_path):
     assert len(poses[::2_500_000]) == 4
     with pytest.raises(IndexError):
         poses[10_000_000]
+
+
+# ---------------------------------------------------------------- class 3: one bad frame, not a crash
+
+
+def _png_header(w: int, h: int) -> bytes:
+    """The first 33 bytes of an RGB PNG claiming ``w x h`` (signature and IHDR chunk), no pixel data."""
+    import struct
+    import zlib
+
+    chunk = b"IHDR" + struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + chunk + struct.pack(">I", zlib.crc32(chunk))
+
+
+def _damage_frame_1(session, how):
+    """Make frame 1's colour file hostile: a 65535x65535 header, a symlink loop, or a NUL in its path."""
+    lines = [json.loads(ln) for ln in (session / "frames.jsonl").read_text().splitlines()]
+    d = lines[1]
+    p = session / d["color"]
+    if how == "huge":
+        data = _png_header(65535, 65535) + b"\0" * 64
+        p.write_bytes(data)
+        d["color_bytes"] = len(data)
+    elif how == "loop":
+        p.unlink()
+        p.symlink_to(p.name)
+    else:
+        d["color"] += "\x00.png"
+    (session / "frames.jsonl").write_text("".join(json.dumps(x) + "\n" for x in lines))
+
+
+@pytest.mark.parametrize("how", ["huge", "loop", "nul"])
+def test_a_hostile_frame_is_skipped_and_counted(tmp_path, capsys, how):
+    from illuminet.hw.replay import ReplaySource
+
+    s = tmp_path / "s"
+    make_session(s, 4)
+    _damage_frame_1(s, how)
+    # --check reports it, one problem line, no traceback
+    assert main(["replay", str(s), "--check"]) == 1
+    out, err = capsys.readouterr()
+    assert "Traceback" not in out + err
+    assert "1 problem(s)" in out and "line 2" in out, out
+    # the replay (decoder threads included) skips it and plays the other three
+    with ReplaySource(s, timing="asap") as src:
+        got = []
+        while (f := src.read()) is not None:
+            got.append(f)
+        assert len(got) == 3
+        corrupt = src.stats().get("corrupt", 0) + len(src.session.problems)
+    assert corrupt == 1
+
+
+def test_a_huge_header_is_refused_before_decoding(tmp_path):
+    # swapped in after the index was validated: the decoder thread meets it; refused from its header
+    # (a decoder would allocate 12 GiB for 65535x65535 RGB) and counted as one corrupt frame
+    from illuminet.hw.replay import ReplaySource
+    from illuminet.runtime.stream.session import CorruptFrame
+
+    s = tmp_path / "s"
+    make_session(s, 4)
+    r = SessionReader(s)
+    e = r.entries[2]
+    data = _png_header(20000, 20000)
+    e.color.write_bytes(data + b"\0" * (e.color_bytes - len(data)))
+    with pytest.raises(
+        CorruptFrame, match="image is 20000x20000, the manifest says 64x48 .read from its header; not decoded"
+    ):
+        r.read(2)
+    tracemalloc.start()
+    with ReplaySource(s, timing="asap") as src:
+        n = sum(1 for _ in iter(src.read, None))
+        assert src.stats()["corrupt"] == 1
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert n == 3 and peak < 200e6
+
+
+def test_a_manifest_symlinked_out_of_the_session_is_refused(tmp_path, capsys):
+    s = tmp_path / "s"
+    make_session(s, 2)
+    outside = tmp_path / "elsewhere.json"
+    (s / "manifest.json").rename(outside)
+    (s / "manifest.json").symlink_to(outside)
+    with pytest.raises(errors.SessionError, match="outside the session folder"):
+        SessionReader(s)
+    assert main(["replay", str(s), "--check"]) == 1
+    err = capsys.readouterr().err
+    assert "outside the session folder" in err and "Traceback" not in err

@@ -53,6 +53,7 @@ import cv2
 import numpy as np
 
 from illuminet.runtime.frame import Exposure, Frame, ImuSample, Intrinsics, depth_to_mm
+from illuminet.runtime.imageheader import image_size
 
 log = logging.getLogger(__name__)
 
@@ -157,11 +158,13 @@ def safe_relpath(root: Path, rel: Any, what: str) -> Path:
         raise SessionError(
             f"{what}: path {rel!r} escapes the session folder {root}; only relative paths without '..' are allowed"
         )
+    if "\x00" in rel:
+        raise SessionError(f"{what}: path {rel!r} contains a NUL byte; not a file name")
     full = root.joinpath(*p.parts)
     try:
         inside = full.resolve().is_relative_to(root.resolve())
-    except OSError:  # pragma: no cover - resolve() only fails on symlink loops
-        inside = False
+    except (OSError, RuntimeError) as e:  # a symlink loop (RuntimeError before Python 3.13, OSError after)
+        raise SessionError(f"{what}: path {rel!r} cannot be resolved ({e}); a symlink loop?") from None
     if not inside:
         raise SessionError(f"{what}: path {rel!r} resolves outside the session folder {root} (symlink?)")
     return full
@@ -535,6 +538,51 @@ def _vec(v: Any, n: int, where: str) -> tuple[float, ...]:
     return tuple(float(x) for x in v)
 
 
+#: largest plausible focal length, in multiples of the image's larger side (a ~0.6 degree field of view;
+#: telephoto camera modules reach ~10x)
+MAX_FOCAL_PER_SIDE = 100.0
+#: a gravity vector is a unit vector; a norm further from 1 than this is not one
+GRAVITY_NORM_TOLERANCE = 1e-2
+
+
+def _finite(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(float(x))
+
+
+def check_intrinsics(intr: Intrinsics, width: int, height: int, where: str) -> None:
+    """Refuse intrinsics no camera has (NaN, 0, 1e300, a principal point far outside the image).
+
+    A session with such intrinsics reads, but every frame then fails in the stages; refusing it at
+    the boundary names the key instead. Raises :class:`SessionError`.
+    """
+    side = max(width, height)
+    for key in ("fx", "fy"):
+        v = getattr(intr, key)
+        if not (np.isfinite(v) and 0.0 < v <= MAX_FOCAL_PER_SIDE * side):
+            raise SessionError(
+                f"{where}: key 'intrinsics.{key}': {v!r} is not a plausible focal length in pixels "
+                f"(expected a finite value in (0, {MAX_FOCAL_PER_SIDE:g} x {side}])"
+            )
+    for key, size in (("cx", width), ("cy", height)):
+        v = getattr(intr, key)
+        if not (np.isfinite(v) and -size <= v <= 2 * size):
+            raise SessionError(
+                f"{where}: key 'intrinsics.{key}': {v!r} is not a plausible principal point for a "
+                f"{width}x{height} image (expected a finite value in [-{size}, {2 * size}])"
+            )
+    if not all(np.isfinite(x) for x in intr.dist):
+        raise SessionError(f"{where}: key 'intrinsics.dist': expected finite numbers, got {list(intr.dist)!r}")
+
+
+def _check_exposure(exp: Exposure, where: str) -> None:
+    for key in ("exposure_us", "iso", "color_temperature_k"):
+        v = getattr(exp, key)
+        if v is not None and not (np.isfinite(v) and v > 0):
+            raise SessionError(f"{where}: key 'exposure.{key}': expected a finite positive number, got {v!r}")
+    if exp.wb_gains is not None and not all(np.isfinite(g) and g > 0 for g in exp.wb_gains):
+        raise SessionError(f"{where}: key 'exposure.wb_gains': expected finite positive gains, got {exp.wb_gains!r}")
+
+
 class SessionReader:
     """Open and validate a recorded session; read its frames by index.
 
@@ -612,6 +660,9 @@ class SessionReader:
 
     def _read_manifest(self) -> dict[str, Any]:
         mpath = self.path / MANIFEST
+        if mpath.is_symlink():
+            # like every file a session names: a manifest is never followed out of the folder
+            safe_relpath(self.path, MANIFEST, str(mpath))
         if not mpath.is_file():
             raise SessionError(
                 f"{mpath}: missing; not a recorded session, or the recording was killed before its first "
@@ -638,11 +689,12 @@ class SessionReader:
                 raise SessionError(f"{where}: key {key!r}: expected a positive int, got {m[key]!r}")
         intr = _need(m, "intrinsics", (dict,), where)
         try:
-            Intrinsics.from_dict(intr)
-        except (KeyError, TypeError, ValueError) as e:
+            parsed = Intrinsics.from_dict(intr)
+        except (KeyError, TypeError, ValueError, OverflowError) as e:
             raise SessionError(
                 f"{where}: key 'intrinsics': expected fx, fy, cx, cy, width, height numbers ({e!r})"
             ) from None
+        check_intrinsics(parsed, m["width"], m["height"], where)
         color = _need(m, "color", (dict,), where)
         if color.get("encoding") not in COLOR_ENCODINGS:
             raise SessionError(
@@ -742,8 +794,13 @@ class SessionReader:
             exposure = Exposure.from_dict(exp)
         except (TypeError, ValueError, KeyError, AttributeError) as ex:
             raise SessionError(f"{where}: key 'exposure': {ex}") from None
+        _check_exposure(exposure, where)
         g = d.get("gravity")
         gravity = None if g is None else np.asarray(_vec(g, 3, f"{where}: key 'gravity'"), dtype=np.float64)
+        if gravity is not None:
+            norm = float(np.linalg.norm(gravity)) if np.all(np.isfinite(gravity)) else float("nan")
+            if not abs(norm - 1.0) <= GRAVITY_NORM_TOLERANCE:
+                raise SessionError(f"{where}: key 'gravity': expected a finite unit vector, got {g!r}")
         imu = []
         for k, s in enumerate(d.get("imu") or []):
             w2 = f"{where}: imu[{k}]"
@@ -760,8 +817,9 @@ class SessionReader:
         if d.get("intrinsics") is not None:
             try:
                 intr = Intrinsics.from_dict(d["intrinsics"])
-            except (KeyError, TypeError, ValueError, AttributeError) as ex:
+            except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as ex:
                 raise SessionError(f"{where}: key 'intrinsics': {ex!r}") from None
+            check_intrinsics(intr, self.width, self.height, where)
         return FrameEntry(
             i=i,
             line=no,
@@ -784,6 +842,8 @@ class SessionReader:
             size = path.stat().st_size
         except FileNotFoundError:
             raise SessionError(f"{what}: missing file {path}") from None
+        except (OSError, ValueError) as e:  # a symlink loop, permissions, a NUL byte
+            raise SessionError(f"{what}: cannot read {path}: {getattr(e, 'strerror', None) or e}") from None
         if size != expected:
             kind = "truncated frame" if size < expected else "size mismatch"
             raise SessionError(f"{what}: {kind}: {path} has {size} bytes, the index says {expected}")
@@ -798,8 +858,9 @@ class SessionReader:
             buf = np.fromfile(path, dtype=np.uint8)
         except FileNotFoundError:
             raise CorruptFrame(f"{what}: missing file {path}") from None
-        except OSError as e:  # permissions, I/O error: this frame is lost, the others may still read
-            raise CorruptFrame(f"{what}: cannot read {path}: {e.strerror or e}") from None
+        except (OSError, ValueError) as e:  # permissions, I/O error, a symlink loop: this frame is lost,
+            # the others may still read
+            raise CorruptFrame(f"{what}: cannot read {path}: {getattr(e, 'strerror', None) or e}") from None
         if buf.size != expected:
             raise CorruptFrame(f"{what}: truncated frame: {path} has {buf.size} bytes, the index says {expected}")
         return buf
@@ -816,10 +877,40 @@ class SessionReader:
         """
         e = self.entries[k]
         where = f"{self.index_path}: line {e.line}"
+        try:
+            return self._decode(e, where)
+        except CorruptFrame:
+            raise
+        except (OSError, ValueError, RuntimeError, MemoryError, cv2.error) as ex:
+            # anything else one frame's files can cause is still one bad frame, never the end of a replay
+            # (this runs in the replay's decoder threads)
+            raise CorruptFrame(f"{where}: cannot decode the frame: {type(ex).__name__}: {ex}") from None
+
+    def _check_header(
+        self, buf: np.ndarray, path: Path, what: str, size: tuple[int, int], kind: str, says: str
+    ) -> None:
+        """Refuse an image whose header is not ``kind`` (PNG/JPEG) of ``size`` before decoding it.
+
+        A decoder allocates whatever the header claims (a 65535x65535 PNG is 12 GiB), so the size is
+        checked from the header's few bytes first.
+        """
+        got = image_size(buf[: 1 << 20].tobytes())
+        if got is None:
+            raise CorruptFrame(f"{what} {path} is not a decodable {kind} image (no {kind} header)")
+        if got != size:
+            raise CorruptFrame(
+                f"{what} {path}: size mismatch: image is {got[0]}x{got[1]}, the manifest says {says} "
+                f"(read from its header; not decoded)"
+            )
+
+    def _decode(self, e: FrameEntry, where: str) -> Frame:
         buf = self._read_bytes(e.color, e.color_bytes, f"{where}: colour")
         if self.color_encoding == "raw":
             color = buf.reshape(self.height, self.width, 3)
         else:
+            size = (self.width, self.height)
+            enc = self.color_encoding.upper()
+            self._check_header(buf, e.color, f"{where}: colour", size, enc, f"{self.width}x{self.height}")
             img = cv2.imdecode(buf, _IMREAD_RGB if _IMREAD_RGB is not None else cv2.IMREAD_COLOR)
             if img is None:
                 raise CorruptFrame(f"{where}: colour {e.color} is not a decodable {self.color_encoding.upper()} image")
@@ -832,6 +923,10 @@ class SessionReader:
         depth = None
         if e.depth is not None:
             dbuf = self._read_bytes(e.depth, e.depth_bytes, f"{where}: depth")
+            k = self.depth_scale
+            scaled = f" / depth.scale {k} = {self.width // k}x{self.height // k}" if k > 1 else ""
+            says = f"{self.width}x{self.height}{scaled}"
+            self._check_header(dbuf, e.depth, f"{where}: depth", (self.width // k, self.height // k), "PNG", says)
             mm = cv2.imdecode(dbuf, cv2.IMREAD_UNCHANGED)
             if mm is None:
                 raise CorruptFrame(f"{where}: depth {e.depth} is not a decodable PNG")
@@ -840,7 +935,6 @@ class SessionReader:
                     f"{where}: depth {e.depth}: expected a 16-bit single-channel PNG (mm), got {mm.dtype} "
                     f"with shape {mm.shape}"
                 )
-            k = self.depth_scale
             dh, dw = self.height // k, self.width // k
             if mm.shape != (dh, dw):
                 scaled = f" / depth.scale {k} = {dw}x{dh}" if k > 1 else ""
