@@ -288,3 +288,49 @@ def test_a_manifest_symlinked_out_of_the_session_is_refused(tmp_path, capsys):
     assert main(["replay", str(s), "--check"]) == 1
     err = capsys.readouterr().err
     assert "outside the session folder" in err and "Traceback" not in err
+
+
+# ------------------------------------------------------------ class 4: plausible-looking garbage
+
+
+@pytest.mark.parametrize("key,value", [("fx", float("nan")), ("fy", 0.0), ("fx", 1e300), ("cx", float("inf"))])
+def test_implausible_session_intrinsics_are_refused(tmp_path, capsys, key, value):
+    s = tmp_path / "s"
+    make_session(s, 3)
+    m = json.loads((s / "manifest.json").read_text())
+    m["intrinsics"][key] = value
+    (s / "manifest.json").write_text(json.dumps(m))  # json writes NaN / Infinity, as a hand edit could
+    with pytest.raises(errors.SessionError, match=f"'intrinsics.{key}'"):
+        SessionReader(s)
+    assert main(["replay", str(s), "--check"]) == 1
+    err = capsys.readouterr().err
+    assert f"intrinsics.{key}" in err and "Traceback" not in err
+    assert main(["replay", str(s)]) == 1  # not "every frame failed" with exit status 0
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("illuminet")]
+    assert len(lines) == 1 and f"intrinsics.{key}" in lines[0], lines
+
+
+@pytest.mark.parametrize(
+    "key,value,expect",
+    [
+        ("gravity", [float("nan"), 1.0, 0.0], "'gravity'"),
+        ("gravity", [0.0, 0.0, 0.0], "'gravity'"),
+        ("exposure", {"exposure_us": float("inf")}, "'exposure.exposure_us'"),
+        ("intrinsics", {"fx": 0, "fy": 50, "cx": 32, "cy": 24, "width": 64, "height": 48}, "'intrinsics.fx'"),
+    ],
+)
+def test_implausible_frame_metadata_is_a_reported_problem(tmp_path, capsys, key, value, expect):
+    s = tmp_path / "s"
+    make_session(s, 4)
+
+    def poison(k, d):
+        if k == 1:
+            d[key] = value
+
+    _rewrite_index(s, poison)
+    r = SessionReader(s)
+    assert len(r) == 3 and any(expect in p for p in r.problems), r.problems
+    with pytest.raises(errors.SessionError, match=expect):
+        SessionReader(s, strict=True)
+    assert main(["replay", str(s), "--check"]) == 1
+    assert expect in capsys.readouterr().out
