@@ -65,19 +65,79 @@ def _floats(text: str, n: int, what: str) -> list[float]:
     return vals
 
 
+#: largest image ``relight`` decodes (8K UHD is 33 Mpx): a header claiming more is refused before decoding,
+#: which would otherwise take a minute and gigabytes for a 1 MB PNG that says 20000x20000
+MAX_IMAGE_PIXELS = 50_000_000
+
+
+def _input_file(path: str, flag: str) -> Path:
+    """``path`` as an existing regular file, or one line naming ``flag``."""
+    p = Path(path)
+    if "\x00" in path:
+        raise ValueError(f"{flag} {path!r}: a NUL byte in the path; not a file name")
+    if p.is_dir():
+        raise ValueError(f"{flag} {path}: is a folder; expected a file")
+    if not p.is_file():
+        raise ValueError(f"{flag} {path}: no such file")
+    return p
+
+
+def _check_output(path: str, flag: str) -> None:
+    """Refuse an output path that cannot be written, before any work (issue 13: not after a minute)."""
+    from illuminet.runtime.errors import OutputPathError
+
+    p = Path(path)
+    if p.is_dir():
+        raise OutputPathError(f"{flag} {path}: is a folder; expected a file path")
+    parent = p.parent
+    if not parent.is_dir():
+        raise OutputPathError(f"{flag} {path}: folder {parent} does not exist; create it first")
+
+
+def _check_image_header(p: Path, flag: str) -> None:
+    """Refuse a PNG/JPEG whose header claims more than :data:`MAX_IMAGE_PIXELS`, without decoding it."""
+    from illuminet.runtime.imageheader import image_size_of_file
+
+    size = image_size_of_file(p)
+    if size is not None and size[0] * size[1] > MAX_IMAGE_PIXELS:
+        raise ValueError(
+            f"{flag} {p}: the image header says {size[0]}x{size[1]} pixels, over the limit of "
+            f"{MAX_IMAGE_PIXELS / 1e6:g} Mpx; resize it first"
+        )
+
+
+def _load_npy(p: Path, flag: str) -> np.ndarray:
+    with open(p, "rb") as f:
+        magic = f.read(6)
+    if magic != b"\x93NUMPY":
+        kind = "an .npz archive" if magic.startswith(b"PK") else "not a .npy array"
+        raise ValueError(f"{flag} {p}: {kind}; expected one float array in metres saved by numpy.save")
+    try:
+        a = np.load(p, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as e:
+        raise ValueError(f"{flag} {p}: cannot read the array: {e}") from None
+    if a.ndim != 2 or a.dtype.kind not in "fiu":
+        raise ValueError(f"{flag} {p}: expected a 2-D array of depths in metres, got {a.dtype} with shape {a.shape}")
+    return a.astype(np.float32)
+
+
 def load_inputs(color_path: str, depth_path: str, intr: str):
     """Read colour, depth and intrinsics with errors that name the file and what was expected."""
     import cv2
 
     from illuminet.runtime.frame import Intrinsics, depth_from_mm
 
+    cpath = _input_file(color_path, "--color")
+    dpath = _input_file(depth_path, "--depth")
+    _check_image_header(cpath, "--color")
     bgr = cv2.imread(color_path, cv2.IMREAD_COLOR)
     if bgr is None:
         raise ValueError(f"--color {color_path}: cannot read an image from it")
     color = np.ascontiguousarray(bgr[..., ::-1])
     if depth_path.endswith(".npy"):
-        depth = np.load(depth_path, allow_pickle=False).astype(np.float32)
+        depth = _load_npy(dpath, "--depth")
     else:
+        _check_image_header(dpath, "--depth")
         d = cv2.imread(depth_path, cv2.IMREAD_UNCHANGED)
         if d is None:
             raise ValueError(f"--depth {depth_path}: cannot read an image from it")
@@ -118,6 +178,9 @@ def run(args: argparse.Namespace, cfg) -> int:
     from illuminet.runtime.relight import relight
 
     try:
+        _check_output(args.out, "--out")
+        if args.preview:
+            _check_output(args.preview, "--preview")
         color, depth, K = load_inputs(args.color, args.depth, args.intrinsics)
         ax, ay = _floats(args.anchor, 2, "--anchor")
         exp = None
@@ -125,10 +188,14 @@ def run(args: argparse.Namespace, cfg) -> int:
             us, iso = _floats(args.exposure, 2, "--exposure")
             exp = Exposure(exposure_us=us, iso=iso)
         res = relight(color, depth, K, (ax, ay), cfg, bundle=args.bundle, exposure=exp, precision=args.precision)
-    except (ValueError, BundleError, FileNotFoundError) as e:
+    except (ValueError, BundleError, OSError) as e:
         print(f"illuminet relight: {e}", file=sys.stderr)
         return 2
-    res.save(args.out)
+    try:
+        res.save(args.out)
+    except OSError as e:  # the folder vanished or filled up since it was checked
+        print(f"illuminet relight: --out {args.out}: cannot write it: {e.strerror or e}", file=sys.stderr)
+        return 1
     print(
         f"wrote {args.out}: {len(res.vertices)} vertices, method {res.method}, "
         f"{res.plane_observed:.0%} of the plane grid observed, mean radiance "

@@ -197,18 +197,10 @@ def load_bundle(spec: str | Path, verify: bool = True) -> Bundle:
     if not mpath.is_file():
         raise BundleError(f"{path}: no {METADATA} (not a bundle folder?)")
     try:
-        meta = json.loads(mpath.read_text())
-    except json.JSONDecodeError as e:
+        meta = json.loads(mpath.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise BundleError(f"{mpath}: not valid JSON: {e}") from None
-    fmt = meta.get("format")
-    if fmt != BUNDLE_FORMAT:
-        raise BundleError(
-            f"{mpath}: bundle format {fmt!r} is not supported (this version reads format "
-            f"{BUNDLE_FORMAT}); retrain or update illuminet"
-        )
-    for key in ("files", "vertices") + (("plane",) if "onnx" in meta else ()):
-        if key not in meta:
-            raise BundleError(f"{mpath}: missing key {key!r}")
+    check_metadata(meta, mpath)
     required = [FILES["mesh"]] + ([FILES[k] for k in MODEL_FILES] if "onnx" in meta else [])
     for name in required:
         if name not in meta["files"]:
@@ -243,6 +235,7 @@ def load_bundle(spec: str | Path, verify: bool = True) -> Bundle:
     except Exception as e:  # zip/npz errors
         raise BundleError(f"{path / FILES['mesh']}: cannot read: {e}") from None
     b = Bundle(path=path, meta=meta, **arr)
+    _check_finite(b, path / FILES["mesh"])
     _check_shapes(b, path / FILES["mesh"])
     if PRT_FILE in meta["files"]:
         try:
@@ -253,6 +246,84 @@ def load_bundle(spec: str | Path, verify: bool = True) -> Bundle:
         except Exception as e:  # zip/npz errors
             raise BundleError(f"{path / PRT_FILE}: cannot read: {e}") from None
     return b
+
+
+def _is_int(v: object) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _int_list(v: object) -> bool:
+    return isinstance(v, list) and all(_is_int(x) for x in v)
+
+
+def check_metadata(meta: object, mpath: Path) -> None:
+    """Validate the structure of ``bundle.json`` before any of it is used.
+
+    Raises :class:`BundleError` naming the key (``files.mesh.npz.bytes``, ``plane.pool``, ...) and
+    what was expected, so a hand-edited or truncated file is one line, not a ``KeyError`` deep inside.
+    """
+
+    def bad(key: str, expected: str, got: object) -> BundleError:
+        return BundleError(f"{mpath}: key {key!r}: expected {expected}, got {got!r}")
+
+    if not isinstance(meta, dict):
+        raise BundleError(f"{mpath}: expected a JSON object, got a {type(meta).__name__}")
+    fmt = meta.get("format")
+    if fmt != BUNDLE_FORMAT or isinstance(fmt, bool):
+        raise BundleError(
+            f"{mpath}: bundle format {fmt!r} is not supported (this version reads format "
+            f"{BUNDLE_FORMAT}); retrain or update illuminet"
+        )
+    for key in ("files", "vertices") + (("plane",) if "onnx" in meta else ()):
+        if key not in meta:
+            raise BundleError(f"{mpath}: missing key {key!r}")
+    files = meta["files"]
+    if not isinstance(files, dict):
+        raise bad("files", "an object of file name -> {sha256, bytes}", files)
+    for name, rec in files.items():
+        if not isinstance(rec, dict):
+            raise bad(f"files.{name}", "an object with 'sha256' and 'bytes'", rec)
+        if not (_is_int(rec.get("bytes")) and rec["bytes"] >= 0):
+            raise bad(f"files.{name}.bytes", "a file size (an int >= 0)", rec.get("bytes"))
+        if not isinstance(rec.get("sha256"), str):
+            raise bad(f"files.{name}.sha256", "a hex digest string", rec.get("sha256"))
+    counts = meta["vertices"]
+    if not isinstance(counts, dict):
+        raise bad("vertices", "an object with 'render' and 'proxy' counts", counts)
+    for key in ("render", "proxy"):
+        if not (_is_int(counts.get(key)) and counts[key] > 0):
+            raise bad(f"vertices.{key}", "a vertex count (an int >= 1)", counts.get(key))
+    if "onnx" not in meta:
+        return
+    plane = meta["plane"]
+    if not isinstance(plane, dict):
+        raise bad("plane", "an object with 'grid', 'pool' and 'extent_m'", plane)
+    for key in ("grid", "pool"):
+        if not (_is_int(plane.get(key)) and plane[key] >= 1):
+            raise bad(f"plane.{key}", "an int >= 1", plane.get(key))
+    if plane["grid"] % plane["pool"]:
+        raise bad("plane.pool", f"a divisor of plane.grid ({plane['grid']})", plane["pool"])
+    ext = plane.get("extent_m")
+    if not (isinstance(ext, (int, float)) and not isinstance(ext, bool) and np.isfinite(ext) and ext > 0):
+        raise bad("plane.extent_m", "a finite positive number of metres", ext)
+    io = meta["onnx"]
+    if not isinstance(io, dict):
+        raise bad("onnx", "an object with 'input' and 'outputs' shapes", io)
+    inp = io.get("input")
+    if not (isinstance(inp, dict) and _int_list(inp.get("plane"))):
+        raise bad("onnx.input.plane", "a shape (a list of ints)", inp)
+    outs = io.get("outputs")
+    if not (isinstance(outs, dict) and _int_list(outs.get("shading"))):
+        raise bad("onnx.outputs.shading", "a shape (a list of ints)", outs)
+
+
+def _check_finite(b: Bundle, where: Path) -> None:
+    # a NaN vertex renders nothing and a NaN weight or prior makes every shading value NaN, silently
+    for key in ("vertices", "normals", "carry_weight", "prior_shading"):
+        a = getattr(b, key)
+        if a.dtype.kind in "fc" and not np.all(np.isfinite(a)):
+            n = int(a.size - np.count_nonzero(np.isfinite(a)))
+            raise BundleError(f"{where}: array {key!r} has {n} non-finite value(s) (NaN or inf); the mesh is damaged")
 
 
 def _check_shapes(b: Bundle, where: Path) -> None:
