@@ -334,3 +334,95 @@ def test_implausible_frame_metadata_is_a_reported_problem(tmp_path, capsys, key,
         SessionReader(s, strict=True)
     assert main(["replay", str(s), "--check"]) == 1
     assert expect in capsys.readouterr().out
+
+
+def test_a_bundle_with_nan_mesh_arrays_is_refused_naming_the_array(tmp_path, capsys):
+    import shutil
+
+    import numpy as np
+
+    from illuminet.models.export import finalize_bundle
+    from illuminet.runtime.assets.bundle import FILES, load_bundle
+
+    d = tmp_path / "vase"
+    shutil.copytree(load_bundle("builtin:vase").path, d, ignore=shutil.ignore_patterns("work"))
+    with np.load(d / FILES["mesh"]) as z:
+        arr = {k: z[k] for k in z.files}
+    arr["vertices"] = np.full_like(arr["vertices"], np.nan)
+    np.savez_compressed(d / FILES["mesh"], **arr)
+    finalize_bundle(d, json.loads((d / "bundle.json").read_text()))  # checksums agree: only the values are bad
+    with pytest.raises(errors.BundleError, match="array 'vertices' has .* non-finite"):
+        load_bundle(d)
+    assert main(["--set", f"model.bundle={d}", "run", "synthetic://indoor?frames=1"]) == 2
+    err = capsys.readouterr().err
+    assert "'vertices'" in err and "Traceback" not in err
+
+
+# ------------------------------------------------------ class 5: malformed bundles and relight inputs
+
+BAD_BUNDLE_JSON = [
+    (lambda m: [m], "expected a JSON object, got a list"),
+    (lambda m: {k: v for k, v in m.items() if k != "vertices"}, "missing key 'vertices'"),
+    (lambda m: {**m, "plane": {**m["plane"], "pool": 0}}, "key 'plane.pool'"),
+    (lambda m: {**m, "files": {**m["files"], "mesh.npz": "abc"}}, "key 'files.mesh.npz'"),
+    (lambda m: {**m, "vertices": {"render": "many", "proxy": 400}}, "key 'vertices.render'"),
+]
+
+
+@pytest.mark.parametrize("edit,expect", BAD_BUNDLE_JSON, ids=[e for _, e in BAD_BUNDLE_JSON])
+def test_a_malformed_bundle_json_is_one_line_naming_the_key(tmp_path, capsys, edit, expect):
+    import shutil
+
+    from illuminet.runtime.assets.bundle import load_bundle
+
+    d = tmp_path / "b"
+    shutil.copytree(load_bundle("builtin:vase").path, d, ignore=shutil.ignore_patterns("work"))
+    meta = json.loads((d / "bundle.json").read_text())
+    (d / "bundle.json").write_text(json.dumps(edit(meta)))
+    with pytest.raises(errors.BundleError, match=expect.replace(".", r"\.")):
+        load_bundle(d)
+    assert main(["--set", f"model.bundle={d}", "run", "synthetic://indoor?frames=1"]) == 2
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and expect in lines[0], lines
+
+
+def _relight_inputs(tmp_path):
+    import cv2
+    import numpy as np
+
+    cv2.imwrite(str(tmp_path / "c.png"), np.full((48, 64, 3), 128, np.uint8))
+    cv2.imwrite(str(tmp_path / "d.png"), np.full((48, 64), 2000, np.uint16))
+    np.savez(tmp_path / "npz.npy", depth=np.ones((48, 64), np.float32))  # writes npz.npy.npz
+    (tmp_path / "npz.npy.npz").rename(tmp_path / "npz.npy")
+    (tmp_path / "huge.png").write_bytes(_png_header(20000, 20000) + b"\0" * 4096)
+    (tmp_path / "adir").mkdir()
+
+
+BAD_RELIGHT = [
+    ({"--depth": "{tmp}/adir"}, "--depth {tmp}/adir: is a folder"),
+    ({"--depth": "{tmp}/npz.npy"}, "an .npz archive"),
+    ({"--out": "{tmp}/missing/r.npz"}, "folder {tmp}/missing does not exist"),
+    ({"--color": "{tmp}/huge.png"}, "header says 20000x20000"),
+    ({"--depth": "{tmp}/huge.png"}, "header says 20000x20000"),
+    ({"--color": "{tmp}/nothing.png"}, "no such file"),
+]
+
+
+@pytest.mark.parametrize("change,expect", BAD_RELIGHT, ids=[e for _, e in BAD_RELIGHT])
+def test_bad_relight_inputs_are_one_line_each(tmp_path, capsys, change, expect):
+    _relight_inputs(tmp_path)
+    opts = {
+        "--color": "{tmp}/c.png",
+        "--depth": "{tmp}/d.png",
+        "--intrinsics": "60,60,32,24",
+        "--anchor": "32,40",
+        "--out": "{tmp}/r.npz",
+        **change,
+    }
+    argv = ["relight"] + [x.replace("{tmp}", str(tmp_path)) for kv in opts.items() for x in kv]
+    t0 = time.monotonic()
+    assert main(argv) == 2
+    assert time.monotonic() - t0 < 10  # refused from the header, not after decoding 400 Mpx
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and expect.replace("{tmp}", str(tmp_path)) in lines[0], lines
+    assert not (tmp_path / "r.npz").exists() and not (tmp_path / "missing").exists()
