@@ -180,6 +180,24 @@ def sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+def write_mesh(out: Path, geom, prior_shading: np.ndarray) -> None:
+    """A bundle's ``mesh.npz``: the render mesh, the lighting proxy, the carry mapping and the
+    constant-prior shading (one writer for trained and PRT-only bundles)."""
+    from illuminet.runtime.assets.bundle import FILES
+
+    np.savez_compressed(
+        Path(out) / FILES["mesh"],
+        vertices=geom.vertices,
+        normals=geom.normals,
+        faces=geom.faces,
+        proxy_index=geom.proxy_index,
+        proxy_edges=geom.proxy_edges,
+        carry_index=geom.carry_index,
+        carry_weight=geom.carry_weight,
+        prior_shading=prior_shading,
+    )
+
+
 def write_bundle(out: str | Path, result: dict, trainer, command: str = "", extra_meta: dict | None = None) -> Path:
     """Write a bundle folder: mesh.npz, transfer_fp32.onnx, transfer_int8.onnx, bundle.json.
 
@@ -199,17 +217,7 @@ def write_bundle(out: str | Path, result: dict, trainer, command: str = "", extr
     cfg = trainer.cfg
     P, V = trainer.a_plane.shape[0], trainer.a_obj.shape[0]
     prior = trainer.data["train"]["shading"].mean(0).astype(np.float32)
-    np.savez_compressed(
-        out / FILES["mesh"],
-        vertices=g.vertices,
-        normals=g.normals,
-        faces=g.faces,
-        proxy_index=g.proxy_index,
-        proxy_edges=g.proxy_edges,
-        carry_index=g.carry_index,
-        carry_weight=g.carry_weight,
-        prior_shading=prior,
-    )
+    write_mesh(out, g, prior)
     model, fc_nodes = build_onnx(
         result,
         trainer.a_plane,

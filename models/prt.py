@@ -388,8 +388,8 @@ def new_bundle(
 
     from illuminet import __version__
     from illuminet.models.datagen import build_geometry
-    from illuminet.models.export import finalize_bundle
-    from illuminet.runtime.assets.bundle import BUNDLE_FORMAT, FILES
+    from illuminet.models.export import finalize_bundle, write_mesh
+    from illuminet.runtime.assets.bundle import BUNDLE_FORMAT
     from illuminet.runtime.assets.objects import DEFAULT_HEIGHT, load_object, normalise
     from illuminet.runtime.prt import PRT_FILE
 
@@ -415,17 +415,7 @@ def new_bundle(
     res.timings_s = {"mesh_and_proxy_s": t_geom, **res.timings_s}
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(
-        out / FILES["mesh"],
-        vertices=g.vertices,
-        normals=g.normals,
-        faces=g.faces,
-        proxy_index=g.proxy_index,
-        proxy_edges=g.proxy_edges,
-        carry_index=g.carry_index,
-        carry_weight=g.carry_weight,
-        prior_shading=uniform_prior(res),
-    )
+    write_mesh(out, g, uniform_prior(res))
     np.savez_compressed(out / PRT_FILE, **res.arrays())
     meta = {
         "format": BUNDLE_FORMAT,

@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from illuminet.runtime.sh import SH_A_HAT, sh9
+
 
 @dataclass(frozen=True)
 class Plane:
@@ -191,30 +193,14 @@ class LightEstimate:
 
     def radiance_sh9(self) -> np.ndarray:
         """Ambient *radiance* SH (9, 3): the convention of three.js ``LightProbe`` / WebXR."""
-        a_hat = np.array([np.pi] + [2 * np.pi / 3] * 3 + [np.pi / 4] * 5)
-        return np.asarray(self.sh9, np.float64) / a_hat[:, None]
+        return np.asarray(self.sh9, np.float64) / SH_A_HAT[:, None]
 
     def total_sh9(self) -> np.ndarray:
         """Irradiance SH (9, 3) of ambient plus the primary light (the light as one SH environment)."""
         out = np.array(self.sh9, np.float64)
         if self.primary_dir is not None:
-            d = np.asarray(self.primary_dir, np.float64)
-            x, y, z = d
-            basis = np.array(
-                [
-                    0.282095,
-                    0.488603 * y,
-                    0.488603 * z,
-                    0.488603 * x,
-                    1.092548 * x * y,
-                    1.092548 * y * z,
-                    0.315392 * (3 * z * z - 1),
-                    1.092548 * x * z,
-                    0.546274 * (x * x - y * y),
-                ]
-            )
-            a_hat = np.array([np.pi] + [2 * np.pi / 3] * 3 + [np.pi / 4] * 5)
-            out += (basis * a_hat)[:, None] * np.asarray(self.primary_rgb, np.float64)[None, :]
+            basis = sh9(np.asarray(self.primary_dir, np.float64).reshape(1, 3))[0]
+            out += (basis * SH_A_HAT)[:, None] * np.asarray(self.primary_rgb, np.float64)[None, :]
         return out
 
     def primary_share(self) -> float:

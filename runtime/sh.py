@@ -37,7 +37,7 @@ def sh9(n: np.ndarray) -> np.ndarray:
 SH_A_HAT = np.array([np.pi] + [2 * np.pi / 3] * 3 + [np.pi / 4] * 5)
 
 
-_BAND = np.array([0, 1, 1, 1, 2, 2, 2, 2, 2])
+SH_BAND = np.array([0, 1, 1, 1, 2, 2, 2, 2, 2])
 
 
 def sh_fit(
@@ -59,7 +59,7 @@ def sh_fit(
         coef, *_ = np.linalg.lstsq(B, E, rcond=1e-6)
         return coef
     G = B.T @ B
-    reg = lam * np.trace(G) / 9 * np.diag((_BAND * (_BAND + 1.0)) ** 2)
+    reg = lam * np.trace(G) / 9 * np.diag((SH_BAND * (SH_BAND + 1.0)) ** 2)
     return np.linalg.solve(G + reg + 1e-9 * np.eye(9), B.T @ E)
 
 

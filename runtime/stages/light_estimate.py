@@ -63,14 +63,13 @@ import numpy as np
 from illuminet.runtime.frame import Frame
 from illuminet.runtime.physics import linearize
 from illuminet.runtime.scene import ANCHOR, LIGHT, ODOMETRY, PLANE_LIGHT, PLANES, Anchor, LightEstimate, PlaneLight
-from illuminet.runtime.sh import SH_A_HAT, sh9
+from illuminet.runtime.sh import SH_A_HAT, SH_BAND, sh9
 from illuminet.runtime.stage import LogOnce, Stage
 from illuminet.runtime.stages.shadow_cue import ShadowTracker
 
 log = logging.getLogger(__name__)
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
-_BAND = np.array([0, 1, 1, 1, 2, 2, 2, 2, 2])
 
 #: latitude-longitude bins of the environment map (theta from +Y, phi around it)
 ENV_THETA, ENV_PHI = 12, 24
@@ -706,7 +705,7 @@ class LightEstimateStage(Stage):
         Aw, bw = A * w, b * w
         G = Aw.T @ Aw
         reg = np.zeros(ncol)
-        reg[:9] = (self.lam * (_BAND * (_BAND + 1.0)) ** 2 + 1e-6) * (np.trace(G[:9, :9]) / 9 + 1e-12)
+        reg[:9] = (self.lam * (SH_BAND * (SH_BAND + 1.0)) ** 2 + 1e-6) * (np.trace(G[:9, :9]) / 9 + 1e-12)
         reg[9:] = 1e-6 * (np.trace(G) / ncol + 1e-12)
         # a weak prior towards uniform light at the map's level keeps a barely observed scene sane
         prior = np.zeros((ncol, 3))
