@@ -106,3 +106,51 @@ def test_total_sh_of_a_primary_light_reproduces_its_irradiance():
     # order-2 SH of a delta: the clamped cosine's band-limited peak is 1.0625 x the irradiance
     np.testing.assert_allclose(e[0], 1.0625 * np.array([3.0, 2.0, 1.0]), rtol=1e-3)
     np.testing.assert_allclose(est.radiance_sh9(), np.zeros((9, 3)))
+
+
+def test_locus_normal_is_perpendicular_to_black_body_colours():
+    """LOCUS_NORMAL is the normal of the Planckian locus in log chromaticity (2000-10000 K)."""
+    from illuminet.runtime.groundtruth.lighting import color_temperature_rgb
+    from illuminet.runtime.stages.light_estimate import LOCUS_NORMAL
+
+    c = color_temperature_rgb(np.array([2000.0, 2700.0, 3500.0, 4500.0, 6500.0, 10000.0]))
+    uv = np.log(c[:, [0, 2]] / c[:, 1:2])
+    off = uv @ LOCUS_NORMAL
+    assert np.abs(off).max() < 0.12  # every black body within 0.12 of the line (pixels vote up to ~0.2)
+    assert abs(np.linalg.norm(LOCUS_NORMAL) - 1) < 1e-3
+
+
+def _samples(albedos_and_counts, light_rgb):
+    from illuminet.runtime.stages.light_estimate import Samples
+
+    rng = np.random.default_rng(0)
+    rad = np.concatenate(
+        [np.asarray(a, float) * light_rgb * rng.uniform(0.7, 1.3, (n, 1)) for a, n in albedos_and_counts]
+    )
+    N = len(rad)
+    return Samples(rad, np.tile([0, 1.0, 0], (N, 1)), np.zeros((N, 3)), np.full(N, -1), np.zeros(N, bool))
+
+
+def _chroma_deg(a, b):
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return float(np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1))))
+
+
+def test_illuminant_colour_ignores_coloured_surfaces():
+    """Grey world among the pixels that could be grey: a lawn and a brick wall under daylight give a
+    neutral light (plain grey world gives a yellow one), grey walls and a wood floor under a warm lamp
+    give the lamp's colour, and a purple carpet does not tint it."""
+    from illuminet.runtime.groundtruth.lighting import color_temperature_rgb
+    from illuminet.runtime.stages.light_estimate import LightEstimateStage
+
+    stage = LightEstimateStage(defaults())
+    grass, brick, paint = [0.094, 0.188, 0.047], [0.507, 0.267, 0.19], [0.611, 0.64, 0.597]
+    wood, carpet = [0.52, 0.334, 0.186], [0.326, 0.17, 0.428]
+    day = color_temperature_rgb(6000.0)
+    s = _samples([(grass, 3000), (brick, 800)], day)
+    grey_world = s.radiance.mean(0)
+    assert _chroma_deg(grey_world, day) > 15  # what plain grey world would say
+    assert _chroma_deg(stage._illuminant(s), day) < 3
+    lamp = color_temperature_rgb(2700.0)
+    s = _samples([(paint, 2000), (wood, 1500), (carpet, 800)], lamp)
+    assert _chroma_deg(stage._illuminant(s), lamp) < 4

@@ -84,6 +84,15 @@ NEAR_GRID = np.stack([a.ravel() for a in np.meshgrid(_NEAR_XZ, _NEAR_Y, _NEAR_XZ
 #: a shadow cue below this confidence does not set the primary light (bench shadows: wrong answers
 #: came with confidence <= 0.04, sunny scenes with >= 0.3)
 SHADOW_MIN_CONFIDENCE = 0.3
+#: the Planckian locus (2000-10000 K) in log chromaticity (log R/G, log B/G) of linear sRGB is close to the
+#: line through D65 (0, 0) along (0.594, -0.804); its unit normal (tests/test_light_estimate.py checks it
+#: against the black-body colours of runtime.groundtruth.lighting):
+LOCUS_NORMAL = np.array([0.804, 0.594])
+#: pixels this far off the locus (log chromaticity) vote exp(-1) as much as a pixel on it
+LOCUS_SIGMA = 0.2
+#: the neutral prior's weight against the share of pixels that voted (0.1: a tenth of the view on the locus
+#: already gives half the measured colour)
+LOCUS_PRIOR = 0.1
 #: plane samples the near-light fit uses per frame (a random subset, fixed per frame number)
 NEAR_ROWS = 300
 
@@ -551,19 +560,32 @@ class LightEstimateStage(Stage):
         self._anchor_T = T
 
     def _illuminant(self, s: Samples) -> np.ndarray:
-        """Scene illuminant chroma (unit luminance RGB) by grey world over all surface samples."""
+        """Scene illuminant chroma (unit luminance RGB): grey world over the pixels that could be a grey
+        surface under a real illuminant.
+
+        Real illuminants lie near the Planckian locus (warm to cool, little green or magenta), a line
+        in log chromaticity (log R/G, log B/G); a pixel's log chromaticity is its surface's plus the
+        illuminant's, so a pixel far off that line (grass, brick, a purple carpet) belongs to a
+        coloured surface whatever the light, and says nothing about the light's colour. The pixels
+        within :data:`LOCUS_SIGMA` of the line vote (grey world among them), the answer is moved onto
+        the line, and it is shrunk towards neutral (D65) by how few pixels voted: a view of a green
+        lawn and a brick wall gives daylight, not a yellow light.
+        """
         rad = s.radiance[np.isfinite(s.position[:, 0]) & ~s.saturated]
+        rad = rad[(rad > 1e-9).all(1)]
         if len(rad) < 20:
             return np.ones(3)
-        m = rad.mean(0)
-        lum = float(m @ LUMA)
-        if lum <= 1e-12:
+        uv = np.log(rad[:, [0, 2]] / rad[:, 1:2])
+        off = uv @ LOCUS_NORMAL
+        w = np.exp(-((off / LOCUS_SIGMA) ** 2))
+        evidence = float(w.mean())
+        m = (w[:, None] * rad).sum(0) / max(float(w.sum()), 1e-12)
+        if not np.all(m > 1e-12):
             return np.ones(3)
-        c = np.clip(m / lum, 0.2, 5.0)
-        # real illuminants lie near the Planckian locus (warm to cool, little green/magenta): grey
-        # world on a green lawn must not give a green light, so the green excess is limited to +-10 %
-        g_mid = 0.5 * (c[0] + c[2])
-        c[1] = np.clip(c[1], 0.9 * g_mid, 1.1 * g_mid)
+        uv_m = np.log(m[[0, 2]] / m[1])
+        uv_m = uv_m - (uv_m @ LOCUS_NORMAL) * LOCUS_NORMAL  # onto the locus
+        uv_m *= evidence / (evidence + LOCUS_PRIOR)  # few voters: towards neutral
+        c = np.array([np.exp(uv_m[0]), 1.0, np.exp(uv_m[1])])
         return c / float(c @ LUMA)
 
     def _plane_rows(self, pl: PlaneLight, s: Samples, planes: tuple, anchor: Anchor, illum: np.ndarray):
