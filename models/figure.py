@@ -8,6 +8,8 @@ of its own. Rows: front / back; columns: ground truth, each baseline, ours.
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from illuminet.runtime.physics import linear_to_srgb8
@@ -46,7 +48,10 @@ def _ortho(vertices: np.ndarray, yaw: float) -> np.ndarray:
 
 def render_views(ctx, vertices, faces, colors_linear, size: int = 160) -> list[np.ndarray]:
     """[front, back] RGB uint8 images of a mesh with per-vertex linear colours in [0, 1]."""
-    prog = ctx.program(vertex_shader=_VS, fragment_shader=_FS)
+    from illuminet.runtime.render.gl import make_current, park, program, read_pixels
+
+    make_current(ctx)  # another context may have been used since
+    prog = program(ctx, _VS, _FS)  # GLSL 330, or 300 es on an OpenGL ES context
     srgb = linear_to_srgb8(np.clip(colors_linear, 0, 1)).astype("f4") / 255.0
     data = np.concatenate([vertices.astype("f4"), srgb], 1)
     vbo = ctx.buffer(data.tobytes())
@@ -63,9 +68,9 @@ def render_views(ctx, vertices, faces, colors_linear, size: int = 160) -> list[n
             fbo.clear(0.25, 0.25, 0.25, 1.0)
             prog["mvp"].write(_ortho(vertices, yaw).T.copy().tobytes())
             vao.render()
-            img = np.frombuffer(fbo.read(components=3), dtype=np.uint8).reshape(size, size, 3)
-            out.append(img[::-1].copy())
+            out.append(read_pixels(fbo, 3)[::-1].copy())
     finally:
+        park(ctx)  # never release the bound framebuffer (gl.park): the context may be the renderer's
         for o in (vao, vbo, ibo, fbo, prog):
             o.release()
     return out
@@ -74,9 +79,11 @@ def render_views(ctx, vertices, faces, colors_linear, size: int = 160) -> list[n
 def figure(path, vertices, faces, panels: list[tuple[str, np.ndarray]], title: str = "", size: int = 160) -> str:
     """Write a PNG grid: one column per (label, linear intensities (R, 3)), rows front / back."""
     import cv2
-    import moderngl
 
-    ctx = moderngl.create_standalone_context(backend="egl", require=330)
+    from illuminet.runtime.render.gl import create_context
+
+    # a context of its own (released below), desktop GL or OpenGL ES as the renderer would choose
+    ctx = create_context("egl", api=os.environ.get("ILLUMINET_GL_API", "auto"))
     try:
         cols = []
         for label, colors in panels:

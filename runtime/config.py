@@ -207,6 +207,13 @@ SCHEMA: dict[str, dict[str, Field]] = {
             "OpenGL context: headless EGL, or the platform default (needs a display)",
             choices=("egl", "default"),
         ),
+        "gl_api": _f(
+            str,
+            "auto",
+            "OpenGL API: desktop GL 3.3 core, OpenGL ES 3.x through EGL (embedded GPUs), or auto "
+            "(desktop GL on a GPU, else ES on a GPU, else desktop GL in software; `illuminet doctor` says which)",
+            choices=("auto", "gl", "gles"),
+        ),
     },
     "output": {
         "video": _f(str, "", "write an .mp4/.avi video here ('' = off)"),

@@ -37,7 +37,11 @@ def shared_data() -> Path:
 
 @pytest.fixture(scope="session")
 def gl_ctx():
-    """One standalone EGL OpenGL context for the whole run (created in one place, as moderngl's tests do)."""
+    """One standalone EGL OpenGL context for the whole run (created in one place, as moderngl's tests do).
+
+    Desktop GL or OpenGL ES as ``$ILLUMINET_GL_API`` says (default auto): ``ILLUMINET_GL_API=gles``
+    runs every GL test on an ES 3.x context (tests/test_render_gles.py does so for test_render.py).
+    """
     pytest.importorskip("moderngl")
     from illuminet.runtime.render.gl import GLError, get_context
 

@@ -89,3 +89,29 @@ def test_built_wheel_imports_every_package(tmp_path):
         env={"PYTHONPATH": str(tmp_path / "site"), "PATH": "/usr/bin:/bin"},
     )
     assert r.returncode == 0, r.stderr[-2000:]
+
+
+def _wheel_check():
+    """tools/check_aarch64_wheels.py as a module (tools/ is not a package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("check_aarch64_wheels", REPO / "tools" / "check_aarch64_wheels.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_aarch64_requirements_take_the_releases_with_wheels():
+    """On aarch64 with CPython <= 3.11 moderngl/glcontext are bounded to the last releases with aarch64
+    wheels (else pip compiles the newest sources); elsewhere only moderngl >= 5.8 applies. The network
+    side (what PyPI has) is tools/check_aarch64_wheels.py's, run by hand (docs/edge.md)."""
+    check = _wheel_check()
+    for py in ("3.10", "3.11"):
+        reqs = check.requirements(py)
+        assert "moderngl<5.9,>=5.8" in reqs and "glcontext<2.4,>=2.3.6" in reqs, reqs
+        assert ("tomli>=2.0" in reqs) == (py == "3.10")
+    for py in ("3.12", "3.13"):
+        reqs = check.requirements(py)
+        assert "moderngl>=5.8" in reqs and not any(r.startswith("glcontext") for r in reqs), reqs
+    names = {r.split(">")[0].split("<")[0].split("=")[0] for r in check.requirements("3.11")}
+    assert {"depthai", "opencv-contrib-python-headless", "onnxruntime", "moderngl", "numpy", "av"} <= names

@@ -2,7 +2,8 @@
 
 Checks, each reported as OK / MISSING / NONE (nothing found, optional) with the fix:
 
-* OpenGL through EGL (moderngl standalone context): renderer, version, vendor   -- essential
+* OpenGL through EGL: the path the renderer takes (desktop GL 3.3 or OpenGL ES 3.x, [render] gl_api),
+  renderer, version, vendor, why ``auto`` fell back, and whether the other API is there too -- essential
 * onnxruntime: version and execution providers                                  -- essential
 * OpenCV: version, ximgproc (WLS stereo filter), findPlanes, FFmpeg and V4L2 video backends
 * PyAV: H.264 (libx264) for MP4 files browsers play (else videos fall back to OpenCV's mp4v)
@@ -40,35 +41,55 @@ class Check:
     items: list[str] = field(default_factory=list)
 
 
-def check_gl() -> Check:
-    """A headless OpenGL 3.3+ context through EGL, exactly as the renderer gets it.
+def check_gl(backend: str = "egl", api: str = "auto") -> Check:
+    """The OpenGL context exactly as the renderer gets it ([render] gl_backend, gl_api), and which
+    path that is: desktop OpenGL or OpenGL ES, which version, renderer and backend, and why ``auto``
+    fell back when it did.
 
-    Uses the runtime's process-wide context (``illuminet.runtime.render.gl.get_context``) rather than a
-    second one: a new moderngl context becomes current, and releasing it would leave the shared one
-    (used by the renderer later in the same process) not current.
+    Uses the runtime's process-wide context (``illuminet.runtime.render.gl.get_context``) for the path
+    itself; the other API is probed with a context of its own, released at once (the renderer makes
+    its context current at every entry, so the shared one stays usable), and listed under the check.
     """
     fix = (
-        "install Mesa's EGL and drivers: sudo apt-get install libegl1 libgl1-mesa-dri libgles2 "
+        "install Mesa's EGL, GLES and drivers: sudo apt-get install libegl1 libgles2 libegl-mesa0 libgl1-mesa-dri "
         "(software llvmpipe works everywhere; for a GPU, pass /dev/dri into the container)"
     )
+    name = "OpenGL (EGL)" if backend == "egl" else "OpenGL"
     try:
-        import moderngl  # noqa: F401  (a clearer message than the GL module's when it is missing)
+        import moderngl
     except ImportError as e:
-        return Check("OpenGL (EGL)", MISSING, f"moderngl not importable: {e}", "pip install moderngl", True)
-    from illuminet.runtime.render.gl import GLError, get_context
+        return Check(name, MISSING, f"moderngl not importable: {e}", "pip install moderngl", True)
+    from illuminet.runtime.render.gl import (
+        GLError,
+        context_info,
+        create_context,
+        get_context,
+        make_current,
+    )
 
     try:
-        ctx = get_context("egl")
+        ctx = get_context(backend, api)
     except GLError as e:  # no libEGL, no driver, no device, or a shared context of another backend
-        return Check("OpenGL (EGL)", MISSING, f"no EGL context: {e}", fix, True)
-    info = ctx.info
-    renderer, version, vendor = info["GL_RENDERER"], info["GL_VERSION"], info["GL_VENDOR"]
-    note = (
-        " (software rendering: fine for 640x400; a GPU renders larger frames faster)"
-        if "llvmpipe" in renderer.lower() or "softpipe" in renderer.lower()
-        else ""
-    )
-    return Check("OpenGL (EGL)", OK, f"{renderer}; OpenGL {version}; {vendor}{note}", essential=True)
+        return Check(name, MISSING, f"no OpenGL context (gl_api {api}, gl_backend {backend}): {e}", fix, True)
+    info = context_info(ctx)
+    kind = "OpenGL ES" if info.api == "gles" else "desktop OpenGL"
+    items = [f"via {info.via}; moderngl {moderngl.__version__}; [render] gl_api = {api!r}, gl_backend = {backend!r}"]
+    if info.reason:
+        items.append(f"why this path: {info.reason}")
+    other = "gles" if info.api == "gl" else "gl"
+    other_name = "OpenGL ES 3.x" if other == "gles" else "desktop OpenGL 3.3"
+    try:
+        probe = create_context(backend, api=other)
+    except GLError as e:
+        items.append(f"{other_name}: not available here ({e})")
+    else:
+        pi = context_info(probe)
+        items.append(f"{other_name}: also available ({pi.renderer}; {pi.version}), gl_api = {other!r} picks it")
+        probe.release()
+    make_current(ctx)
+    note = " (software rendering: fine for 640x400; a GPU renders larger frames faster)" if info.software else ""
+    detail = f"{kind}: {info.renderer}; {info.version}; {ctx.info.get('GL_VENDOR', '?')}{note}"
+    return Check(name, OK, detail, essential=True, items=items)
 
 
 def check_onnxruntime() -> Check:
@@ -219,10 +240,10 @@ def check_serial(imu_url: str) -> Check:
     return Check("serial ports", OK, f"{len(ports)} port(s){configured}", items=items)
 
 
-def run_checks(imu_url: str = "") -> list[Check]:
+def run_checks(imu_url: str = "", gl_backend: str = "egl", gl_api: str = "auto") -> list[Check]:
     """All checks, in report order; a check that crashes is reported as MISSING with the error."""
     checks: list[tuple[str, Callable[[], Check]]] = [
-        ("OpenGL (EGL)", check_gl),
+        ("OpenGL (EGL)", lambda: check_gl(gl_backend, gl_api)),
         ("onnxruntime", check_onnxruntime),
         ("OpenCV", check_opencv),
         ("PyAV (H.264 video)", check_pyav),
@@ -266,7 +287,8 @@ def register(sub) -> None:
         "doctor",
         help="check GL, onnxruntime, OpenCV, DepthAI/V4L2 cameras and serial ports",
         description=(
-            "Report what this machine offers: EGL/OpenGL renderer, onnxruntime providers, OpenCV "
+            "Report what this machine offers: the OpenGL path the renderer takes (desktop GL or OpenGL ES, "
+            "renderer, version), onnxruntime providers, OpenCV "
             "features, OAK devices, V4L2 cameras, serial ports; with how to fix what is missing. "
             "Exit code 0 when the essentials (OpenGL via EGL, onnxruntime) work."
         ),
@@ -279,7 +301,10 @@ def run(args: argparse.Namespace, cfg) -> int:
     if getattr(args, "json", False):
         # DepthAI prints its warnings to stdout when it is imported; keep the JSON parseable
         os.environ.setdefault("DEPTHAI_LEVEL", "error")
-    checks = run_checks(cfg.imu.url if cfg is not None else "")
+    if cfg is not None:
+        checks = run_checks(cfg.imu.url, cfg.render.gl_backend, cfg.render.gl_api)
+    else:
+        checks = run_checks()
     if getattr(args, "json", False):
         print(json.dumps([asdict(c) for c in checks], indent=2))
     else:

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from illuminet.runtime.physics import srgb_to_linear
-from illuminet.runtime.render.gl import check_gl, make_current, park
+from illuminet.runtime.render.gl import check_gl, float_texture_dtype, is_gles, make_current, park, program
 from illuminet.runtime.render.mesh import RenderMesh
 from illuminet.runtime.render.shaders import (
     BG_FS,
@@ -160,6 +160,7 @@ class Compositor:
         make_current(ctx)
         self.ctx = ctx
         self.mesh = mesh
+        self._es = is_gles(ctx)  # OpenGL ES: GLSL 300 es, RGBA read-back (gl.py)
         if antialias not in ANTIALIAS:
             raise ValueError(f"[render] antialias: expected one of {', '.join(ANTIALIAS)}, got {antialias!r}")
         if msaa < 0 or msaa > 16:
@@ -200,7 +201,9 @@ class Compositor:
         ctx = self.ctx
         self._dec_lut = ctx.texture((256, 1), 3, decode_lut(response_lut).tobytes(), dtype="f4")
         self._dec_lut.filter = (moderngl.NEAREST, moderngl.NEAREST)
-        self._enc_lut = ctx.texture((ENCODE_LUT_SIZE, 1), 3, encode_lut(response_lut).tobytes(), dtype="f4")
+        # sampled with LINEAR filtering: half floats where OpenGL ES cannot filter 32-bit ones
+        dt, np_dt = float_texture_dtype(ctx)
+        self._enc_lut = ctx.texture((ENCODE_LUT_SIZE, 1), 3, encode_lut(response_lut).astype(np_dt).tobytes(), dtype=dt)
         self._enc_lut.filter = (moderngl.LINEAR, moderngl.LINEAR)
         self._enc_lut.repeat_x = self._enc_lut.repeat_y = False
 
@@ -222,7 +225,7 @@ class Compositor:
         for textured, (vs, fs) in ((False, (OBJ_VS_PLAIN, OBJ_FS_PLAIN)), (True, (OBJ_VS_TEX, OBJ_FS_TEX))):
             if textured and all(p.texture is None for p in mesh.parts):
                 continue
-            prog = ctx.program(vertex_shader=with_transfer(vs, custom), fragment_shader=with_transfer(fs, custom))
+            prog = program(ctx, with_transfer(vs, custom), with_transfer(fs, custom))
             # the plain program has no in_uv: moderngl skips attributes a program does not use
             self._obj_progs[textured] = (prog, ctx.vertex_array(prog, attrs, self._ibo, skip_errors=True))
         self._part_tex = []
@@ -241,14 +244,12 @@ class Compositor:
         ctx = self.ctx
         quad = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], dtype=np.float32)
         self._quad = ctx.buffer(quad.tobytes())
-        self._bg_prog = ctx.program(vertex_shader=BG_VS, fragment_shader=BG_FS)
+        self._bg_prog = program(ctx, BG_VS, BG_FS)
         self._bg_vao = ctx.vertex_array(self._bg_prog, [(self._quad, "2f", "in_uv")])
-        self._over_prog = ctx.program(
-            vertex_shader=BG_VS, fragment_shader=OVER_EDGE_FS if self.antialias == "edge" else OVER_FS
-        )
+        self._over_prog = program(ctx, BG_VS, OVER_EDGE_FS if self.antialias == "edge" else OVER_FS)
         self._over_vao = ctx.vertex_array(self._over_prog, [(self._quad, "2f", "in_uv")])
         if self.shadow is not None:
-            self._rcv_prog = ctx.program(vertex_shader=RECEIVER_VS, fragment_shader=with_transfer(RECEIVER_FS, custom))
+            self._rcv_prog = program(ctx, RECEIVER_VS, with_transfer(RECEIVER_FS, custom))
             self._rcv_vao = ctx.vertex_array(self._rcv_prog, [(self._quad, "2f", "in_uv")])
 
     # -- framebuffers sized to the largest crop seen so far ------------------------------------------
@@ -271,7 +272,8 @@ class Compositor:
             f["main"] = ctx.framebuffer(color_attachments=[f["color"]])
             self._fbos = f
             self._cap = (cw, ch)
-            self._readbuf = np.empty(cw * ch * 3, dtype=np.uint8)
+            # OpenGL ES reads back RGBA only (gl.read_pixels): the alpha is dropped on the CPU
+            self._readbuf = np.empty(cw * ch * (4 if self._es else 3), dtype=np.uint8)
             self._zeros = np.zeros(cw * ch, dtype=np.float32)
         cw, ch = self._ocap
         if ow > cw or oh > ch:
@@ -564,8 +566,9 @@ class Compositor:
     def _read_back(self, out: np.ndarray, region: _Region) -> None:
         """Pass 5: read the crop back (already in image row order) and paste it into ``out``."""
         x0, y0, w, h = region.crop
-        self._fbos["main"].read_into(self._readbuf, viewport=(0, 0, w, h), components=3, alignment=1)
-        out[y0 : y0 + h, x0 : x0 + w] = self._readbuf[: w * h * 3].reshape(h, w, 3)
+        n = 4 if self._es else 3
+        self._fbos["main"].read_into(self._readbuf, viewport=(0, 0, w, h), components=n, alignment=1)
+        out[y0 : y0 + h, x0 : x0 + w] = self._readbuf[: w * h * n].reshape(h, w, n)[:, :, :3]
 
     def _mark(self, step: str) -> None:
         """With ``profile`` on: wait for the GPU and charge the time since the last mark to ``step``."""

@@ -31,7 +31,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from illuminet.runtime.render.gl import make_current, park
+from illuminet.runtime.render.gl import (
+    depth_texture,
+    float_target_dtype,
+    float_texture_dtype,
+    make_current,
+    park,
+    program,
+    read_pixels,
+)
 from illuminet.runtime.scene import ObjectShading
 
 #: Rec.709 luminance weights: the light's "amount" when colours must be summed to one number
@@ -346,9 +354,9 @@ class ShadowCaster:
 
         self._vbo = ctx.buffer(v.tobytes())
         self._ibo = ctx.buffer(f.tobytes())
-        self._depth_prog = ctx.program(vertex_shader=_DEPTH_VS, fragment_shader=_DEPTH_FS)
+        self._depth_prog = program(ctx, _DEPTH_VS, _DEPTH_FS)
         self._depth_vao = ctx.vertex_array(self._depth_prog, [(self._vbo, "3f", "in_pos")], self._ibo)
-        self.shadow_tex = ctx.depth_texture((self.size, self.size))
+        self.shadow_tex = depth_texture(ctx, (self.size, self.size))
         self.shadow_tex.compare_func = "<="
         self.shadow_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
         self.shadow_tex.repeat_x = self.shadow_tex.repeat_y = False
@@ -356,7 +364,7 @@ class ShadowCaster:
 
         quad = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], dtype=np.float32)
         self._quad = ctx.buffer(quad.tobytes())
-        self._vis_prog = ctx.program(vertex_shader=_VIS_VS, fragment_shader=_VIS_FS)
+        self._vis_prog = program(ctx, _VIS_VS, _VIS_FS)
         self._vis_vao = ctx.vertex_array(self._vis_prog, [(self._quad, "2f", "in_uv")])
         self.vis_tex = ctx.texture((vis_size, vis_size), 1, dtype="f1")
         self.vis_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
@@ -391,22 +399,23 @@ class ShadowCaster:
             [self.bbox_min[0] - margin, self.bbox_min[2] - margin, self.bbox_max[0] + margin, self.bbox_max[2] + margin]
         )
         hmax = float(self.bbox_max[1]) + 1e-3
-        tex = ctx.texture((res, res), 1, dtype="f4")
+        tgt_dt, _ = float_target_dtype(ctx)  # half floats where OpenGL ES cannot render into 32-bit
+        tex = ctx.texture((res, res), 1, dtype=tgt_dt)
         depth = ctx.depth_renderbuffer((res, res))
         fbo = ctx.framebuffer(color_attachments=[tex], depth_attachment=depth)
-        prog = ctx.program(vertex_shader=_HEIGHT_VS, fragment_shader=_HEIGHT_FS)
+        prog = program(ctx, _HEIGHT_VS, _HEIGHT_FS)
         vao = ctx.vertex_array(prog, [(self._vbo, "3f", "in_pos")], self._ibo)
         prog["u_rect"].value = tuple(float(x) for x in rect)
         prog["u_hmax"].value = hmax
         fbo.use()
         fbo.viewport = (0, 0, res, res)
-        fbo.clear(red=1e6, depth=1.0)
+        fbo.clear(red=6e4, depth=1.0)  # "nothing above": far higher than any object (and < the f2 maximum)
         ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.depth_func = "<"
         vao.render(moderngl.TRIANGLES)
         ctx.disable(moderngl.DEPTH_TEST)
-        h = np.frombuffer(fbo.read(components=1, dtype="f4"), dtype=np.float32).reshape(res, res).copy()
+        h = read_pixels(fbo, 1, tgt_dt)[:, :, 0].astype(np.float32)
         park(ctx)
         for obj in (vao, prog, fbo, depth, tex):
             obj.release()
@@ -434,7 +443,8 @@ class ShadowCaster:
             )
         else:
             self.ao_draw_rect = np.array([self.center[0], self.center[2], self.center[0], self.center[2]])
-        ao_tex = ctx.texture((res, res), 1, ao.astype(np.float32).tobytes(), dtype="f4")
+        dt, np_dt = float_texture_dtype(ctx)  # sampled with LINEAR filtering
+        ao_tex = ctx.texture((res, res), 1, ao.astype(np_dt).tobytes(), dtype=dt)
         ao_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
         ao_tex.repeat_x = ao_tex.repeat_y = False
         self.contact_peak = peak
@@ -514,7 +524,7 @@ class ShadowCaster:
         # the receiver is drawn only over the part of the patch that is darkened at all: the
         # visibility is read back (a few kB) and the patch shrunk to its shadowed texels
         vs = self.vis_tex.size
-        vis = np.frombuffer(self._vis_fbo.read(components=1), np.uint8).reshape(vs[1], vs[0])
+        vis = read_pixels(self._vis_fbo, 1)[:, :, 0]
         rows, cols = np.nonzero(vis < 254)
         if len(rows):
             p = self.patch

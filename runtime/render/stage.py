@@ -46,7 +46,7 @@ class RenderStage(Stage):
     ----------
     config : Config
         Uses [render] (object_scale, shadow, shadow_map, shadow_softness, contact_shadow,
-        occlusion, depth_tolerance_m, msaa, gl_backend) and [model] bundle.
+        occlusion, depth_tolerance_m, msaa, gl_backend, gl_api) and [model] bundle.
     mesh : RenderMesh, trimesh object or path, optional
         The object to draw. Default: the render mesh of the bundle ``[model] bundle``
         (:func:`illuminet.runtime.assets.bundle.load_bundle`).
@@ -92,7 +92,7 @@ class RenderStage(Stage):
         from illuminet.runtime.render.gl import get_context
 
         r = self.cfg.render
-        ctx = self._ctx if self._ctx is not None else get_context(r.gl_backend)
+        ctx = self._ctx if self._ctx is not None else get_context(r.gl_backend, r.gl_api)
         mesh_src, carry = self._mesh_src, self._carry
         if mesh_src is None:
             spec = self.cfg.model.bundle
