@@ -36,6 +36,7 @@ import sys
 import time
 from collections import deque
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -305,13 +306,28 @@ def _describe(ray, exc: BaseException) -> str:
     return f"worker lost ({type(exc).__name__}): {first}"
 
 
-def start_ray(address: str, workers: int | None, quiet: bool = False):
-    """Initialise Ray (unless it already is); returns (ray, we_started_it, dashboard URL or None, description)."""
+#: (dashboard URL, description) of the Ray session opened by :func:`ray_session`, for run_shards' lines
+_SESSION: dict[str, Any] = {}
+
+
+@contextmanager
+def ray_session(address: str = LOCAL, workers: int | None = None, quiet: bool = False, stream=None):
+    """Ray for the ``with`` block: started on this machine (``address`` :data:`LOCAL`: ``workers``
+    CPUs, a small object store), joined (any other address), or the instance this process already
+    runs (left running). Yields the ``ray`` module; Ray is shut down after the block if it was
+    started or joined here. Several :func:`run_shards` calls in one block share the instance."""
     ray = import_ray()
     if ray.is_initialized():
-        ctx = ray.get_runtime_context()
-        cpus = int(ray.cluster_resources().get("CPU", 0))
-        return ray, False, None, f"the running Ray instance, {cpus} CPUs, node {ctx.get_node_id()[:8]}"
+        outer = bool(_SESSION)  # a session of ours around this one, or Ray started by the caller
+        if not outer:
+            cpus = int(ray.cluster_resources().get("CPU", 0))
+            _SESSION.update(url=None, desc=f"the running Ray instance, {cpus} CPUs")
+        try:
+            yield ray
+        finally:
+            if not outer:
+                _SESSION.clear()
+        return
     kw: dict[str, Any] = {"logging_level": logging.WARNING, "log_to_driver": not quiet}
     if address == LOCAL:
         n = workers or os.cpu_count() or 1
@@ -323,7 +339,14 @@ def start_ray(address: str, workers: int | None, quiet: bool = False):
     url = getattr(ctx, "dashboard_url", None) or None
     if url and not url.startswith("http"):
         url = "http://" + url
-    return ray, True, url, desc
+    if url:
+        print(f"Ray dashboard (progress of every task): {url}", file=stream if stream is not None else sys.stderr)
+    _SESSION.update(url=url, desc=desc)
+    try:
+        yield ray
+    finally:
+        _SESSION.clear()
+        ray.shutdown()
 
 
 def run_shards(
@@ -344,8 +367,6 @@ def run_shards(
     ``retries + 1`` times are in ``summary.errors`` and ``<store>/.errors/<key>.txt``; the caller
     decides whether to merge (only when complete) and how to exit.
     """
-    from illuminet.progress import StatusLine
-
     keys = [s.key for s in shards]
     if len(set(keys)) != len(keys):
         raise ValueError(f"job {name}: shard keys must be unique")
@@ -366,19 +387,26 @@ def run_shards(
         summary.workers = "nothing to run"
         return summary
 
-    ray, started, url, desc = start_ray(address, workers, quiet=not show_progress)
-    summary.workers, summary.dashboard_url = desc, url
-    if url:
-        print(f"{name}: Ray dashboard at {url}", file=stream)
+    with ray_session(address, workers, quiet=not show_progress, stream=stream) as ray:
+        summary.workers, summary.dashboard_url = _SESSION.get("desc", ""), _SESSION.get("url")
+        _drive(ray, name, todo, store, summary, address, workers, retries, unit, show_progress, stream)
+    return summary
+
+
+def _drive(ray, name, todo, store, summary, address, workers, retries, unit, show_progress, stream) -> None:
+    """Submit, wait, write, resubmit: the driver's loop of :func:`run_shards`."""
+    from illuminet.progress import StatusLine
+
     status = StatusLine(stream, enabled=None if show_progress else False)
     status.format = _progress_format  # the job's line instead of the streaming loop's
     t0 = time.perf_counter()
     last_log = t0
+    inflight: dict[Any, tuple[Shard, int]] = {}
     try:
         task = ray.remote(num_cpus=1, max_retries=0)(_run_shard)
         cpus = max(int(ray.cluster_resources().get("CPU", 1)), 1)
         limit = workers if (workers and address != LOCAL) else 2 * cpus
-        # the shard functions' large arguments (meshes, specs) go into the object store once
+        # the shards' large arguments (meshes, data specs, configurations) go into the object store once
         put_cache: dict[int, Any] = {}
 
         def put(a):
@@ -389,7 +417,6 @@ def run_shards(
                 put_cache[k] = ray.put(a)
             return put_cache[k]
 
-        inflight: dict[Any, tuple[Shard, int]] = {}
         while todo or inflight:
             while todo and len(inflight) < limit:
                 shard, attempt = todo.popleft()
@@ -404,6 +431,7 @@ def run_shards(
                     msg = _describe(ray, e)
                     if attempt < retries:
                         summary.retried += 1
+                        status.clear()
                         log.warning("%s: shard %s failed (attempt %d): %s; retrying", name, shard.key, attempt + 1, msg)
                         todo.appendleft((shard, attempt + 1))
                     else:
@@ -438,6 +466,8 @@ def run_shards(
                 log.info("%s", _progress_format(snap))
     except KeyboardInterrupt:
         status.close()
+        for ref in inflight:
+            ray.cancel(ref, force=True)
         print(
             f"{name}: interrupted; {summary.skipped + summary.done} of {summary.total} shards are kept in "
             f"{store.root}: run the same command again to finish",
@@ -447,9 +477,6 @@ def run_shards(
     finally:
         status.close()
         summary.wall_s = time.perf_counter() - t0
-        if started:
-            ray.shutdown()
-    return summary
 
 
 def finish(summary: JobSummary, store: ShardStore, stream=None) -> None:

@@ -134,6 +134,80 @@ def test_a_failing_shard_is_retried_then_reported_and_a_rerun_redoes_only_it(loc
     _same(datagen_cmd.merge(store, shards), single)
 
 
+def _eval_report(path) -> dict:
+    import json
+
+    r = json.loads(path.read_text())
+    r.pop("eval_wall_s", None)
+    if "camera" in r:
+        r["camera"].pop("wall_s", None)
+    return r
+
+
+def _single_machine_eval(args: list[str], out) -> dict:
+    """``illuminet eval`` without Ray, in a process with one BLAS thread: what a Ray task has (Ray sets
+    OMP_NUM_THREADS=1 for a 1-CPU task); with more threads, BLAS sums the camera suites' least-squares
+    fits in another order and the last bits of those metrics differ (docs/cluster.md)."""
+    e = env()
+    e["OMP_NUM_THREADS"] = "1"
+    r = subprocess.run(
+        [sys.executable, "-m", "illuminet", "eval", *args, "--out", str(out)],
+        capture_output=True,
+        text=True,
+        env=e,
+        timeout=600,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    return _eval_report(out / "eval.json")
+
+
+EVAL_CAMERA = ["--bundle", "builtin:bowl", "--cases", "0", "--camera-suites", "lamp,cluttered"]
+EVAL_CAMERA += ["--camera-scenes", "1", "--camera-frames", "2", "--vertices", "60", "--no-figure", "--hdr", ""]
+
+
+@pytest.mark.timeout(300)
+def test_camera_eval_on_ray_gives_the_single_machine_metrics(local_ray, tmp_path):
+    from illuminet.cli import main
+
+    single = _single_machine_eval(EVAL_CAMERA, tmp_path / "single")
+    assert main(["eval", *EVAL_CAMERA, "--out", str(tmp_path / "ray"), "--ray"]) == 0
+    assert _eval_report(tmp_path / "ray" / "eval.json") == single  # every metric exactly equal
+    assert not (tmp_path / "ray" / "shards").exists()  # merged, then removed
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1200)
+def test_lighting_and_camera_eval_on_ray_give_the_single_machine_report(local_ray, tmp_path):
+    from illuminet.cli import main
+
+    args = ["--bundle", "builtin:vase", "--cases", "2", "--flicker-scenes", "1", "--camera-scenes", "2"]
+    args += ["--camera-frames", "2", "--camera-suites", "indoor,lamp", "--vertices", "100", "--no-figure", "--hdr", ""]
+    single = _single_machine_eval(args, tmp_path / "single")
+    assert main(["eval", *args, "--out", str(tmp_path / "ray"), "--ray"]) == 0
+    assert _eval_report(tmp_path / "ray" / "eval.json") == single
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+def test_a_catalogue_trained_on_ray_gives_the_same_bundles(local_ray, tmp_path):
+    pytest.importorskip("jax")
+    pytest.importorskip("onnx")
+    from illuminet.cli import main
+
+    args = ["train", "--objects", "builtin:bowl,builtin:sphere", "--preset", "tiny", "--hdr", "", "--quiet"]
+    assert main([*args, "--out", str(tmp_path / "single")]) == 0
+    assert main([*args, "--out", str(tmp_path / "ray"), "--ray"]) == 0
+    for name in ("bowl", "sphere"):
+        a, b = tmp_path / "single" / name, tmp_path / "ray" / name
+        for f in ("transfer_fp32.onnx", "transfer_int8.onnx"):
+            assert (a / f).read_bytes() == (b / f).read_bytes(), (name, f)
+        with np.load(a / "mesh.npz") as za, np.load(b / "mesh.npz") as zb:
+            assert all(np.array_equal(za[k], zb[k]) for k in za.files)
+        assert (b / "work" / "log.jsonl").is_file() and (b / "bundle.json").is_file()
+    # a rerun finds both bundles and trains nothing
+    assert main([*args, "--out", str(tmp_path / "ray"), "--ray"]) == 0
+
+
 def test_store_refuses_another_jobs_folder_and_half_written_shards_are_not_done(tmp_path):
     store = cluster.ShardStore(tmp_path / "s")
     store.check_job({"job": "datagen", "seed": 1})
