@@ -238,6 +238,7 @@ class JobSummary:
     retried: int = 0  # resubmissions (exceptions and dead workers)
     items: int = 0  # units of work finished by this run
     wall_s: float = 0.0
+    task_s: float = 0.0  # the finished shards' own run times, summed (busy time of the workers)
     errors: dict[str, str] = field(default_factory=dict)  # key -> last error (one line)
     dashboard_url: str | None = None
     workers: str = ""
@@ -256,19 +257,9 @@ class JobSummary:
             f"wall {self.wall_s:.1f} s",
             f"{self.items} {self.unit}s at {rate:.3g} {self.unit}s/s",
         ]
+        if self.task_s > 0 and self.wall_s > 0:
+            parts.append(f"tasks busy {self.task_s:.1f} s ({self.task_s / self.wall_s:.2f} in parallel on average)")
         return ", ".join(parts)
-
-
-def _progress_format(snap: dict[str, Any]) -> str:
-    parts = [
-        f"{snap['name']}: {snap['finished']}/{snap['total']} shards",
-        f"{snap['running']} running",
-        f"{snap['failed']} failed",
-        f"{snap['retried']} retried",
-        f"{snap['items']} {snap['unit']}s",
-        f"{snap['elapsed_s']:.1f} s",
-    ]
-    return "  ".join(parts)
 
 
 # ------------------------------------------------------------------------------------ Ray
@@ -395,10 +386,9 @@ def run_shards(
 
 def _drive(ray, name, todo, store, summary, address, workers, retries, unit, show_progress, stream) -> None:
     """Submit, wait, write, resubmit: the driver's loop of :func:`run_shards`."""
-    from illuminet.progress import StatusLine
+    from illuminet.progress import StatusLine, format_job
 
-    status = StatusLine(stream, enabled=None if show_progress else False)
-    status.format = _progress_format  # the job's line instead of the streaming loop's
+    status = StatusLine(stream, enabled=None if show_progress else False, formatter=format_job)
     t0 = time.perf_counter()
     last_log = t0
     inflight: dict[Any, tuple[Shard, int]] = {}
@@ -448,6 +438,7 @@ def _drive(ray, name, todo, store, summary, address, workers, retries, unit, sho
                 store.write(shard.key, files, info)
                 summary.done += 1
                 summary.items += shard.items
+                summary.task_s += info["seconds"]
             now = time.perf_counter()
             snap = {
                 "name": name,
@@ -463,7 +454,7 @@ def _drive(ray, name, todo, store, summary, address, workers, retries, unit, sho
             status.update(snap)
             if not status.enabled and show_progress and (now - last_log > 10 or (not todo and not inflight)):
                 last_log = now
-                log.info("%s", _progress_format(snap))
+                log.info("%s", format_job(snap))
     except KeyboardInterrupt:
         status.close()
         for ref in inflight:

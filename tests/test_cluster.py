@@ -224,6 +224,25 @@ def test_store_refuses_another_jobs_folder_and_half_written_shards_are_not_done(
         store.write("k2", {"../escape": b""})
 
 
+def test_the_jobs_progress_line_and_summary():
+    import io
+
+    from illuminet.progress import StatusLine, format_job
+
+    out = io.StringIO()
+    line = StatusLine(out, enabled=True, formatter=format_job)
+    snap = {"name": "datagen", "unit": "sample", "finished": 3, "total": 8, "running": 2}
+    line.update({**snap, "failed": 0, "retried": 1, "items": 750, "elapsed_s": 12.34})
+    line.close()
+    assert "datagen: 3/8 shards  2 running  0 failed  1 retried  750 samples  12.3 s" in out.getvalue()
+    s = cluster.JobSummary("datagen", "sample", total=8, skipped=2, done=6, retried=1, items=1500, wall_s=10.0)
+    s.task_s = 19.0
+    assert s.complete and s.line().endswith(
+        "8 shards: 6 done (+2 from an earlier run), 0 failed, 1 retried, wall 10.0 s, 1500 samples at 150 "
+        "samples/s, tasks busy 19.0 s (1.90 in parallel on average)"
+    )
+
+
 _NO_RAY = """
 import sys
 from illuminet.cli import main
