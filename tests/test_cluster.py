@@ -243,6 +243,44 @@ def test_the_jobs_progress_line_and_summary():
     )
 
 
+def test_a_catalogue_is_a_folder_a_list_file_or_specs(tmp_path):
+    from illuminet.commands.train import catalogue
+
+    shop = tmp_path / "shop"
+    (shop / "sub").mkdir(parents=True)
+    for name in ("chair.obj", "lamp.GLB", "notes.txt", "sub/cup.ply"):
+        (shop / name).write_text("")
+    assert catalogue(str(shop)) == [("chair", str(shop / "chair.obj")), ("lamp", str(shop / "lamp.GLB"))]
+    listing = shop / "list.txt"
+    listing.write_text("builtin:vase  # the shipped one\n\nsub/cup.ply\n")
+    assert catalogue(str(listing)) == [("vase", "builtin:vase"), ("cup", str(shop / "sub" / "cup.ply"))]
+    assert catalogue("builtin:bowl, builtin:sphere") == [("bowl", "builtin:bowl"), ("sphere", "builtin:sphere")]
+    for bad, msg in (
+        ("builtin:teapot", "unknown built-in object"),
+        (str(shop / "missing.obj"), "no such mesh file"),
+        (f"{shop / 'chair.obj'},{shop / 'sub'}/../chair.obj", "same folder"),
+    ):
+        with pytest.raises(cluster.JobError, match=msg) as e:
+            catalogue(bad)
+        assert e.value.exit_code == 2
+
+
+def test_train_refuses_a_bundle_of_another_configuration(tmp_path):
+    import json
+
+    from illuminet.commands.train import _trained
+    from illuminet.models.train import make_config
+
+    tcfg = make_config("tiny", object="builtin:bowl", seed=0)
+    (tmp_path / "bowl").mkdir()
+    assert not _trained(tmp_path / "bowl", tcfg)
+    meta = {"training": {"config": json.loads(json.dumps(tcfg.to_dict()))}}
+    (tmp_path / "bowl" / "bundle.json").write_text(json.dumps(meta))
+    assert _trained(tmp_path / "bowl", tcfg)  # done: skipped by a rerun
+    with pytest.raises(cluster.JobError, match=r"another configuration \(epochs_gae\): delete it"):
+        _trained(tmp_path / "bowl", make_config("tiny", object="builtin:bowl", seed=0, epochs_gae=3))
+
+
 _NO_RAY = """
 import sys
 from illuminet.cli import main

@@ -23,6 +23,10 @@ adds a row per named configuration (ablations), all in one table::
 
 ``--crosscheck`` instead compares the synthetic camera's ground truth with the path tracer Mitsuba 3
 (optional: ``pip install 'illuminet[groundtruth]'``) on a few scenes (:mod:`illuminet.models.crosscheck`).
+
+``--ray [ADDRESS]`` runs the suites as Ray tasks (one per camera scene, per lighting suite and per
+suite's SH tuning cases; :mod:`illuminet.cluster`, docs/cluster.md) and writes the same report; the
+shards are kept in ``<out>/shards`` until it is written, so a rerun redoes only missing ones.
 """
 
 from __future__ import annotations
