@@ -33,6 +33,7 @@ COMMAND_MODULES: list[str] = [
     "bench",  # benchmarks
     "doctor",  # what hardware/drivers are found
     "calibrate",  # calibrate board|capture|intrinsics|stereo|photometric
+    "datagen",  # training data of the learned transfer (one process or sharded on Ray)
     "train",  # train an object bundle (the learned transfer)
     "bundle",  # a bundle of any mesh with PRT, no training
     "eval",  # evaluation report

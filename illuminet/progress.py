@@ -1,8 +1,10 @@
-"""The live one-line status of ``illuminet run / replay / record / demo`` on a terminal.
+"""The live one-line status of ``illuminet run / replay / record / demo`` on a terminal, and of the
+offline jobs run as shards on Ray (``datagen / train --objects / eval --ray``).
 
 What this module owns: :class:`StatusLine`, fed by the streaming loop's ``on_stats`` callback
 (:meth:`~illuminet.runtime.stream.loop.LoopStats.snapshot` every half second), which redraws one line
-on standard error -- frames, fps, drops, failed frames, sink failures, elapsed time. It draws only
+on standard error -- frames, fps, drops, failed frames, sink failures, elapsed time; with
+``formatter=``:func:`format_job` the same line shows a job's shards (:mod:`illuminet.cluster`). It draws only
 when standard error is a terminal (``TERM`` not ``dumb``): piped or redirected output stays exactly
 as before (the end-of-run table only). Log records printed while the line is shown first clear it,
 so messages never end up glued to the status.
@@ -32,6 +34,8 @@ class StatusLine:
         Default standard error.
     enabled : bool, optional
         Default: only when ``stream`` is a terminal.
+    formatter : callable, optional
+        ``formatter(snap) -> str``; default :meth:`format` (the streaming loop's snapshot).
 
     Use as the loop's ``on_stats`` callback and :meth:`close` it before printing anything else::
 
@@ -42,8 +46,10 @@ class StatusLine:
             status.close()
     """
 
-    def __init__(self, stream: TextIO | None = None, enabled: bool | None = None):
+    def __init__(self, stream: TextIO | None = None, enabled: bool | None = None, formatter=None):
         self.stream = stream if stream is not None else sys.stderr
+        if formatter is not None:
+            self.format = formatter  # e.g. format_job: the line of a sharded job
         self.enabled = _is_terminal(self.stream) if enabled is None else bool(enabled)
         self._shown = False
         self._filter: logging.Filter | None = None
@@ -102,3 +108,18 @@ class StatusLine:
             for h in logging.getLogger().handlers:
                 h.removeFilter(self._filter)
             self._filter = None
+
+
+def format_job(snap: dict[str, Any]) -> str:
+    """The line of a job run as shards: ``name: finished/total shards, running, failed, retried, items,
+    elapsed`` (the snapshot :func:`illuminet.cluster.run_shards` makes after every event)."""
+    return "  ".join(
+        [
+            f"{snap['name']}: {snap['finished']}/{snap['total']} shards",
+            f"{snap['running']} running",
+            f"{snap['failed']} failed",
+            f"{snap['retried']} retried",
+            f"{snap['items']} {snap['unit']}s",
+            f"{snap['elapsed_s']:.1f} s",
+        ]
+    )

@@ -382,12 +382,30 @@ class CameraEval:
     def run(self, suites=SUITES, scenes: int = 8, frames: int = 6, seed: int = 0, progress=None) -> dict:
         """Every suite: per method the mean (mae, rmse, mae_abs, rmse_lin, flicker) and median
         (angle, chroma) over scenes; the RGB-D SH baselines at their best regulariser per suite."""
+        self.check(suites, frames)
+        t0 = time.time()
+        cases: dict[str, list] = {}
+        done, total = 0, len(suites) * scenes
+        for suite in suites:
+            cases[suite] = []
+            for i in range(scenes):
+                cases[suite].append(self.scene_case(suite, i, seed, frames))
+                done += 1
+                if progress:
+                    progress(done, total)
+        return self.assemble(cases, scenes, frames, seed, time.time() - t0)
+
+    @staticmethod
+    def check(suites, frames: int) -> None:
         bad = [s for s in suites if s not in SUITES]
         if bad:
             raise ValueError(f"unknown camera suite(s) {', '.join(bad)}; known: {', '.join(SUITES)}")
         if frames < 2:
             raise ValueError(f"camera frames must be >= 2 (flicker needs two), got {frames}")
-        t0 = time.time()
+
+    def assemble(self, cases: dict[str, list], scenes: int, frames: int, seed: int, wall_s: float) -> dict:
+        """The report from every suite's :meth:`scene_case` results in scene order (``None`` where a
+        scene had no plane): what :meth:`run` returns, also when the cases were computed elsewhere."""
         report = {
             "bundle": self.bundle.name,
             "scenes": scenes,
@@ -398,18 +416,9 @@ class CameraEval:
             "hdr_test_maps": [p.name for p in self.hdr_maps],
             "suites": {},
         }
-        done, total = 0, len(suites) * scenes
-        for suite in suites:
-            cases = []
-            for i in range(scenes):
-                c = self.scene_case(suite, i, seed, frames)
-                done += 1
-                if progress:
-                    progress(done, total)
-                if c is not None:
-                    cases.append(c)
-            report["suites"][suite] = self._aggregate(cases, scenes)
-        report["wall_s"] = round(time.time() - t0, 1)
+        for suite, lst in cases.items():
+            report["suites"][suite] = self._aggregate([c for c in lst if c is not None], scenes)
+        report["wall_s"] = round(wall_s, 1)
         return report
 
     def _aggregate(self, cases: list, n: int) -> dict:

@@ -438,36 +438,22 @@ def _yaw(a: float) -> np.ndarray:
     return np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]], np.float32)
 
 
-def generate(
-    scene: Scene, n: int, seed: int, kinds=KINDS, hdr_lights=None, hdr_share: float = 0.25, progress=None
-) -> dict[str, np.ndarray]:
-    """``n`` training samples as arrays.
+def _draw(scene: Scene, rng: np.random.Generator, kinds, hdr_lights, hdr_share: float, all_kinds: list):
+    """One training sample from ``rng``: (plane input, scale, OI / scale, shading / scale, kind index)."""
+    if hdr_lights and rng.random() < hdr_share:
+        kind = "hdr"
+    else:
+        kind = kinds[int(rng.integers(len(kinds)))]
+    pos, rgb = sample_lights(kind, rng, hdr_lights=hdr_lights)
+    pos = pos @ _yaw(rng.uniform(0, 2 * np.pi)).T  # pose perturbation: object yaw vs the room
+    e_plane, oi, sh = scene.truth(pos, rgb)
+    meas, mask = scene.measure(e_plane, rng)
+    x, s = preprocess_plane(meas, mask, scene.grid)
+    return x, s, oi / s, sh / s, all_kinds.index(kind)
 
-    Returns
-    -------
-    dict with ``plane`` (n, P', 4) preprocessed plane input, ``scale`` (n,), ``oi`` (n, V, 3, 3)
-    and ``shading`` (n, V, 3) both divided by ``scale``, ``kind`` (n,) int index into kinds (+hdr).
-    """
-    rng = np.random.default_rng(seed)
-    all_kinds = list(kinds) + (["hdr"] if hdr_lights else [])
-    planes, scales, ois, shs, ks = [], [], [], [], []
-    for i in range(n):
-        if hdr_lights and rng.random() < hdr_share:
-            kind = "hdr"
-        else:
-            kind = kinds[int(rng.integers(len(kinds)))]
-        pos, rgb = sample_lights(kind, rng, hdr_lights=hdr_lights)
-        pos = pos @ _yaw(rng.uniform(0, 2 * np.pi)).T  # pose perturbation: object yaw vs the room
-        e_plane, oi, sh = scene.truth(pos, rgb)
-        meas, mask = scene.measure(e_plane, rng)
-        x, s = preprocess_plane(meas, mask, scene.grid)
-        planes.append(x)
-        scales.append(s)
-        ois.append(oi / s)
-        shs.append(sh / s)
-        ks.append(all_kinds.index(kind))
-        if progress is not None:
-            progress(i + 1, n)
+
+def _stack(samples: list) -> dict[str, np.ndarray]:
+    planes, scales, ois, shs, ks = zip(*samples) if samples else ((), (), (), (), ())
     return {
         "plane": np.stack(planes).astype(np.float32),
         "scale": np.asarray(scales, np.float32),
@@ -475,3 +461,208 @@ def generate(
         "shading": np.stack(shs).astype(np.float32),
         "kind": np.asarray(ks, np.int32),
     }
+
+
+def generate(
+    scene: Scene, n: int, seed: int, kinds=KINDS, hdr_lights=None, hdr_share: float = 0.25, progress=None
+) -> dict[str, np.ndarray]:
+    """``n`` training samples as arrays, all drawn from one random stream (what ``illuminet train`` uses).
+
+    Returns
+    -------
+    dict with ``plane`` (n, P', 4) preprocessed plane input, ``scale`` (n,), ``oi`` (n, V, 3, 3)
+    and ``shading`` (n, V, 3) both divided by ``scale``, ``kind`` (n,) int index into kinds (+hdr).
+
+    The single stream makes sample ``i`` depend on every sample before it, so this data set cannot be
+    split across machines; :func:`generate_indexed` (``illuminet datagen``) can. This one is kept as
+    it is because the shipped bundles were trained on it (``illuminet train`` reproduces them).
+    """
+    rng = np.random.default_rng(seed)
+    all_kinds = list(kinds) + (["hdr"] if hdr_lights else [])
+    samples = []
+    for i in range(n):
+        samples.append(_draw(scene, rng, kinds, hdr_lights, hdr_share, all_kinds))
+        if progress is not None:
+            progress(i + 1, n)
+    return _stack(samples)
+
+
+def sample_rng(seed: int, index: int) -> np.random.Generator:
+    """The random stream of sample ``index`` of data set ``seed``: ``SeedSequence([seed, index])``.
+
+    Independent of every other sample, so any range of samples can be generated anywhere (a shard on
+    another machine) and comes out bit for bit as in one process. ``seed`` and ``index`` >= 0.
+    """
+    return np.random.default_rng(np.random.SeedSequence([int(seed), int(index)]))
+
+
+def generate_indexed(
+    scene: Scene,
+    start: int,
+    stop: int,
+    seed: int,
+    kinds=KINDS,
+    hdr_lights=None,
+    hdr_share: float = 0.25,
+    progress=None,
+) -> dict[str, np.ndarray]:
+    """Samples ``start .. stop - 1`` of data set ``seed``, each from its own stream (:func:`sample_rng`).
+
+    The same arrays as :func:`generate`'s layout; ``generate_indexed(s, 0, n)`` equals the
+    concatenation of ``generate_indexed(s, a, b)`` over any split of ``0 .. n`` (what the sharded
+    ``illuminet datagen --ray`` relies on).
+    """
+    if not 0 <= start <= stop:
+        raise ValueError(f"sample range [{start}, {stop}) is not a range of indices >= 0")
+    all_kinds = list(kinds) + (["hdr"] if hdr_lights else [])
+    samples = []
+    for i in range(start, stop):
+        samples.append(_draw(scene, sample_rng(seed, i), kinds, hdr_lights, hdr_share, all_kinds))
+        if progress is not None:
+            progress(i - start + 1, stop - start)
+    return _stack(samples)
+
+
+# --------------------------------------------------------------------------- data sets as a job
+
+
+@dataclass
+class DataSpec:
+    """Everything that defines a data set of :func:`generate_indexed`, self-contained (the mesh as
+    arrays, HDR maps as their median-cut lights): a worker on another machine needs no files.
+
+    Build with :func:`data_spec`; :meth:`scene` builds (once per process) the object's scene.
+    """
+
+    object: str
+    seed: int
+    n_proxy: int
+    grid: int
+    extent_m: float
+    kinds: tuple
+    hdr_share: float
+    vertices: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray
+    hdr_lights: list
+    hdr_maps: list
+    name: str = "object"
+
+    def meta(self) -> dict:
+        """The JSON description of the data set (no arrays): what a data file records."""
+        return {
+            "object": self.object,
+            "name": self.name,
+            "seed": self.seed,
+            "n_proxy": self.n_proxy,
+            "grid": self.grid,
+            "extent_m": self.extent_m,
+            "kinds": list(self.kinds) + (["hdr"] if self.hdr_lights else []),
+            "hdr_share": self.hdr_share if self.hdr_lights else 0.0,
+            "hdr_maps": list(self.hdr_maps),
+            "seeding": "sample i: numpy default_rng(SeedSequence([seed, i]))",
+            "mesh_sha256": self.mesh_digest(),
+        }
+
+    def mesh_digest(self) -> str:
+        import hashlib
+
+        h = hashlib.sha256()
+        for a in (self.vertices, self.faces, self.normals):
+            h.update(np.ascontiguousarray(a).tobytes())
+        return h.hexdigest()
+
+    def scene(self) -> Scene:
+        """The object's :class:`Scene` (proxy geometry + visibility tables), cached per process."""
+        key = (self.mesh_digest(), self.seed, self.n_proxy, self.grid, self.extent_m)
+        hit = _SCENES.get(key)
+        if hit is None:
+            import trimesh
+
+            mesh = trimesh.Trimesh(self.vertices, self.faces, vertex_normals=self.normals, process=False)
+            geom = build_geometry(mesh, self.n_proxy, seed=self.seed, name=self.name)
+            hit = Scene(geom, mesh, self.grid, self.extent_m)
+            _SCENES.clear()  # one object at a time per process: tables are tens of MB
+            _SCENES[key] = hit
+        return hit
+
+    def generate(self, start: int, stop: int, progress=None) -> dict[str, np.ndarray]:
+        """Samples ``start .. stop - 1`` (:func:`generate_indexed`)."""
+        share = self.hdr_share if self.hdr_lights else 0.0
+        return generate_indexed(
+            self.scene(), start, stop, self.seed, self.kinds, self.hdr_lights, share, progress=progress
+        )
+
+
+_SCENES: dict = {}
+
+
+def data_spec(
+    obj: str,
+    seed: int = 0,
+    n_proxy: int = 400,
+    grid: int = 32,
+    extent_m: float = 1.0,
+    kinds=KINDS,
+    hdr_dir: str | Path | None = None,
+    hdr_share: float = 0.25,
+) -> DataSpec:
+    """Load the object and the training split of the HDR maps into a :class:`DataSpec`.
+
+    Raises :class:`~illuminet.runtime.assets.objects.ObjectLoadError` for an unknown or unreadable
+    object, ``ValueError`` for an unknown lighting kind or a negative seed.
+    """
+    bad = [k for k in kinds if k not in KINDS]
+    if bad or not kinds:
+        raise ValueError(f"lighting kinds {list(kinds)}: expected one or more of {', '.join(KINDS)}")
+    if seed < 0:
+        raise ValueError(f"seed must be >= 0, got {seed}")
+    mesh = load_mesh(obj)
+    name = obj.split(":", 1)[1] if obj.startswith("builtin:") else Path(obj).stem
+    hdr = load_hdr_lights(hdr_dir, split="train") if hdr_dir else []
+    names = [p.name for p in hdr_maps(hdr_dir, "train")] if hdr else []
+    return DataSpec(
+        object=obj,
+        seed=int(seed),
+        n_proxy=int(n_proxy),
+        grid=int(grid),
+        extent_m=float(extent_m),
+        kinds=tuple(kinds),
+        hdr_share=float(hdr_share),
+        vertices=np.asarray(mesh.vertices, dtype=np.float64),
+        faces=np.asarray(mesh.faces, dtype=np.int64),
+        normals=np.asarray(mesh.vertex_normals, dtype=np.float64),
+        hdr_lights=hdr,
+        hdr_maps=names,
+        name=name,
+    )
+
+
+# --------------------------------------------------------------------------- data files
+
+
+def data_bytes(arrays: dict[str, np.ndarray], meta: dict | None = None) -> bytes:
+    """Arrays (+ a JSON ``meta`` record stored as uint8 bytes, no pickle) as the bytes of an npz file."""
+    import io
+    import json
+
+    buf = io.BytesIO()
+    extra = {"meta": np.frombuffer(json.dumps(meta, sort_keys=True).encode(), np.uint8)} if meta is not None else {}
+    np.savez(buf, **arrays, **extra)
+    return buf.getvalue()
+
+
+def read_data(src) -> tuple[dict[str, np.ndarray], dict]:
+    """An npz written by :func:`data_bytes` (a path or the bytes) -> (arrays, meta)."""
+    import io
+    import json
+
+    with np.load(io.BytesIO(src) if isinstance(src, bytes) else src, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files if k != "meta"}
+        meta = json.loads(bytes(z["meta"]).decode()) if "meta" in z.files else {}
+    return arrays, meta
+
+
+def concat_data(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Sample ranges (in order) -> one data set."""
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}

@@ -131,32 +131,37 @@ class Evaluator:
             time.time() - t0,
         )
         self.centre = np.array([0.0, float(np.ptp(b.vertices[:, 1])) / 2, 0.0])
-        self.hdr = datagen.load_hdr_lights(hdr_dir, split="test") if hdr_dir else []
-        self.hdr_names = [p.name for p in datagen.hdr_maps(hdr_dir, "test")] if self.hdr else []
+        self.hdr, self.hdr_names = held_out_lights(hdr_dir)
         self.extra_predictors: dict = {}  # name -> f(x (P', 4)) -> proxy shading / s (ablation models)
         self.sh_lambda = 0.0
+
+    def tune_scores(self, si: int, suite: str, n: int = 30) -> dict[float, list[float]]:
+        """The SH baseline's MAE per regulariser on ``n`` validation cases of suite number ``si``."""
+        scores: dict[float, list[float]] = {lam: [] for lam in SH_LAMBDAS}
+        b, sc = self.bundle, self.scene
+        rng = np.random.default_rng(SEED_BASE + 50_000 + si)
+        for _ in range(n):
+            pos, rgb, e_plane, _, true_e = self._case(suite, rng)
+            meas, mask = sc.measure(e_plane, rng)
+            k = 0.18 / max(float((0.5 * e_plane @ LUMA).mean() / np.pi), 1e-12)
+            m = mask.astype(bool)
+            for lam in SH_LAMBDAS:
+                coef = sh_fit_rgbd(sc.plane_n[m], meas[m], lam=lam)
+                scores[lam].append(case_metrics(sh_eval(coef, b.normals), true_e, k)["mae"])
+        return scores
 
     def tune_sh(self, n: int = 30) -> dict:
         """Pick the SH baseline's regulariser on validation cases (seeds apart from the test set),
         so the baseline is at its best rather than at an arbitrary setting. Returns MAE per lambda."""
-        scores = {lam: [] for lam in SH_LAMBDAS}
-        b, sc = self.bundle, self.scene
-        for si, suite in enumerate(self.suites()):
-            rng = np.random.default_rng(SEED_BASE + 50_000 + si)
-            for _ in range(n):
-                pos, rgb, e_plane, _, true_e = self._case(suite, rng)
-                meas, mask = sc.measure(e_plane, rng)
-                k = 0.18 / max(float((0.5 * e_plane @ LUMA).mean() / np.pi), 1e-12)
-                m = mask.astype(bool)
-                for lam in SH_LAMBDAS:
-                    coef = sh_fit_rgbd(sc.plane_n[m], meas[m], lam=lam)
-                    scores[lam].append(case_metrics(sh_eval(coef, b.normals), true_e, k)["mae"])
-        res = {lam: float(np.mean(v)) for lam, v in scores.items()}
-        self.sh_lambda = min(res, key=res.get)
+        return self.set_sh_lambda([self.tune_scores(si, s, n) for si, s in enumerate(self.suites())])
+
+    def set_sh_lambda(self, per_suite: list[dict]) -> dict:
+        """Use :func:`pick_sh_lambda` of every suite's :meth:`tune_scores`; returns MAE per lambda."""
+        self.sh_lambda, res = pick_sh_lambda(per_suite)
         return res
 
     def suites(self) -> list[str]:
-        return list(SUITES) + (["hdr"] if self.hdr else [])
+        return suites(self.hdr)
 
     def _case(self, kind: str, rng: np.random.Generator):
         pos, rgb = datagen.sample_lights(kind, rng, hdr_lights=self.hdr)
@@ -197,52 +202,67 @@ class Evaluator:
     ) -> dict:
         """All suites; returns the report dict (per suite and method: mean metrics)."""
         sh_scores = self.tune_sh()
-        report = {
-            "bundle": self.bundle.name,
-            "n_cases": n_cases,
-            "seed": seed,
-            "suites": {},
-            "sh_lambda": self.sh_lambda,
-            "sh_lambda_validation_mae": {str(k): v for k, v in sh_scores.items()},
-            "hdr_test_maps": self.hdr_names,
-            "render_vertices": int(len(self.bundle.vertices)),
-            "exposure": "white Lambertian, I = clip(E/pi*k, 0, 1), k: plane mean radiance (albedo 0.5) -> 0.18",
-        }
+        report = report_head(self.bundle, self.hdr_names, n_cases, seed, self.sh_lambda, sh_scores)
         self.examples = {}
-        for si, suite in enumerate(self.suites()):
-            rng = np.random.default_rng(SEED_BASE + 7 * seed + si)
-            acc: dict[str, list] = {}
-            ang: dict[str, list] = {}
-            best_ex = None
-            for c in range(n_cases):
-                pos, rgb, e_plane, oi_true, true_e = self._case(suite, rng)
-                meas, mask = self.scene.measure(e_plane, rng)
-                k = 0.18 / max(float((0.5 * e_plane @ LUMA).mean() / np.pi), 1e-12)
-                preds = self.predict_all(meas, mask, pos, rgb)
-                d_true = dominant_light_from_oi(oi_true)[0]
-                for mth, (pe, pd) in preds.items():
-                    acc.setdefault(mth, []).append(case_metrics(pe, true_e, k))
-                    a = angle_deg(pd, d_true)
-                    if a is not None:
-                        ang.setdefault(mth, []).append(a)
-                if keep_examples and c < 12:
-                    # the figure shows the case with the largest spread of true intensities (most telling)
-                    spread = float(np.std(exposed(true_e, k) @ LUMA))
-                    if best_ex is None or spread > best_ex[0]:
-                        best_ex = (spread, {"true": true_e, "k": k, **{m: v[0] for m, v in preds.items()}})
+        suites = self.suites()
+        for si, suite in enumerate(suites):
+
+            def bar(c, _total, si=si):
                 if progress:
-                    progress(si * n_cases + c + 1, len(self.suites()) * n_cases)
-            res = {}
-            for mth, lst in acc.items():
-                res[mth] = {key: float(np.mean([d[key] for d in lst])) for key in ("mae", "rmse", "si_rmse")}
-                res[mth]["angle_deg"] = float(np.median(ang[mth])) if mth in ang else None
-            flick = self.flicker(suite, n_flicker, flicker_frames, smoothing, seed)
-            for mth, v in flick.items():
-                res.setdefault(mth, {})["flicker"] = v
+                    progress(si * n_cases + c, len(suites) * n_cases)
+
+            res, example = self.run_suite(
+                si, suite, n_cases, n_flicker, flicker_frames, smoothing, seed, bar, keep_examples
+            )
             report["suites"][suite] = res
-            if best_ex is not None:
-                self.examples[suite] = best_ex[1]
+            if example is not None:
+                self.examples[suite] = example
         return report
+
+    def run_suite(
+        self,
+        si: int,
+        suite: str,
+        n_cases: int = 100,
+        n_flicker: int = 8,
+        flicker_frames: int = 12,
+        smoothing: float = 0.7,
+        seed: int = 0,
+        progress=None,
+        keep_examples: bool = True,
+    ) -> tuple[dict, dict | None]:
+        """Suite number ``si`` (its own random streams: a shard of its own): per method the mean
+        metrics and flicker, and the figure's example case (or None)."""
+        rng = np.random.default_rng(SEED_BASE + 7 * seed + si)
+        acc: dict[str, list] = {}
+        ang: dict[str, list] = {}
+        best_ex = None
+        for c in range(n_cases):
+            pos, rgb, e_plane, oi_true, true_e = self._case(suite, rng)
+            meas, mask = self.scene.measure(e_plane, rng)
+            k = 0.18 / max(float((0.5 * e_plane @ LUMA).mean() / np.pi), 1e-12)
+            preds = self.predict_all(meas, mask, pos, rgb)
+            d_true = dominant_light_from_oi(oi_true)[0]
+            for mth, (pe, pd) in preds.items():
+                acc.setdefault(mth, []).append(case_metrics(pe, true_e, k))
+                a = angle_deg(pd, d_true)
+                if a is not None:
+                    ang.setdefault(mth, []).append(a)
+            if keep_examples and c < 12:
+                # the figure shows the case with the largest spread of true intensities (most telling)
+                spread = float(np.std(exposed(true_e, k) @ LUMA))
+                if best_ex is None or spread > best_ex[0]:
+                    best_ex = (spread, {"true": true_e, "k": k, **{m: v[0] for m, v in preds.items()}})
+            if progress:
+                progress(c + 1, n_cases)
+        res = {}
+        for mth, lst in acc.items():
+            res[mth] = {key: float(np.mean([d[key] for d in lst])) for key in ("mae", "rmse", "si_rmse")}
+            res[mth]["angle_deg"] = float(np.median(ang[mth])) if mth in ang else None
+        flick = self.flicker(suite, n_flicker, flicker_frames, smoothing, seed)
+        for mth, v in flick.items():
+            res.setdefault(mth, {})["flicker"] = v
+        return res, (best_ex[1] if best_ex is not None else None)
 
     def flicker(self, suite: str, n: int, frames: int, smoothing: float, seed: int) -> dict:
         """Mean frame-to-frame change of the intensities on static scenes (fresh plane noise per frame)."""
@@ -270,6 +290,39 @@ class Evaluator:
                         out.setdefault(m, []).append(float(np.abs(v - prev[m]).mean()))
                 prev = cur
         return {m: float(np.mean(v)) for m, v in out.items()}
+
+
+def pick_sh_lambda(per_suite: list[dict]) -> tuple[float, dict]:
+    """The SH regulariser of the lowest mean validation MAE over every suite's cases (suites in order)
+    and the mean MAE per regulariser."""
+    res = {lam: float(np.mean([v for d in per_suite for v in d[lam]])) for lam in SH_LAMBDAS}
+    return min(res, key=res.get), res
+
+
+def held_out_lights(hdr_dir) -> tuple[list, list[str]]:
+    """The held-out HDR maps' median-cut lights and file names (both empty without maps)."""
+    hdr = datagen.load_hdr_lights(hdr_dir, split="test") if hdr_dir else []
+    return hdr, ([p.name for p in datagen.hdr_maps(hdr_dir, "test")] if hdr else [])
+
+
+def suites(hdr_lights) -> list[str]:
+    """The lighting suites: the synthetic ones, and ``hdr`` when held-out maps were loaded."""
+    return list(SUITES) + (["hdr"] if hdr_lights else [])
+
+
+def report_head(bundle: Bundle, hdr_names: list[str], n_cases: int, seed: int, sh_lambda, sh_scores: dict) -> dict:
+    """The report's fields around the per-suite results (``suites`` is filled by the caller)."""
+    return {
+        "bundle": bundle.name,
+        "n_cases": n_cases,
+        "seed": seed,
+        "suites": {},
+        "sh_lambda": sh_lambda,
+        "sh_lambda_validation_mae": {str(k): v for k, v in sh_scores.items()},
+        "hdr_test_maps": hdr_names,
+        "render_vertices": int(len(bundle.vertices)),
+        "exposure": "white Lambertian, I = clip(E/pi*k, 0, 1), k: plane mean radiance (albedo 0.5) -> 0.18",
+    }
 
 
 # --------------------------------------------------------------------------- report writing

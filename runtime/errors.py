@@ -95,6 +95,12 @@ class PipelineError(IllumiNetError, ValueError):
     """The stages do not fit together (a required result nobody provides)."""
 
 
+class JobError(IllumiNetError, RuntimeError):
+    """An offline job run as shards (``--ray``: datagen, catalogue training, evaluation sweeps): shards
+    that failed after their retries (exit 1); Ray not installed, a shard folder of another job or a bad
+    ``--ray-*`` value are usage mistakes (raised with ``exit_code=2``)."""
+
+
 __all__ = [
     "EXIT_USAGE",
     "EXIT_RUNTIME",
@@ -109,4 +115,5 @@ __all__ = [
     "GLError",
     "SinkError",
     "PipelineError",
+    "JobError",
 ]

@@ -23,6 +23,10 @@ adds a row per named configuration (ablations), all in one table::
 
 ``--crosscheck`` instead compares the synthetic camera's ground truth with the path tracer Mitsuba 3
 (optional: ``pip install 'illuminet[groundtruth]'``) on a few scenes (:mod:`illuminet.models.crosscheck`).
+
+``--ray [ADDRESS]`` runs the suites as Ray tasks (one per camera scene, per lighting suite and per
+suite's SH tuning cases; :mod:`illuminet.cluster`, docs/cluster.md) and writes the same report; the
+shards are kept in ``<out>/shards`` until it is written, so a rerun redoes only missing ones.
 """
 
 from __future__ import annotations
@@ -33,6 +37,11 @@ import logging
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
+
+from illuminet import cluster
+from illuminet.runtime.errors import EXIT_USAGE, JobError
 
 log = logging.getLogger("illuminet.eval")
 
@@ -119,7 +128,12 @@ def register(sub) -> None:
         "needs libLLVM >= 16, point DRJIT_LIBLLVM_PATH at it)",
     )
     p.add_argument("--update-bundle", action="store_true", help="store the figures in the bundle")
+    cluster.add_arguments(p, unit="lighting suite and camera scene")
     p.set_defaults(func=run)
+
+
+def _usage(msg: str) -> JobError:
+    return JobError(msg, exit_code=EXIT_USAGE)
 
 
 def _ablation(ev, epochs: int) -> None:
@@ -195,12 +209,17 @@ def _crosscheck(args, hdr: str) -> int:
 def run(args: argparse.Namespace, cfg) -> int:
     from illuminet.commands.train import DEFAULT_HDR
     from illuminet.models.train import Progress
-    from illuminet.runtime.assets.bundle import BundleError
+    from illuminet.runtime.assets.bundle import BundleError, load_bundle
     from illuminet.runtime.config import ConfigError
 
+    cluster.check_arguments(args)
     hdr = args.hdr if args.hdr is not None else (str(DEFAULT_HDR) if DEFAULT_HDR.is_dir() else "")
     if args.crosscheck:
+        if args.ray is not None:
+            raise _usage("--ray shards the lighting and camera suites; --crosscheck runs on this machine only")
         return _crosscheck(args, hdr)
+    if args.ray is not None and args.ablation:
+        raise _usage("--ablation retrains on this machine from the bundle's work folder: run it without --ray")
     from illuminet.models.eval import LABELS, Evaluator, finish, markdown, write_outputs
 
     spec = args.bundle or cfg.model.bundle
@@ -212,7 +231,7 @@ def run(args: argparse.Namespace, cfg) -> int:
             file=sys.stderr,
         )
         return 2
-    cam = None
+    cam = ev = None
     try:
         if args.camera_scenes > 0:
             from illuminet.models.camera_eval import CameraEval, parse_variant
@@ -221,56 +240,65 @@ def run(args: argparse.Namespace, cfg) -> int:
             cam = CameraEval(
                 cfg, build_stages, spec, [parse_variant(v) for v in args.variant], hdr or None, args.vertices or None
             )
-        ev = Evaluator(spec, hdr or None) if args.cases > 0 else None
-    except (BundleError, ConfigError) as e:
+            cam.check(suites, args.camera_frames)
+        if args.ray is None:
+            ev = Evaluator(spec, hdr or None) if args.cases > 0 else None
+            bundle = ev.bundle if ev is not None else cam.bundle if cam is not None else None
+        else:
+            bundle = cam.bundle if cam is not None else load_bundle(spec)
+    except (BundleError, ConfigError, ValueError) as e:
         print(f"illuminet eval: {e}", file=sys.stderr)
         return 2
-    if hdr and ev is not None:
-        print(f"# real HDR lighting from {hdr} (held-out maps: {', '.join(ev.hdr_names) or 'none'})")
-    t0 = time.time()
-    if ev is not None:
-        if args.ablation:
-            try:
-                _ablation(ev, args.ablation_epochs)
-            except (ImportError, FileNotFoundError) as e:
-                print(f"illuminet eval: ablation skipped: {e}", file=sys.stderr)
-        report = finish(
-            ev.run(
-                args.cases,
-                args.flicker_scenes,
-                smoothing=cfg.model.temporal_smoothing,
-                seed=args.seed,
-                progress=Progress("eval", 1),
-            )
-        )
-        name = ev.bundle.name
-    else:
-        name = cam.bundle.name if cam is not None else str(spec)
-        report = {"bundle": name, "suites": {}}
-    if cam is not None:
-        report["camera"] = cam.run(
-            suites, args.camera_scenes, args.camera_frames, args.seed, progress=Progress("camera", 1)
-        )
-    report["eval_wall_s"] = round(time.time() - t0, 1)
+    name = bundle.name if bundle is not None else str(spec)
     out = Path(args.out or Path("eval") / name)
+    t0 = time.time()
+    examples: dict = {}
+    if args.ray is not None:
+        report, examples = _sharded(args, cfg, spec, bundle, suites, hdr, cam, out)
+    else:
+        if hdr and ev is not None:
+            print(f"# real HDR lighting from {hdr} (held-out maps: {', '.join(ev.hdr_names) or 'none'})")
+        if ev is not None:
+            if args.ablation:
+                try:
+                    _ablation(ev, args.ablation_epochs)
+                except (ImportError, FileNotFoundError) as e:
+                    print(f"illuminet eval: ablation skipped: {e}", file=sys.stderr)
+            report = finish(
+                ev.run(
+                    args.cases,
+                    args.flicker_scenes,
+                    smoothing=cfg.model.temporal_smoothing,
+                    seed=args.seed,
+                    progress=Progress("eval", 1),
+                )
+            )
+            examples = ev.examples
+        else:
+            report = {"bundle": name, "suites": {}}
+        if cam is not None:
+            report["camera"] = cam.run(
+                suites, args.camera_scenes, args.camera_frames, args.seed, progress=Progress("camera", 1)
+            )
+    report["eval_wall_s"] = round(time.time() - t0, 1)
     out.mkdir(parents=True, exist_ok=True)
     fig = None
-    if ev is not None and not args.no_figure and ev.examples:
+    if examples and not args.no_figure:
         try:
             from illuminet.models.figure import figure
 
-            suite = "outdoor" if "outdoor" in ev.examples else next(iter(ev.examples))
-            ex = ev.examples[suite]
+            suite = "outdoor" if "outdoor" in examples else next(iter(examples))
+            ex = examples[suite]
             order = ["true", "constant", "ambient", "sh_rgbd", "oracle_sh", "ours_int8"]
             names = {"true": "Ground truth", **LABELS}
             panels = [(names[m], ex[m] / 3.14159265 * ex["k"]) for m in order if m in ex]
             fig = out / "eval.png"
             figure(
                 fig,
-                ev.bundle.vertices,
-                ev.bundle.faces,
+                bundle.vertices,
+                bundle.faces,
                 panels,
-                title=f"{ev.bundle.name}: {suite} test case (front row, back row)",
+                title=f"{bundle.name}: {suite} test case (front row, back row)",
             )
             report["figure"] = fig.name
         except Exception as e:  # no EGL: the report is still written
@@ -283,11 +311,11 @@ def run(args: argparse.Namespace, cfg) -> int:
 
         print(camera_markdown(report["camera"]))
     print(f"wrote {paths['md']}, {paths['json']}" + (f", {fig}" if fig else ""))
-    if args.update_bundle and ev is not None:
+    if args.update_bundle and report["suites"]:
         from illuminet.models.export import finalize_bundle
 
-        (ev.bundle.path / "eval.json").write_text(json.dumps(report, indent=2) + "\n")
-        meta = dict(ev.bundle.meta)
+        (bundle.path / "eval.json").write_text(json.dumps(report, indent=2) + "\n")
+        meta = dict(bundle.meta)
         meta["evaluation"] = {
             s: {
                 m: {k: v for k, v in r.items()}
@@ -298,6 +326,166 @@ def run(args: argparse.Namespace, cfg) -> int:
         }
         meta["evaluation"]["n_cases"] = report["n_cases"]
         meta["evaluation"]["int8_vs_fp32_mae_max_diff"] = report["int8_vs_fp32_mae_max_diff"]
-        finalize_bundle(ev.bundle.path, meta)
-        print(f"updated {ev.bundle.path / 'bundle.json'}")
+        finalize_bundle(bundle.path, meta)
+        print(f"updated {bundle.path / 'bundle.json'}")
     return 0
+
+
+# ------------------------------------------------------------------------------------ --ray: shards
+
+#: per worker process: the evaluators of the last bundles (their visibility tables take seconds)
+_CACHE: dict = {}
+
+
+def _cached(key, make):
+    if key not in _CACHE:
+        if len(_CACHE) >= 4:
+            _CACHE.pop(next(iter(_CACHE)))
+        _CACHE[key] = make()
+    return _CACHE[key]
+
+
+def _evaluator(spec: str, hdr: str | None):
+    from illuminet.models.eval import Evaluator
+
+    return _cached(("light", spec, hdr), lambda: Evaluator(spec, hdr))
+
+
+def _config_digest(cfg) -> str:
+    import hashlib
+
+    return hashlib.sha256(json.dumps(cfg.to_dict(), sort_keys=True, default=str).encode()).hexdigest()
+
+
+def tune_shard(spec: str, hdr: str | None, si: int, suite: str) -> dict[str, bytes]:
+    """A Ray task: the SH baseline's validation MAE per regulariser on one lighting suite."""
+    from illuminet.models.eval import SH_LAMBDAS
+
+    scores = _evaluator(spec, hdr).tune_scores(si, suite)
+    return {"scores.json": json.dumps([scores[lam] for lam in SH_LAMBDAS]).encode()}
+
+
+def suite_shard(
+    spec: str, hdr: str | None, si: int, suite: str, lam: float, cases: int, flicker: int, smoothing: float, seed: int
+) -> dict[str, bytes]:
+    """A Ray task: one lighting suite (its metrics, flicker and the figure's example case)."""
+    from illuminet.models.datagen import data_bytes
+
+    ev = _evaluator(spec, hdr)
+    ev.sh_lambda = lam
+    res, example = ev.run_suite(si, suite, cases, flicker, smoothing=smoothing, seed=seed)
+    files = {"suite.json": json.dumps(res).encode()}
+    if example is not None:
+        files["example.npz"] = data_bytes({k: np.asarray(v) for k, v in example.items()})
+    return files
+
+
+def camera_shard(
+    cfg, spec: str, variants: tuple, hdr: str | None, vertices: int | None, suite: str, i: int, seed: int, frames: int
+) -> dict[str, bytes]:
+    """A Ray task: one scene of a camera suite through every variant (:meth:`CameraEval.scene_case`)."""
+
+    def make():
+        from illuminet.models.camera_eval import CameraEval, parse_variant
+        from illuminet.pipeline import build_stages
+
+        return CameraEval(cfg, build_stages, spec, [parse_variant(v) for v in variants], hdr, vertices)
+
+    cam = _cached(("camera", _config_digest(cfg), spec, variants, hdr, vertices), make)
+    return {"case.json": json.dumps(cam.scene_case(suite, i, seed, frames)).encode()}
+
+
+def _sharded(args, cfg, spec, bundle, suites, hdr, cam, out: Path):
+    """The lighting and camera suites as Ray shards in ``<out>/shards``; the same report as one machine.
+
+    Shards: ``light-tune-<suite>`` (the SH regulariser's validation cases) and ``camera-<suite>-<i>``
+    (one scene) first, then ``light-<suite>`` (one lighting suite's cases and flicker, with the
+    regulariser picked from all tuning shards)."""
+    from contextlib import nullcontext
+
+    from illuminet.models import eval as E
+    from illuminet.models.datagen import read_data
+
+    store = cluster.ShardStore(out / "shards")
+    store.check_job(
+        {
+            "job": "eval",
+            "bundle": str(spec),
+            "cases": args.cases,
+            "flicker_scenes": args.flicker_scenes,
+            "seed": args.seed,
+            "hdr": hdr,
+            "camera_scenes": args.camera_scenes,
+            "camera_frames": args.camera_frames,
+            "camera_suites": suites,
+            "variants": list(args.variant),
+            "vertices": args.vertices,
+            "config_sha256": _config_digest(cfg),
+        }
+    )
+    hdr_dir = hdr or None
+    light: list[str] = []
+    hdr_names: list[str] = []
+    if args.cases > 0:
+        hdr_lights, hdr_names = E.held_out_lights(hdr_dir)
+        light = E.suites(hdr_lights)
+        if hdr:
+            print(f"# real HDR lighting from {hdr} (held-out maps: {', '.join(hdr_names) or 'none'})")
+    first = [cluster.Shard(f"light-tune-{s}", tune_shard, (str(spec), hdr_dir, si, s)) for si, s in enumerate(light)]
+    if cam is not None:
+        first += [
+            cluster.Shard(
+                f"camera-{s}-{i:04d}",
+                camera_shard,
+                (cfg, str(spec), tuple(args.variant), hdr_dir, args.vertices or None, s, i, args.seed)
+                + (args.camera_frames,),
+            )
+            for s in suites
+            for i in range(args.camera_scenes)
+        ]
+    pending = [s.key for s in first if not store.is_done(s.key)] + [
+        f"light-{s}" for s in light if not store.is_done(f"light-{s}")
+    ]
+    ray_kw = dict(address=args.ray, workers=args.ray_workers, retries=args.ray_retries, unit="shard")
+    session = cluster.ray_session(args.ray, args.ray_workers) if pending else nullcontext()
+    with session:
+        summary = cluster.run_shards("eval (SH tuning, camera scenes)", first, store, **ray_kw)
+        cluster.finish(summary, store)
+        camera_wall = summary.wall_s
+        per_suite = []
+        for s in light:
+            lists = json.loads(store.read(f"light-tune-{s}", "scores.json"))
+            per_suite.append(dict(zip(E.SH_LAMBDAS, lists)))
+        lam, sh_scores = E.pick_sh_lambda(per_suite) if light else (0.0, {})
+        second = [
+            cluster.Shard(
+                f"light-{s}",
+                suite_shard,
+                (str(spec), hdr_dir, si, s, lam, args.cases, args.flicker_scenes, cfg.model.temporal_smoothing)
+                + (args.seed,),
+                items=args.cases,
+            )
+            for si, s in enumerate(light)
+        ]
+        if second:
+            summary = cluster.run_shards("eval (lighting suites)", second, store, **ray_kw)
+            cluster.finish(summary, store)
+    examples: dict = {}
+    if light:
+        report = E.report_head(bundle, hdr_names, args.cases, args.seed, lam, sh_scores)
+        for s in light:
+            report["suites"][s] = json.loads(store.read(f"light-{s}", "suite.json"))
+            if (store.path(f"light-{s}") / "example.npz").is_file():
+                arrays, _ = read_data(store.read(f"light-{s}", "example.npz"))
+                examples[s] = {k: (float(v) if k == "k" else v) for k, v in arrays.items()}
+        report = E.finish(report)
+    else:
+        report = {"bundle": bundle.name, "suites": {}}
+    if cam is not None:
+        cases = {
+            s: [json.loads(store.read(f"camera-{s}-{i:04d}", "case.json")) for i in range(args.camera_scenes)]
+            for s in suites
+        }
+        report["camera"] = cam.assemble(cases, args.camera_scenes, args.camera_frames, args.seed, camera_wall)
+    store.remove()
+    return report, examples

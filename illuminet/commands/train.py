@@ -3,10 +3,19 @@
 Example::
 
     illuminet train --object builtin:vase --seed 0 --preset small --out models/bundles/vase
+    illuminet train --objects catalogue/ --out bundles --ray              # one bundle per mesh, on Ray
+    illuminet train --objects builtin:vase,builtin:bowl --out bundles     # one after the other
 
 Progress bars go to stderr, loss logs to ``<out>/work/log.jsonl``; checkpoints after every epoch in
 ``<out>/work`` make the same command resume after an interruption. The bundle files (mesh.npz,
 transfer_fp32.onnx, transfer_int8.onnx, bundle.json) are written into ``--out`` at the end.
+
+``--objects DIR|LIST`` trains a catalogue: every mesh file of a folder, the lines of a text file
+(``#`` comments; paths relative to the file) or a comma-separated list of specs, each into
+``<out>/<name>`` (default ``--out``: ./bundles). Objects whose bundle is already there (same
+training configuration) are skipped, so an interrupted catalogue resumes. With ``--ray`` each object
+is one Ray task: it trains in a temporary folder on its worker and its bundle files (and
+``work/log.jsonl``; not the checkpoints) come back to be written here, ``bundle.json`` last.
 """
 
 from __future__ import annotations
@@ -18,7 +27,13 @@ import sys
 import time
 from pathlib import Path
 
+from illuminet import cluster
+from illuminet.runtime.errors import EXIT_USAGE, JobError
+
 log = logging.getLogger("illuminet.train")
+
+#: mesh files a catalogue folder is scanned for (what runtime.assets.objects.load_object reads)
+MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".stl", ".off")
 
 #: where the shared reference HDR maps live relative to the project root (used when present)
 DEFAULT_HDR = Path(__file__).resolve().parents[3] / "shared" / "data" / "hdri"
@@ -31,13 +46,24 @@ def register(sub) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument(
+    what = p.add_mutually_exclusive_group(required=True)
+    what.add_argument(
         "--object",
-        required=True,
         metavar="PATH|builtin:NAME",
         help="the virtual object: a GLB/OBJ/PLY file or builtin:vase / builtin:bowl",
     )
-    p.add_argument("--out", metavar="DIR", help="bundle folder to write (default: ./bundles/<object name>)")
+    what.add_argument(
+        "--objects",
+        metavar="DIR|LIST",
+        help="a catalogue: a folder of mesh files, a text file of specs (one a line) or spec,spec,...; "
+        "each object into <out>/<name>",
+    )
+    p.add_argument(
+        "--out",
+        metavar="DIR",
+        help="bundle folder to write (default: ./bundles/<object name>); with --objects the catalogue "
+        "folder (default ./bundles)",
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed for data and initialisation (default 0)")
     p.add_argument(
         "--preset",
@@ -65,67 +91,82 @@ def register(sub) -> None:
     ):
         p.add_argument(f"--{name}", type=typ, default=None, help=f"{hlp} (overrides the preset)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    cluster.add_arguments(p, unit="object of --objects")
     p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace, cfg) -> int:
-    try:
-        import jax  # noqa: F401
-        import onnx  # noqa: F401
-        import optax  # noqa: F401
-    except ImportError as e:
-        print(
-            f"illuminet train: needs the training extra ({e.name} is missing): pip install 'illuminet[train]'",
-            file=sys.stderr,
-        )
-        return 2
-    from illuminet.models.export import write_bundle
-    from illuminet.models.train import Trainer, make_config
+_OVERRIDES = ("n-train", "n-val", "n-proxy", "batch", "epochs-gae", "epochs-colour", "epochs-gan", "epochs-finetune")
+_OVERRIDES += ("unroll",)
 
-    hdr = args.hdr if args.hdr is not None else (str(DEFAULT_HDR) if DEFAULT_HDR.is_dir() else "")
-    overrides = {
-        k: getattr(args, k.replace("-", "_"))
-        for k in (
-            "n-train",
-            "n-val",
-            "n-proxy",
-            "batch",
-            "epochs-gae",
-            "epochs-colour",
-            "epochs-gan",
-            "epochs-finetune",
-            "unroll",
-        )
-    }
-    tcfg = make_config(
-        args.preset,
-        object=args.object,
-        seed=args.seed,
-        hdr_dir=hdr,
-        **{k.replace("-", "_"): v for k, v in overrides.items()},
-    )
-    name = args.object.split(":", 1)[1] if args.object.startswith("builtin:") else Path(args.object).stem
-    out = Path(args.out or Path("bundles") / name)
-    command = (
-        "illuminet " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-        if sys.argv and "illuminet" in sys.argv[0]
-        else f"illuminet train --object {args.object} --seed {args.seed} --preset {args.preset}"
-    )
+
+def object_name(spec: str) -> str:
+    return spec.split(":", 1)[1] if spec.startswith("builtin:") else Path(spec).stem
+
+
+def _usage(msg: str) -> JobError:
+    return JobError(msg, exit_code=EXIT_USAGE)
+
+
+def catalogue(arg: str) -> list[tuple[str, str]]:
+    """``--objects DIR|LIST`` -> [(name, spec)]: the mesh files of a folder (sorted), the lines of a
+    text file (paths relative to it) or a comma-separated list. File specs become absolute paths."""
+    src = Path(arg)
+    if src.is_dir():
+        specs = [str(p.resolve()) for p in sorted(src.iterdir()) if p.suffix.lower() in MESH_SUFFIXES]
+        if not specs:
+            raise _usage(f"--objects {arg}: the folder holds no mesh files ({', '.join(MESH_SUFFIXES)})")
+    elif src.is_file() and src.suffix.lower() not in MESH_SUFFIXES:
+        specs = []
+        for line in src.read_text().splitlines():
+            line = line.split("#", 1)[0].strip()
+            if not line:
+                continue
+            if not line.startswith("builtin:") and not Path(line).is_absolute():
+                line = str((src.parent / line).resolve())
+            specs.append(line)
+        if not specs:
+            raise _usage(f"--objects {arg}: the list names no objects")
+    else:
+        specs = [x.strip() for x in arg.split(",") if x.strip()]
+        specs = [x if x.startswith("builtin:") else str(Path(x).resolve()) for x in specs]
+    from illuminet.runtime.assets.objects import BUILTIN_OBJECTS
+
+    for sp in specs:
+        if sp.startswith("builtin:"):
+            if sp.split(":", 1)[1] not in BUILTIN_OBJECTS:
+                raise _usage(f"--objects: unknown built-in object {sp!r}; known: {', '.join(BUILTIN_OBJECTS)}")
+        elif not Path(sp).is_file():
+            raise _usage(f"--objects: {sp}: no such mesh file")
+    names = [object_name(sp) for sp in specs]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise _usage(f"--objects: two objects would be written to the same folder ({', '.join(dup)}): rename one")
+    return list(zip(names, specs))
+
+
+def _command(args) -> str:
+    if sys.argv and "illuminet" in sys.argv[0]:
+        return "illuminet " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    what = f"--object {args.object}" if args.object else f"--objects {args.objects}"
+    return f"illuminet train {what} --seed {args.seed} --preset {args.preset}"
+
+
+def train_one(tcfg, out: Path, command: str, show_progress: bool = True) -> Path:
+    """Train one object into the bundle folder ``out`` (resuming from ``out/work``); returns bundle.json."""
+    from illuminet.models.export import write_bundle
+    from illuminet.models.train import Trainer
+
     log.info(
         "training %s (preset %s, seed %d) into %s; HDR maps: %s",
-        args.object,
-        args.preset,
-        args.seed,
+        tcfg.object,
+        tcfg.preset,
+        tcfg.seed,
         out,
-        hdr or "none",
+        tcfg.hdr_dir or "none",
     )
     t0 = time.time()
-    try:
-        trainer = Trainer(tcfg, out, show_progress=not args.quiet)
-        result = trainer.train()
-    except (FileNotFoundError, ValueError) as e:
-        print(f"illuminet train: {e}", file=sys.stderr)
-        return 2
+    trainer = Trainer(tcfg, out, show_progress=show_progress)
+    result = trainer.train()
     train_s = time.time() - t0
     val = validation_figures(trainer, result)
     path = write_bundle(
@@ -137,7 +178,131 @@ def run(args: argparse.Namespace, cfg) -> int:
         train_s,
         val["shading_mae_rel"],
     )
+    return path
+
+
+def train_shard(tcfg, name: str, command: str) -> dict[str, bytes]:
+    """A Ray task: train one object in a temporary folder; its bundle files and ``work/log.jsonl``."""
+    import tempfile
+
+    from illuminet.runtime.assets.bundle import METADATA
+
+    with tempfile.TemporaryDirectory(prefix=f"illuminet-train-{name}-") as tmp:
+        out = Path(tmp) / name
+        train_one(tcfg, out, command, show_progress=False)
+        files = {p.name: p.read_bytes() for p in sorted(out.iterdir()) if p.is_file() and p.name != METADATA}
+        log_file = out / "work" / "log.jsonl"
+        if log_file.is_file():
+            files["work/log.jsonl"] = log_file.read_bytes()
+        files[METADATA] = (out / METADATA).read_bytes()  # the completion marker: written last
+    return files
+
+
+def _trained(out: Path, tcfg) -> bool:
+    """Whether ``out`` holds a finished bundle of ``tcfg``; a bundle of another configuration is an error."""
+    import json
+
+    from illuminet.runtime.assets.bundle import METADATA
+
+    path = out / METADATA
+    if not path.is_file():
+        return False
+    try:
+        have = json.loads(path.read_text()).get("training", {}).get("config")
+    except (OSError, ValueError, AttributeError):
+        have = None
+    want = json.loads(json.dumps(tcfg.to_dict()))
+    if have != want:
+        diff = sorted(k for k in want if not isinstance(have, dict) or have.get(k) != want[k])
+        raise _usage(
+            f"{out} holds a bundle trained with another configuration ({', '.join(diff) or 'not a trained bundle'}"
+            "): delete it or choose another --out"
+        )
+    return True
+
+
+def run(args: argparse.Namespace, cfg) -> int:
+    cluster.check_arguments(args)
+    if args.ray is None or args.ray == cluster.LOCAL:  # the training runs in this Python environment
+        try:
+            import jax  # noqa: F401
+            import onnx  # noqa: F401
+            import optax  # noqa: F401
+        except ImportError as e:
+            print(
+                f"illuminet train: needs the training extra ({e.name} is missing): pip install 'illuminet[train]'",
+                file=sys.stderr,
+            )
+            return 2
+    from illuminet.models.train import make_config
+
+    hdr = args.hdr if args.hdr is not None else (str(DEFAULT_HDR) if DEFAULT_HDR.is_dir() else "")
+    overrides = {k.replace("-", "_"): getattr(args, k.replace("-", "_")) for k in _OVERRIDES}
+
+    def config(spec: str):
+        return make_config(args.preset, object=spec, seed=args.seed, hdr_dir=hdr, **overrides)
+
+    if args.objects:
+        return _run_catalogue(args, catalogue(args.objects), config)
+    if args.ray is not None:
+        raise _usage("--ray trains a catalogue (--objects DIR|LIST), one Ray task per object; not one --object")
+    out = Path(args.out or Path("bundles") / object_name(args.object))
+    try:
+        path = train_one(config(args.object), out, _command(args), show_progress=not args.quiet)
+    except (FileNotFoundError, ValueError) as e:
+        print(f"illuminet train: {e}", file=sys.stderr)
+        return 2
     print(f"wrote {path}")
+    return 0
+
+
+def _run_catalogue(args, objects: list[tuple[str, str]], config) -> int:
+    """Train every object of the catalogue into ``<out>/<name>``: one after the other, or on Ray."""
+    root = Path(args.out or "bundles")
+    command = _command(args)
+    configs = {name: config(spec) for name, spec in objects}
+    done = {name for name in configs if _trained(root / name, configs[name])}
+    if done:
+        print(f"catalogue: {len(done)} of {len(objects)} objects already trained in {root} (kept)", file=sys.stderr)
+    if args.ray is not None:
+        store = cluster.ShardStore(root, marker="bundle.json")
+        shards = [cluster.Shard(name, train_shard, (configs[name], name, command)) for name, _ in objects]
+        summary = cluster.run_shards(
+            "train",
+            shards,
+            store,
+            address=args.ray,
+            workers=args.ray_workers,
+            retries=args.ray_retries,
+            unit="object",
+            show_progress=not args.quiet,
+        )
+        cluster.finish(summary, store)
+        print(f"wrote {len(objects)} bundles in {root}")
+        return 0
+    t0 = time.time()
+    failed: dict[str, str] = {}
+    trained = 0
+    for name, spec in objects:
+        if name in done:
+            continue
+        try:
+            path = train_one(configs[name], root / name, command, show_progress=not args.quiet)
+        except Exception as e:  # one broken mesh must not stop a catalogue of hundreds
+            failed[name] = f"{type(e).__name__}: {e}"
+            log.error("%s (%s): %s", name, spec, failed[name])
+            continue
+        trained += 1
+        print(f"wrote {path}")
+    wall = time.time() - t0
+    print(
+        f"train: {len(objects)} objects: {trained} trained"
+        + (f" (+{len(done)} from an earlier run)" if done else "")
+        + f", {len(failed)} failed, wall {wall:.1f} s"
+    )
+    if failed:
+        worst = "; ".join(f"{k}: {v}" for k, v in list(failed.items())[:3])
+        raise JobError(f"train: {len(failed)} of {len(objects)} objects failed ({worst}); run again to retry them")
     return 0
 
 

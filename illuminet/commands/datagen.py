@@ -1,0 +1,175 @@
+"""``illuminet datagen``: training data of the learned transfer for one object, as one npz file.
+
+Example::
+
+    illuminet datagen --object builtin:vase --samples 3000 --seed 0 --out data/vase.npz
+    illuminet datagen --object builtin:vase --samples 20000 --out data/vase.npz --ray            # local Ray
+    illuminet datagen --object chair.glb --samples 100000 --out data/chair.npz --ray head:6379  # a cluster
+
+Each sample is a lighting environment (indoor, outdoor, spatially varying lamps, real HDR maps when
+``--hdr`` finds them) with the plane measurement the runtime would see and the object's true OI and
+shading (:mod:`illuminet.models.datagen`). Sample ``i`` is drawn from its own random stream
+(``SeedSequence([seed, i])``), so the file is the same, array for array, whether one process made it
+or ``--ray`` split it into shards of ``--shard-size`` samples on many machines (any shard size).
+
+The file: ``plane`` (n, P, 4), ``scale`` (n,), ``oi`` (n, V, 3, 3), ``shading`` (n, V, 3), ``kind``
+(n,) and ``meta`` (JSON as uint8: object, seed, kinds, proxy size, HDR maps, the seeding);
+:func:`illuminet.models.datagen.read_data` reads it. With ``--ray`` the shards are kept in
+``<out>.shards/`` until the file is written: a run that was interrupted or had failed shards
+redoes only the missing ones when run again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+
+from illuminet import cluster
+from illuminet.runtime.errors import EXIT_USAGE, IllumiNetError, JobError
+
+log = logging.getLogger("illuminet.datagen")
+
+KINDS = ("indoor", "outdoor", "spatial")  # spelled here so that --help needs no numpy
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "datagen",
+        help="generate training data for an object (one process or sharded on Ray)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--object", required=True, metavar="PATH|builtin:NAME", help="a mesh file or builtin:NAME")
+    p.add_argument("--out", required=True, metavar="FILE.npz", help="the data file to write")
+    p.add_argument("--samples", type=int, default=3000, help="number of samples (default 3000)")
+    p.add_argument("--seed", type=int, default=0, help="data set seed, >= 0 (default 0)")
+    p.add_argument("--n-proxy", type=int, default=400, help="lighting proxy vertices (default 400, as train)")
+    p.add_argument("--grid", type=int, default=32, help="plane grid cells per side (default 32)")
+    p.add_argument("--extent", type=float, default=1.0, metavar="M", help="plane patch size in metres (default 1)")
+    p.add_argument(
+        "--kinds",
+        default=",".join(KINDS),
+        metavar="LIST",
+        help=f"comma-separated synthetic lighting kinds (default {','.join(KINDS)})",
+    )
+    p.add_argument(
+        "--hdr",
+        metavar="DIR",
+        default=None,
+        help="folder of .hdr maps whose training split (3 of every 4) is mixed in; default: "
+        "../shared/data/hdri when present, '' = none",
+    )
+    p.add_argument("--hdr-share", type=float, default=0.25, help="share of HDR-lit samples (default 0.25)")
+    p.add_argument(
+        "--shard-size",
+        type=int,
+        default=250,
+        metavar="N",
+        help="samples per Ray task (default 250); the data do not depend on it",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    cluster.add_arguments(p, unit="shard of --shard-size samples")
+    p.set_defaults(func=run)
+
+
+def _usage(msg: str) -> JobError:
+    return JobError(msg, exit_code=EXIT_USAGE)
+
+
+def shard_files(spec, start: int, stop: int) -> dict[str, bytes]:
+    """A Ray task: samples ``start .. stop - 1`` as ``data.npz``."""
+    from illuminet.models.datagen import data_bytes
+
+    return {"data.npz": data_bytes(spec.generate(start, stop))}
+
+
+def shard_ranges(n: int, size: int) -> list[tuple[int, int]]:
+    return [(a, min(a + size, n)) for a in range(0, n, size)]
+
+
+def job(spec, n: int, shard_size: int) -> list[cluster.Shard]:
+    """The shards of ``n`` samples (keys: the zero-padded sample range)."""
+    return [
+        cluster.Shard(f"samples-{a:09d}-{b:09d}", shard_files, (spec, a, b), items=b - a)
+        for a, b in shard_ranges(n, shard_size)
+    ]
+
+
+def merge(store: cluster.ShardStore, shards: list[cluster.Shard]):
+    from illuminet.models.datagen import concat_data, read_data
+
+    return concat_data([read_data(store.read(s.key, "data.npz"))[0] for s in shards])
+
+
+def write(out: Path, arrays, meta: dict) -> None:
+    from illuminet.models.datagen import data_bytes
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
+    tmp.write_bytes(data_bytes(arrays, meta))
+    os.replace(tmp, out)
+
+
+def run(args: argparse.Namespace, cfg) -> int:
+    from illuminet.commands.train import DEFAULT_HDR
+
+    cluster.check_arguments(args)
+    kinds = tuple(k for k in args.kinds.split(",") if k)
+    if not kinds or any(k not in KINDS for k in kinds):
+        raise _usage(f"--kinds {args.kinds!r}: expected a comma-separated list of {', '.join(KINDS)}")
+    if args.samples < 1:
+        raise _usage(f"--samples must be >= 1, got {args.samples}")
+    if args.seed < 0:
+        raise _usage(f"--seed must be >= 0 (it seeds numpy's SeedSequence), got {args.seed}")
+    if args.shard_size < 1:
+        raise _usage(f"--shard-size must be >= 1, got {args.shard_size}")
+    if args.n_proxy < 8 or args.grid < 8 or not args.extent > 0 or not 0.0 <= args.hdr_share <= 1.0:
+        raise _usage("--n-proxy and --grid must be >= 8, --extent > 0 and --hdr-share in [0, 1]")
+    out = Path(args.out)
+    if out.is_dir():
+        raise _usage(f"--out {out} is a folder; give the data file's name (e.g. {out / 'data.npz'})")
+    hdr = args.hdr if args.hdr is not None else (str(DEFAULT_HDR) if DEFAULT_HDR.is_dir() else "")
+    from illuminet.models.datagen import data_spec
+
+    try:
+        spec = data_spec(
+            args.object, args.seed, args.n_proxy, args.grid, args.extent, kinds, hdr or None, args.hdr_share
+        )
+    except IllumiNetError:  # an unknown or unreadable object: its own one line
+        raise
+    except ValueError as e:
+        raise _usage(str(e)) from None
+    meta = dict(spec.meta(), samples=args.samples)
+    if hdr and not spec.hdr_lights:
+        log.warning("no HDR maps found in %s; synthetic lights only", hdr)
+    t0 = time.perf_counter()
+    if args.ray is None:
+        from illuminet.models.train import Progress
+
+        arrays = spec.generate(0, args.samples, progress=Progress("datagen", args.samples, not args.quiet))
+        wall = time.perf_counter() - t0
+        write(out, arrays, meta)
+        print(f"wrote {out}: {args.samples} samples in {wall:.1f} s ({args.samples / max(wall, 1e-9):.3g} samples/s)")
+        return 0
+    store = cluster.ShardStore(Path(str(out) + ".shards"))
+    store.check_job({"job": "datagen", "shard_size": args.shard_size, **meta})
+    shards = job(spec, args.samples, args.shard_size)
+    summary = cluster.run_shards(
+        "datagen",
+        shards,
+        store,
+        address=args.ray,
+        workers=args.ray_workers,
+        retries=args.ray_retries,
+        unit="sample",
+        show_progress=not args.quiet,
+    )
+    cluster.finish(summary, store)
+    write(out, merge(store, shards), meta)
+    store.remove()
+    print(f"wrote {out}: {args.samples} samples from {len(shards)} shards", file=sys.stdout)
+    return 0
