@@ -263,6 +263,23 @@ SCHEMA: dict[str, dict[str, Field]] = {
             choices=("device", "host"),
         ),
     },
+    "loop": {
+        "pipeline": _f(
+            str,
+            "auto",
+            "run the stages before the renderer on a worker thread, one frame ahead of rendering and the "
+            "outputs (same output as serial; auto: threads with two or more CPUs; docs/runtime.md)",
+            choices=("auto", "serial", "threads"),
+        ),
+        "depth": _f(
+            int,
+            1,
+            "threads: most frames finished ahead of the renderer and waiting for it (more absorbs jitter, "
+            "adds latency)",
+            min=1,
+            max=8,
+        ),
+    },
     "logging": {
         "level": _f(str, "info", "log level", choices=("debug", "info", "warning", "error")),
         "stats_json": _f(str, "", "write per-stage timing statistics as JSON here at the end ('' = off)"),
