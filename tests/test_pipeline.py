@@ -257,7 +257,9 @@ def test_a_live_synthetic_camera_drops_the_oldest_and_its_queue_stays_bounded():
     assert s["delivered"] == 300 and s["queue_max"] <= 2 and st.in_flight_max <= 1
     # every delivered frame reached the sinks or was dropped (by the camera's queue or the loop's slot)
     assert st.frames + st.dropped + s["dropped"] <= 300 <= st.frames + st.dropped + s["dropped"] + 3
-    assert s["dropped"] + st.dropped >= 300 - 300 // 20 - 3
+    # the loop is always 20 frames behind: about one frame in 20 is processed (a few more at the end,
+    # when the camera has stopped and the frames in the pipeline's hands finish without waiting)
+    assert st.frames <= 300 // 20 + 8
 
 
 def test_replay_at_recorded_timing_says_once_how_to_keep_every_frame(tmp_path, caplog):
@@ -356,3 +358,25 @@ def test_the_demo_chain_gives_the_same_composites_serial_and_pipelined():
         out[mode] = sink.rows
     assert all(r[1] is not None for r in out["serial"])  # the object was drawn on every frame
     assert out["serial"] == out["threads"]
+
+
+def test_the_status_page_and_stats_json_show_latency_cpu_and_pipeline(session):
+    """The MJPEG server's /stats.json passes the loop's snapshot through; the page shows the latency."""
+    import http.client
+    import json
+
+    from illuminet.runtime.stream.loop import LoopStats
+    from illuminet.runtime.stream.mjpeg import MjpegSink
+
+    stats = LoopStats()
+    run_loop(_asap(session), [Front(), Bound()], [], stats=stats, pipeline="threads")
+    with MjpegSink(port=0, stats=stats.snapshot) as sink:
+        conn = http.client.HTTPConnection("127.0.0.1", sink.port, timeout=5)
+        conn.request("GET", "/stats.json")
+        loop = json.loads(conn.getresponse().read())["loop"]
+        conn.request("GET", "/")
+        page = conn.getresponse().read().decode()
+        conn.close()
+    assert loop["latency_ms"]["n"] == 12 and loop["latency_ms"]["p99"] >= loop["latency_ms"]["median"] >= 0
+    assert loop["cpu_ms_per_frame"] > 0 and loop["pipeline"] == "threads" and loop["depth"] == 1
+    assert "latency_ms" in page and "cpu_ms_per_frame" in page

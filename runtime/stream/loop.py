@@ -21,9 +21,9 @@ latency")::
   at most ``depth`` frames, and the worker takes a new frame only when the hand-off has room, so
   nothing queues up. Each stage still runs on one thread and sees every frame once, in order, through
   the same :class:`~illuminet.runtime.stage.StageChain` (one failure policy), so a replay ``asap``
-  gives the same output frame for frame as the serial loop. With a live source the worker also
-  starts a frame only so early that it is ready when the loop thread is free (no frame waits
-  finished in the hand-off while a newer one arrives).
+  gives the same output frame for frame as the serial loop. The worker also takes a frame only so
+  early that its half is done just before the loop thread is free (:meth:`_Loop._pace`): a finished
+  frame does not wait in the hand-off while a live camera's newer frames arrive.
 * **Flow limiting** (after MediaPipe's ``FlowLimiterCalculator``): when ``source.live`` is true a
   reader thread keeps reading at the source's pace and parks the frame in a one-slot mailbox. If the
   loop has not taken the previous frame yet, the older one is discarded and counted as dropped, so the
@@ -706,16 +706,20 @@ class _Loop:
             handoff.put(_End(error=e))
 
     def _pace(self) -> None:
-        """Live source, pipelined: start the next frame so that it is ready just as the loop thread frees.
+        """Start the next frame so that its front half is done just before the loop thread frees.
 
         The front half of a frame takes ~``ema_front``, the loop thread's half ~``ema_back``; when the
-        latter is longer, starting at once would leave the finished frame waiting in the hand-off
-        while newer camera frames arrive. Waiting instead keeps the latency that of the serial loop
-        (front + back) at the pipelined frame rate. Non-live sources never wait (nothing is newer).
+        latter is longer, taking a frame at once would leave it finished and waiting in the hand-off
+        (a live camera's newer frames meanwhile dropped): the latency would be two back halves
+        instead of one front and one back half. Taking it later costs no frame rate (the worker
+        would wait for the hand-off anyway); a margin of a tenth of the back half (and 0.5 ms)
+        absorbs the jitter of the estimates. The output does not depend on it: frames and their
+        order are the same, only when the worker takes them changes.
         """
-        if self.slot is None or self._t_back_start is None:
+        if self._t_back_start is None:
             return
-        wait = self._t_back_start + self._ema_back - self._ema_front - time.perf_counter()
+        margin = 0.1 * self._ema_back + 5e-4
+        wait = self._t_back_start + self._ema_back - self._ema_front - margin - time.perf_counter()
         if wait > 0:
             self.front_stop.wait(min(wait, 0.05))
 
