@@ -380,3 +380,20 @@ def test_the_status_page_and_stats_json_show_latency_cpu_and_pipeline(session):
     assert loop["latency_ms"]["n"] == 12 and loop["latency_ms"]["p99"] >= loop["latency_ms"]["median"] >= 0
     assert loop["cpu_ms_per_frame"] > 0 and loop["pipeline"] == "threads" and loop["depth"] == 1
     assert "latency_ms" in page and "cpu_ms_per_frame" in page
+
+
+def test_bench_live_reports_drops_latency_quarters_and_bounded_queues(capsys):
+    """`illuminet bench live` end to end on a tiny camera (figures are not judged, only their presence)."""
+    import argparse
+
+    from illuminet.bench import live
+
+    assert [q["n"] for q in live.quarters([0.001] * 10)] == [3, 3, 2, 2]
+    args = argparse.Namespace(quick=True, fps="100", seconds=3.0, size="96x60", pipeline="threads")
+    res = live.run(args, defaults())["100fps-threads"]
+    assert res["delivered"] == 300 and res["processed"] + res["dropped_loop"] + res["dropped_camera_queue"] <= 300
+    assert res["queues_bounded"] and res["camera_queue_max"] <= 2 and res["handoff_max"] <= 1
+    assert len(res["latency_quarters"]) == 4 and res["latency_p99_ms"] >= res["latency_median_ms"] > 0
+    assert "per quarter" in capsys.readouterr().out
+    with pytest.raises(ConfigError, match="--fps"):
+        live.run(argparse.Namespace(quick=True, fps="0", seconds=1.0, size=None, pipeline=None), defaults())

@@ -327,8 +327,9 @@ class LiveSyntheticSource(SyntheticSource):
     """``synthetic://SCENE?live=1&fps=N``: the synthetic camera as a live camera, on its own clock.
 
     The frames are rendered once at :meth:`open` (at most :data:`LIVE_CYCLE` distinct ones, played
-    in a loop), so the camera's pace does not depend on the host's rendering speed. A thread then
-    delivers frame ``i`` at ``open + i / fps`` (no drift; a late frame is delivered at once) into a
+    in a loop), so the camera's pace does not depend on the host's rendering speed. From the first
+    :meth:`read` on (the loop's start, after the stages opened) a thread delivers frame ``i`` at
+    ``start + i / fps`` (no drift; a late frame is delivered at once) into a
     non-blocking queue of ``queue`` frames that drops the oldest when full, as an OAK-D's output
     queue does; :meth:`read` blocks for a frame and returns the newest, counting the older ones it
     skips. Every delivered frame has its own ``seq``, ``t_device_ns = i / fps`` and ``t_host_ns`` =
@@ -367,6 +368,9 @@ class LiveSyntheticSource(SyntheticSource):
         self._finished = False
         self._q.clear()
         self.delivered = self.dropped = self.queue_max = 0
+        self._thread = None  # started by the first read(): the stages' opening (GL, models) is not the run
+
+    def _start(self) -> None:
         self._thread = threading.Thread(target=self._produce, name="illuminet-synthetic-live", daemon=True)
         self._thread.start()
 
@@ -396,8 +400,10 @@ class LiveSyntheticSource(SyntheticSource):
     def read(self) -> Frame | None:
         """The newest delivered frame (older ones waiting are dropped); blocks until one arrives.
 
-        ``None`` at the end of the stream or after :meth:`close`.
+        ``None`` at the end of the stream or after :meth:`close`. The first call starts the camera's clock.
         """
+        if self._thread is None and not self._stop.is_set():
+            self._start()
         with self._cond:
             while not self._q and not self._finished and not self._stop.is_set():
                 self._cond.wait(0.1)
