@@ -397,3 +397,39 @@ def test_bench_live_reports_drops_latency_quarters_and_bounded_queues(capsys):
     assert "per quarter" in capsys.readouterr().out
     with pytest.raises(ConfigError, match="--fps"):
         live.run(argparse.Namespace(quick=True, fps="0", seconds=1.0, size=None, pipeline=None), defaults())
+
+
+def test_gl_draws_without_the_gil_give_the_same_pictures(monkeypatch):
+    """The renderer's draws go through ctypes (the GIL released, runtime/render/nogil.py) on EGL; the
+    composites are the bytes moderngl's own calls give."""
+    import illuminet.runtime.render.compositor as comp_mod
+    import illuminet.runtime.render.shadow as shadow_mod
+    from illuminet.commands.demo import default_source_url, demo_stages
+    from illuminet.hw import open_source
+    from illuminet.runtime.render.gl import get_context
+    from illuminet.runtime.render.nogil import gl_nogil
+    from illuminet.runtime.scene import COMPOSITE
+
+    get_context()
+    if gl_nogil() is None:
+        pytest.skip("the GL context is not an EGL one here: moderngl's own calls are used")
+
+    class Keep(Sink):
+        name = "keep"
+
+        def __init__(self):
+            self.pics = []
+
+        def write(self, frame):
+            self.pics.append(hashlib.sha1(frame.results[COMPOSITE.name].tobytes()).hexdigest())
+
+    cfg = apply_overrides(defaults(), [("source", "timing", "asap")])
+    out = []
+    for off in (False, True):
+        if off:
+            monkeypatch.setattr(comp_mod, "gl_nogil", lambda: None)
+            monkeypatch.setattr(shadow_mod, "gl_nogil", lambda: None)
+        keep = Keep()
+        run_loop(open_source(default_source_url(), cfg), demo_stages(cfg), [keep], max_frames=8)
+        out.append(keep.pics)
+    assert len(out[0]) == 8 and out[0] == out[1]
