@@ -88,11 +88,25 @@ class ReplaySource(Source):
         self._t0_wall: int | None = None
         self._closed = False
         self._closing = threading.Event()
+        self._cpu_lock = threading.Lock()
+        self._decode_cpu_s = 0.0
+        self._decoded = 0
 
     @property
     def live(self) -> bool:  # type: ignore[override]
         """Recorded timing behaves like a camera (flow-limited); asap never drops."""
         return self.timing == "recorded"
+
+    @property
+    def drop_advice(self) -> str:
+        """What the loop logs (once) when it drops frames of this source: the fix, for a replay."""
+        if self.timing != "recorded":
+            return ""
+        return (
+            f"replay {self.path}: the pipeline is slower than the recording, so frames are skipped to keep "
+            "up with the recorded timing; to process every frame use --timing asap ([source] timing = "
+            '"asap", or replay://...?timing=asap)'
+        )
 
     def open(self) -> None:
         try:
@@ -135,11 +149,22 @@ class ReplaySource(Source):
                 self._next_pos, self._next_round = 0, self._next_round + 1
             pos, rnd = self._next_pos, self._next_round
             try:
-                fut = pool.submit(self.session.read, pos)
+                fut = pool.submit(self._decode, pos)
             except RuntimeError:  # the pool was shut down by close() meanwhile
                 return
             self._pending.append((pos, rnd, fut))
             self._next_pos += 1
+
+    def _decode(self, pos: int) -> Frame:
+        """One frame decoded on a pool thread; its thread CPU time is counted (``decode_cpu_ms``)."""
+        c0 = time.thread_time()
+        try:
+            return self.session.read(pos)
+        finally:
+            dt = time.thread_time() - c0
+            with self._cpu_lock:
+                self._decode_cpu_s += dt
+                self._decoded += 1
 
     def read(self) -> Frame | None:
         if self._closed or self.session is None:
@@ -198,10 +223,14 @@ class ReplaySource(Source):
         self._pending.clear()
 
     def stats(self) -> dict:
+        with self._cpu_lock:
+            cpu_ms = self._decode_cpu_s / self._decoded * 1e3 if self._decoded else 0.0
         return {
             "frames": self._emitted,
             "corrupt": self._corrupt,
             "session_problems": len(self.session.problems) if self.session is not None else 0,
+            # CPU time the decoder threads spent per decoded frame (a camera delivers pixels instead)
+            "decode_cpu_ms": round(cpu_ms, 3),
         }
 
 

@@ -109,10 +109,14 @@ class Source(_LifeCycle):
     live : bool
         True for cameras: the loop keeps only the newest frame when it falls behind and the source
         counts what it dropped. False for replay/synthetic in ``asap`` mode: nothing is dropped.
+    drop_advice : str
+        Logged once by the loop when it first drops a frame of this source (a replay at recorded
+        timing says how to keep every frame); empty for cameras, where dropping is the policy.
     """
 
     name = "source"
     live: bool = False
+    drop_advice: str = ""
     #: results the source attaches to its frames (e.g. the synthetic camera's ground truth)
     provides: tuple[ResultKey, ...] = ()
 
@@ -137,6 +141,10 @@ class Stage(_LifeCycle):
     hold_last_good : bool
         On a frame where the stage fails or is skipped, carry its last good results (True), or
         nothing (False: results that only make sense for the frame they were computed on).
+    thread_bound : bool
+        ``process`` must run on the thread that called ``open`` (it holds a GL context). A
+        pipelined loop runs such a stage, and every stage after it, on the loop's own thread; the
+        stages before it may run on a worker thread, one frame ahead.
     """
 
     name = "stage"
@@ -144,6 +152,7 @@ class Stage(_LifeCycle):
     optional: tuple[ResultKey, ...] = ()
     provides: tuple[ResultKey, ...] = ()
     hold_last_good: bool = True
+    thread_bound: bool = False
 
     def process(self, frame: Frame) -> Frame:
         raise NotImplementedError
@@ -248,13 +257,25 @@ class StageChain:
         self._last_good: list[dict[str, Any]] = [{} for _ in self.stages]
         self._logged: set[str] = set()
 
-    def run(self, frame: Frame, on_time: Callable[[str, float], None] | None = None) -> tuple[Frame, list[StageEvent]]:
+    def run(
+        self,
+        frame: Frame,
+        on_time: Callable[[str, float], None] | None = None,
+        *,
+        start: int = 0,
+        stop: int | None = None,
+    ) -> tuple[Frame, list[StageEvent]]:
         """All stages on ``frame``; returns the finished frame and the failures/skips (usually none).
 
         ``on_time(stage_name, seconds)`` is called for every stage that ran (also when it failed).
+        ``start``/``stop`` run only the stages ``[start:stop]`` (a pipelined loop runs the chain in
+        two segments on two threads, each segment on one thread and in frame order, so every
+        stage still sees every frame once, in order, with the same policy).
         """
         events: list[StageEvent] = []
-        for k, st in enumerate(self.stages):
+        stop = len(self.stages) if stop is None else stop
+        for k in range(start, stop):
+            st = self.stages[k]
             missing = [key.name for key in getattr(st, "requires", ()) if frame.results.get(key.name) is None]
             if missing:
                 if self.strict:

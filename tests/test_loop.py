@@ -78,8 +78,9 @@ def test_all_frames_flow_through_with_timing(session):
     assert [f.results["level"] for f in sink.frames] == [k * 10 for k in range(10)]
     d = st.to_dict()
     assert d["frames"] == 10 and d["dropped"] == 0 and d["failed_frames"] == 0 and d["end_reason"] == "end of stream"
-    assert list(d["steps"]) == ["source", "stage:level", "sink:collect", "total"]
+    assert list(d["steps"]) == ["source", "stage:level", "latency", "sink:collect", "total"]
     assert d["steps"]["stage:level"]["n"] == 10 and d["steps"]["total"]["median_ms"] > 0
+    assert d["steps"]["latency"]["n"] == 10 and d["steps"]["latency"]["median_ms"] > 0
     assert sink.closed
 
 
@@ -280,6 +281,9 @@ def test_snapshot_is_thread_safe_and_on_stats_is_called(session):
     assert last["frames"] == 60 and last["running"] is False and last["fps"] > 0 and last["fps_recent"] > 0
     assert set(last["stages_ms"]) == {"source", "stage:level", "sink:null", "total"}
     assert last["stages_ms"]["stage:level"] >= 2.0
+    # latency (capture -> sinks) includes at least the stage's 2 ms; CPU time per frame is counted
+    assert last["latency_ms"]["n"] == 60 and last["latency_ms"]["median"] >= 2.0
+    assert last["latency_ms"]["p99"] >= last["latency_ms"]["median"] and last["cpu_ms_per_frame"] > 0
     # stats_interval_s = 0: on_stats after every frame, and once more at the end
     assert len(reports) == 61 and [r["frames"] for r in reports[:60]] == list(range(1, 61))
     assert reports[-1]["frames"] == 60 and reports[-1]["running"] is False

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import collections
+import threading
 import time
 from pathlib import Path
 from urllib.parse import urlsplit
@@ -317,6 +319,127 @@ class SyntheticSource(Source):
         return f
 
 
+#: distinct frames a live synthetic camera renders at open() and then plays in a loop
+LIVE_CYCLE = 32
+
+
+class LiveSyntheticSource(SyntheticSource):
+    """``synthetic://SCENE?live=1&fps=N``: the synthetic camera as a live camera, on its own clock.
+
+    The frames are rendered once at :meth:`open` (at most :data:`LIVE_CYCLE` distinct ones, played
+    in a loop), so the camera's pace does not depend on the host's rendering speed. From the first
+    :meth:`read` on (the loop's start, after the stages opened) a thread delivers frame ``i`` at
+    ``start + i / fps`` (no drift; a late frame is delivered at once) into a
+    non-blocking queue of ``queue`` frames that drops the oldest when full, as an OAK-D's output
+    queue does; :meth:`read` blocks for a frame and returns the newest, counting the older ones it
+    skips. Every delivered frame has its own ``seq``, ``t_device_ns = i / fps`` and ``t_host_ns`` =
+    the host's monotonic clock when it was delivered (its capture time, for the loop's latency).
+    ``stats()`` counts ``delivered`` and ``dropped`` (by the queue or skipped by read) and
+    ``queue_max``: the queue never holds more than ``queue`` frames, however slow the reader.
+    """
+
+    name = "synthetic-live"
+    live = True
+
+    def __init__(self, scene: SyntheticScene, frames: int, url: str = "", fps: float = 30.0, queue: int = 2):
+        super().__init__(scene, frames, url)
+        if not fps > 0:
+            raise SyntheticError(f"{url!r}: fps must be > 0, got {fps!r}")
+        self.fps = float(fps)
+        self.queue = int(queue)
+        self._cycle: list[Frame] = []
+        self._q: collections.deque = collections.deque()
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._finished = False
+        self.delivered = 0
+        self.dropped = 0
+        self.queue_max = 0
+
+    def _ensure_cycle(self) -> None:
+        if not self._cycle:
+            SyntheticSource.open(self)
+            self._cycle = [SyntheticSource.render(self, i) for i in range(min(self.frames, LIVE_CYCLE))]
+
+    def open(self) -> None:
+        self._ensure_cycle()
+        self._stop.clear()
+        self._finished = False
+        self._q.clear()
+        self.delivered = self.dropped = self.queue_max = 0
+        self._thread = None  # started by the first read(): the stages' opening (GL, models) is not the run
+
+    def _start(self) -> None:
+        self._thread = threading.Thread(target=self._produce, name="illuminet-synthetic-live", daemon=True)
+        self._thread.start()
+
+    def _produce(self) -> None:
+        period_ns = int(round(1e9 / self.fps))
+        t0 = time.monotonic_ns()
+        for i in range(self.frames):
+            delay = t0 + i * period_ns - time.monotonic_ns()
+            if delay > 0 and self._stop.wait(delay * 1e-9):
+                break
+            if self._stop.is_set():
+                break
+            base = self._cycle[i % len(self._cycle)]
+            f = base.replace(seq=i, t_device_ns=i * period_ns, t_host_ns=time.monotonic_ns())
+            with self._cond:
+                if len(self._q) >= self.queue:
+                    self._q.popleft()  # non-blocking queue: the oldest frame goes
+                    self.dropped += 1
+                self._q.append(f)
+                self.delivered += 1
+                self.queue_max = max(self.queue_max, len(self._q))
+                self._cond.notify_all()
+        with self._cond:
+            self._finished = True
+            self._cond.notify_all()
+
+    def read(self) -> Frame | None:
+        """The newest delivered frame (older ones waiting are dropped); blocks until one arrives.
+
+        ``None`` at the end of the stream or after :meth:`close`. The first call starts the camera's clock.
+        """
+        if self._thread is None and not self._stop.is_set():
+            self._start()
+        with self._cond:
+            while not self._q and not self._finished and not self._stop.is_set():
+                self._cond.wait(0.1)
+            if not self._q:
+                return None
+            f = self._q.pop()
+            self.dropped += len(self._q)
+            self._q.clear()
+            self._i = f.seq + 1
+            return f
+
+    def render(self, i: int) -> Frame:
+        """Frame ``i`` as delivered (the cycle's frame ``i % LIVE_CYCLE``, host time now)."""
+        self._ensure_cycle()
+        return self._cycle[i % len(self._cycle)].replace(seq=i, t_host_ns=time.monotonic_ns())
+
+    def close(self) -> None:
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+        super().close()
+
+    def stats(self) -> dict:
+        with self._cond:
+            return {
+                **super().stats(),
+                "fps": self.fps,
+                "delivered": self.delivered,
+                "dropped": self.dropped,
+                "queue_max": self.queue_max,
+            }
+
+
 def _srgb_encode(x: np.ndarray) -> np.ndarray:
     x = np.clip(x, 0, 1)
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
@@ -368,6 +491,9 @@ _PARAMS = {
     "lights": query_int(1, 1024),
     "bounce": query_int(0, MAX_BOUNCES),
     "boxes": query_int(0, 12),
+    "live": query_bool,
+    "fps": query_int(1, 1000),
+    "queue": query_int(1, 4),
 }
 
 
@@ -398,4 +524,8 @@ def open_url(url: str, config=None) -> SyntheticSource:
         q.get("bounce", DEFAULT_BOUNCES),
         boxes,
     )
+    if q.get("live"):
+        return LiveSyntheticSource(scene, frames, url, fps=q.get("fps", 30), queue=q.get("queue", 2))
+    if "fps" in q or "queue" in q:
+        raise SyntheticError(f"{url!r}: fps= and queue= apply to a live camera only (add live=1)")
     return SyntheticSource(scene, frames, url)

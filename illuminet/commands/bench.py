@@ -26,7 +26,9 @@ BENCHES: dict[str, str] = {
     "(light estimate -> shading)",
     "light": "the per-frame lighting estimate (one estimate, and per frame at [light] rate_hz)",
     "stereo": "host stereo depth (SGBM + WLS) per 640x400 pair",
-    "demo": "the whole demo pipeline end to end, per-stage timing and peak memory",
+    "demo": "the whole demo pipeline end to end, serial vs pipelined: per-stage timing, frame rate, "
+    "capture-to-output latency, CPU per frame, peak memory",
+    "live": "a live synthetic camera faster than the pipeline: dropped frames, latency per quarter of the run",
     "shadows": "light direction from real shadows: accuracy on synthetic box scenes, full search and local refine",
 }
 
@@ -41,6 +43,17 @@ def register(sub) -> None:
     p.add_argument("names", nargs="*", metavar="NAME", help=f"which to run (default: all): {', '.join(names)}")
     p.add_argument("--quick", action="store_true", help="fewer repetitions (smoke test)")
     p.add_argument("--json", metavar="PATH", help="also write all figures as JSON")
+    p.add_argument("--size", metavar="WxH", help="demo, live: output (camera) size (demo: 1280x800, live: 640x400)")
+    p.add_argument(
+        "--pipeline",
+        metavar="MODES",
+        help="demo, live: loop modes to run, comma-separated, alternating (default demo: serial,threads; "
+        "live: the [loop] pipeline setting)",
+    )
+    p.add_argument("--frames", type=int, metavar="N", help="demo: frames per run (default 150; --quick 30)")
+    p.add_argument("--rounds", type=int, metavar="N", help="demo: runs per mode, alternating (default 2; --quick 1)")
+    p.add_argument("--fps", metavar="LIST", help="live: camera frame rates, comma-separated (default 60,120)")
+    p.add_argument("--seconds", type=float, metavar="S", help="live: seconds per camera rate (default 10; --quick 3)")
     p.set_defaults(func=run)
 
 

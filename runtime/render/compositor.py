@@ -26,6 +26,7 @@ import numpy as np
 from illuminet.runtime.physics import srgb_to_linear
 from illuminet.runtime.render.gl import check_gl, float_texture_dtype, is_gles, make_current, park, program
 from illuminet.runtime.render.mesh import RenderMesh
+from illuminet.runtime.render.nogil import gl_nogil
 from illuminet.runtime.render.shaders import (
     BG_FS,
     BG_VS,
@@ -69,6 +70,17 @@ def crop_projection(K: np.ndarray, crop: tuple[int, int, int, int], near: float,
             [0.0, 0.0, 1.0, 0.0],
         ]
     )
+
+
+def _strip(prog, vao) -> None:
+    """``vao.render(TRIANGLE_STRIP)`` of a screen quad, without the GIL when possible (nogil.py)."""
+    nogil = gl_nogil()
+    if nogil is not None:
+        nogil.draw_strip(prog.glo, vao.glo)
+    else:
+        import moderngl
+
+        vao.render(moderngl.TRIANGLE_STRIP)
 
 
 def _mat(m: np.ndarray) -> bytes:
@@ -451,15 +463,13 @@ class Compositor:
 
     def _draw_background(self) -> None:
         """Pass 1: the camera picture."""
-        import moderngl
 
         self._fbos["bg"].use(0)
         self._bg_prog["u_bg"].value = 0
-        self._bg_vao.render(moderngl.TRIANGLE_STRIP)
+        _strip(self._bg_prog, self._bg_vao)
 
     def _draw_shadow(self, sp, K: np.ndarray, cam_from_obj: np.ndarray, region: _Region, has_depth: bool) -> None:
         """Pass 2: the shadow patch multiplies the picture (reads the same picture, writes the darkened one)."""
-        import moderngl
 
         f = self._fbos
         clip = crop_projection(K, region.crop, region.near, region.far) @ cam_from_obj
@@ -484,7 +494,7 @@ class Compositor:
         prog["u_share"].value = sp.share
         prog["u_contact"].value = self.contact
         prog["u_depth_tol"].value = self.depth_tol if has_depth else 1e9
-        self._rcv_vao.render(moderngl.TRIANGLE_STRIP)
+        _strip(prog, self._rcv_vao)
 
     def _draw_object(
         self,
@@ -532,12 +542,18 @@ class Compositor:
                     prog[name].value = value
             prog["u_clip_from_obj"].write(_mat(oclip))
             prog["u_cam_from_obj"].write(_mat(cam_from_obj))
+        # the draw itself without the GIL (runtime/render/nogil.py): llvmpipe transforms the object's
+        # vertices in this thread, ~5 ms a frame that the pipelined loop's front thread can use
+        nogil = gl_nogil()
         for part, tex in zip(self.mesh.parts, self._part_tex):
             prog, vao = self._obj_progs[tex is not None]
             if tex is not None:
                 tex.use(0)
             prog["u_base"].value = tuple(float(x) for x in part.base_color[:3])
-            vao.render(moderngl.TRIANGLES, vertices=part.count, first=part.first)
+            if nogil is not None:
+                nogil.draw_triangles(prog.glo, vao.glo, part.count, part.first)
+            else:
+                vao.render(moderngl.TRIANGLES, vertices=part.count, first=part.first)
         ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
         ctx.front_face = "ccw"
         if self.msaa:
@@ -560,12 +576,15 @@ class Compositor:
         self._over_prog["u_offset"].value = (ox0 - x0, oy0 - y0)
         if "u_hi" in self._over_prog:
             self._over_prog["u_hi"].value = (ow - 1, oh - 1)
-        self._over_vao.render(moderngl.TRIANGLE_STRIP)
+        _strip(self._over_prog, self._over_vao)
         ctx.disable(moderngl.BLEND)
 
     def _read_back(self, out: np.ndarray, region: _Region) -> None:
         """Pass 5: read the crop back (already in image row order) and paste it into ``out``."""
         x0, y0, w, h = region.crop
+        nogil = gl_nogil()
+        if nogil is not None:
+            nogil.finish()  # wait for the rasteriser without the GIL; the read-back then only copies
         n = 4 if self._es else 3
         self._fbos["main"].read_into(self._readbuf, viewport=(0, 0, w, h), components=n, alignment=1)
         out[y0 : y0 + h, x0 : x0 + w] = self._readbuf[: w * h * n].reshape(h, w, n)[:, :, :3]

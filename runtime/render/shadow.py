@@ -40,6 +40,7 @@ from illuminet.runtime.render.gl import (
     program,
     read_pixels,
 )
+from illuminet.runtime.render.nogil import gl_nogil
 from illuminet.runtime.scene import ObjectShading
 
 #: Rec.709 luminance weights: the light's "amount" when colours must be summed to one number
@@ -354,6 +355,7 @@ class ShadowCaster:
 
         self._vbo = ctx.buffer(v.tobytes())
         self._ibo = ctx.buffer(f.tobytes())
+        self._n_indices = int(f.size)
         self._depth_prog = program(ctx, _DEPTH_VS, _DEPTH_FS)
         self._depth_vao = ctx.vertex_array(self._depth_prog, [(self._vbo, "3f", "in_pos")], self._ibo)
         self.shadow_tex = depth_texture(ctx, (self.size, self.size))
@@ -509,7 +511,11 @@ class ShadowCaster:
             ctx.cull_face = "front"
             ctx.enable(moderngl.CULL_FACE)
         self._depth_prog["u_mvp"].write(self._light_from_obj.T.astype(np.float32).tobytes())
-        self._depth_vao.render(moderngl.TRIANGLES)
+        nogil = gl_nogil()  # the mesh's draw without the GIL when possible (runtime/render/nogil.py)
+        if nogil is not None:
+            nogil.draw_triangles(self._depth_prog.glo, self._depth_vao.glo, self._n_indices, 0)
+        else:
+            self._depth_vao.render(moderngl.TRIANGLES)
         ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
         ctx.cull_face = "back"
 
@@ -520,7 +526,11 @@ class ShadowCaster:
         self._vis_prog["u_light_from_obj"].write(self._light_from_obj.T.astype(np.float32).tobytes())
         self._vis_prog["u_softness"].value = soft / 2.0  # the light's box spans 2 radii
         self._vis_prog["u_patch"].value = tuple(float(x) for x in self.patch)
-        self._vis_vao.render(moderngl.TRIANGLE_STRIP)
+        if nogil is not None:
+            nogil.draw_strip(self._vis_prog.glo, self._vis_vao.glo)
+            nogil.finish()  # the 16-tap PCF pass, waited for without the GIL before the read-back
+        else:
+            self._vis_vao.render(moderngl.TRIANGLE_STRIP)
         # the receiver is drawn only over the part of the patch that is darkened at all: the
         # visibility is read back (a few kB) and the patch shrunk to its shadowed texels
         vs = self.vis_tex.size

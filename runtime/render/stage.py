@@ -64,6 +64,7 @@ class RenderStage(Stage):
     optional = (PLANE_LIGHT,)
     provides = (COMPOSITE,)
     hold_last_good = False  # a composite belongs to its own frame: without one, sinks show the camera picture
+    thread_bound = True  # the GL context is current on the thread that opened it: a pipelined loop keeps it there
 
     #: exponential smoothing of the dominant light direction and share: the shadow must not flicker
     #: when the per-frame prediction jitters (0 = none)

@@ -1,17 +1,37 @@
 """The streaming loop: source -> stages -> sinks, with timing, flow limiting, failures and signals.
 
-This module owns how frames move through the pipeline (DESIGN.md §1)::
+This module owns how frames move through the pipeline (DESIGN.md §1; docs/runtime.md "Pipeline and
+latency")::
 
+    serial (one thread):
     live source ──read──▶ [reader thread] ──▶ newest-frame slot ──▶ stages ──▶ sinks
                                               (one frame; a newer one
                                                replaces it: counted drop)
     non-live source (replay asap, synthetic) ──read in the loop thread──▶ stages ──▶ sinks
                                               (nothing dropped)
 
+    threads ([loop] pipeline = "threads", or "auto" with >= 2 CPUs):
+    source ──▶ [front thread] stages before the first thread-bound one ──▶ hand-off ──▶ [loop thread]
+               (planes, anchor, plane_light, light, shading:                  (depth     render (GL) ──▶ sinks
+                frame N+1 while the loop thread renders frame N)               frames)
+
+* **Pipelining**: the stage chain is cut before its first ``thread_bound`` stage (the renderer: its GL
+  context stays on the thread that opened it). The stages in front of the cut run on one worker
+  thread, frame N+1 while the loop thread renders and writes frame N; the hand-off between them holds
+  at most ``depth`` frames, and the worker takes a new frame only when the hand-off has room, so
+  nothing queues up. Each stage still runs on one thread and sees every frame once, in order, through
+  the same :class:`~illuminet.runtime.stage.StageChain` (one failure policy), so a replay ``asap``
+  gives the same output frame for frame as the serial loop. The worker also takes a frame only so
+  early that its half is done just before the loop thread is free (:meth:`_Loop._pace`): a finished
+  frame does not wait in the hand-off while a live camera's newer frames arrive.
 * **Flow limiting** (after MediaPipe's ``FlowLimiterCalculator``): when ``source.live`` is true a
   reader thread keeps reading at the source's pace and parks the frame in a one-slot mailbox. If the
   loop has not taken the previous frame yet, the older one is discarded and counted as dropped, so the
   loop always works on the newest picture and latency does not build up behind a slow stage.
+* **Latency**: per frame, from its capture (``Frame.t_host_ns``, the host's monotonic clock, when it
+  is plausible: not after the frame reached the loop and at most a second before) or else its
+  arrival (when ``read()`` returned) to the moment the finished frame is handed to the sinks; the
+  ``latency`` row of the statistics (median, p99), and ``latency_ms`` in the live snapshot.
 * **Failures**: a stage that raises on a frame marks that frame failed; the failure is counted, logged
   once per (stage, error type) with what to do, and the frame continues with the *last good* results
   of that stage (e.g. the previous lighting), so the output never flickers to nothing. Sink failures
@@ -20,9 +40,10 @@ This module owns how frames move through the pipeline (DESIGN.md §1)::
   main thread); the loop finishes the current frame and closes sinks first, so recordings are
   finalised. A second signal interrupts immediately.
 * **Timing**: :class:`LoopStats` holds a :class:`~illuminet.runtime.stream.timing.Samples` per step
-  (``source``, ``stage:<name>``, ``sink:<name>``, ``total``); :meth:`LoopStats.format_stats` prints the
-  median/p99 table, :meth:`LoopStats.to_json` gives the same as JSON, and :meth:`LoopStats.snapshot`
-  gives thread-safe live figures (fps, drops, failures, recent per-step medians) for status pages.
+  (``source``, ``stage:<name>``, ``sink:<name>``, ``total``, ``latency``); :meth:`LoopStats.format_stats`
+  prints the median/p99 table, :meth:`LoopStats.to_json` gives the same as JSON, and
+  :meth:`LoopStats.snapshot` gives thread-safe live figures (fps, drops, failures, latency, CPU per
+  frame, recent per-step medians) for status pages.
 """
 
 from __future__ import annotations
@@ -66,6 +87,10 @@ class LoopStats:
         Sink writes that raised.
     end_reason : str
         ``"end of stream"``, ``"max_frames"``, ``"stopped"`` (signal / stop event) or an error.
+    pipeline : str
+        ``"serial"`` or ``"threads"`` (what the loop ran; ``[loop] pipeline``), with ``depth``.
+    in_flight_max : int
+        Most frames that ever waited in the pipelined loop's hand-off (never more than ``depth``).
     """
 
     def __init__(self) -> None:
@@ -81,8 +106,13 @@ class LoopStats:
         self.source_stats: dict[str, Any] = {}
         self.end_reason = ""
         self.running = False
+        self.pipeline = "serial"
+        self.depth = 0
+        self.in_flight_max = 0
         self._t_start: float | None = None
         self._t_end: float | None = None
+        self._cpu_start: float | None = None
+        self._cpu_end: float | None = None
 
     # -- recording (called by the loop)
 
@@ -101,13 +131,23 @@ class LoopStats:
     def start(self) -> None:
         with self._lock:
             self._t_start = time.perf_counter()
+            self._cpu_start = time.process_time()
             self.running = True
 
     def stop(self, reason: str) -> None:
         with self._lock:
             self._t_end = time.perf_counter()
+            self._cpu_end = time.process_time()
             self.running = False
             self.end_reason = reason
+
+    def set_pipeline(self, mode: str, depth: int) -> None:
+        with self._lock:
+            self.pipeline, self.depth = mode, int(depth)
+
+    def note_in_flight(self, n: int) -> None:
+        with self._lock:
+            self.in_flight_max = max(self.in_flight_max, int(n))
 
     def frame_done(self) -> None:
         with self._lock:
@@ -139,6 +179,18 @@ class LoopStats:
         end = self._t_end if self._t_end is not None else time.perf_counter()
         return end - self._t_start
 
+    @property
+    def cpu_s(self) -> float:
+        """CPU time of the whole process (every thread: decoders, GL, workers) while the loop ran."""
+        if self._cpu_start is None:
+            return 0.0
+        end = self._cpu_end if self._cpu_end is not None else time.process_time()
+        return end - self._cpu_start
+
+    def cpu_ms_per_frame(self) -> float:
+        """:attr:`cpu_s` per processed frame, milliseconds (0 before the first frame)."""
+        return self.cpu_s / self.frames * 1e3 if self.frames else 0.0
+
     def snapshot(self) -> dict[str, Any]:
         """Live figures for status pages: thread-safe, cheap (recent window only).
 
@@ -147,7 +199,10 @@ class LoopStats:
         dict
             ``running``, ``frames``, ``fps`` (over the run), ``fps_recent`` (last ~120 frames),
             ``dropped``, ``failed_frames``, ``sink_failures``, ``elapsed_s``, ``source`` (the source's
-            own counters), ``stages_ms``: step -> median milliseconds over the recent window.
+            own counters), ``pipeline`` and ``depth``, ``cpu_ms_per_frame`` (process CPU time per
+            frame over the run), ``latency_ms``: ``{"median", "p99", "n"}`` of the capture-to-sinks
+            latency over the recent window (None before the first frame), ``stages_ms``: step ->
+            median milliseconds over the recent window (the latency apart).
         """
         with self._lock:
             recent = {k: list(v) for k, v in self._recent.items()}
@@ -160,16 +215,30 @@ class LoopStats:
                 "sink_failures": self.sink_failures,
                 "source": dict(self.source_stats),
                 "end_reason": self.end_reason,
+                "pipeline": self.pipeline,
+                "depth": self.depth,
             }
         el = self.elapsed_s
         out["elapsed_s"] = round(el, 3)
         out["fps"] = round(out["frames"] / el, 2) if el > 0 else 0.0
         out["fps_recent"] = round((len(ft) - 1) / (ft[-1] - ft[0]), 2) if len(ft) > 1 and ft[-1] > ft[0] else 0.0
-        out["stages_ms"] = {k: round(float(np.median(v)) * 1e3, 3) for k, v in recent.items() if v}
+        out["cpu_ms_per_frame"] = round(self.cpu_ms_per_frame(), 3)
+        lat = recent.get("latency")
+        out["latency_ms"] = (
+            {
+                "median": round(float(np.median(lat)) * 1e3, 3),
+                "p99": round(float(np.percentile(lat, 99)) * 1e3, 3),
+                "n": len(lat),
+            }
+            if lat
+            else None
+        )
+        out["stages_ms"] = {k: round(float(np.median(v)) * 1e3, 3) for k, v in recent.items() if v and k != "latency"}
         return out
 
     def to_dict(self) -> dict[str, Any]:
-        """Everything: counters plus each step's ``n``, ``median_ms``, ``p99_ms``, ``max_ms``."""
+        """Everything: counters, ``cpu_ms_per_frame``, the pipeline mode, and each step's ``n``,
+        ``median_ms``, ``p99_ms``, ``max_ms`` (``steps["latency"]``: capture to sinks)."""
         with self._lock:
             steps = {k: s.summary() for k, s in self.samples.items()}
             d = {
@@ -180,10 +249,15 @@ class LoopStats:
                 "failures": dict(self.failures),
                 "source": dict(self.source_stats),
                 "end_reason": self.end_reason,
+                "pipeline": self.pipeline,
+                "depth": self.depth,
+                "in_flight_max": self.in_flight_max,
             }
         el = self.elapsed_s
         d["elapsed_s"] = el
         d["fps"] = d["frames"] / el if el > 0 else 0.0
+        d["cpu_s"] = self.cpu_s
+        d["cpu_ms_per_frame"] = self.cpu_ms_per_frame()
         d["steps"] = steps
         return d
 
@@ -202,6 +276,12 @@ class LoopStats:
             f"{d['frames']} frames in {d['elapsed_s']:.2f} s ({d['fps']:.1f} fps); dropped {d['dropped']}; "
             f"failed frames {d['failed_frames']}; sink failures {d['sink_failures']}; ended: {d['end_reason']}"
         )
+        lat = d["steps"].get("latency")
+        pipe = d["pipeline"] + (f" (depth {d['depth']})" if d["pipeline"] == "threads" else "")
+        rows.append(
+            (f"latency capture -> sinks: median {lat['median_ms']:.1f} ms, p99 {lat['p99_ms']:.1f} ms; " if lat else "")
+            + f"CPU {d['cpu_ms_per_frame']:.1f} ms per frame (process); pipeline {pipe}"
+        )
         for k, n in sorted(d["failures"].items()):
             rows.append(f"  failure {k}: {n}x")
         if d["source"]:
@@ -209,21 +289,28 @@ class LoopStats:
         return "\n".join(rows)
 
 
+#: a source's capture stamp (``Frame.t_host_ns``) counts for the latency when it is at most this much
+#: older than the frame's arrival in the loop (else the arrival counts: a stamp on another clock)
+CAPTURE_STAMP_WINDOW_NS = 1_000_000_000
+
+
 class _NewestFrameSlot:
     """One-frame mailbox between the reader thread and the loop: a newer frame replaces an untaken one."""
 
     def __init__(self) -> None:
         self._cond = threading.Condition()
-        self._frame: Frame | None = None
+        self._item: tuple[Frame, int] | None = None
         self._done = False
         self._error: BaseException | None = None
         self.dropped = 0
+        self.delivered = 0  # frames put (taken + dropped + at most one waiting)
 
-    def put(self, frame: Frame) -> None:
+    def put(self, frame: Frame, t_arrival_ns: int) -> None:
         with self._cond:
-            if self._frame is not None:
+            if self._item is not None:
                 self.dropped += 1  # the loop fell behind: the older frame is never processed
-            self._frame = frame
+            self._item = (frame, t_arrival_ns)
+            self.delivered += 1
             self._cond.notify()
 
     def finish(self, error: BaseException | None = None) -> None:
@@ -232,13 +319,17 @@ class _NewestFrameSlot:
             self._error = error
             self._cond.notify()
 
-    def take(self, timeout: float) -> tuple[Frame | None, bool, BaseException | None]:
-        """(frame or None, stream finished, error). Waits at most ``timeout`` seconds for a frame."""
+    def take(self, timeout: float) -> tuple[tuple[Frame, int] | None, bool, BaseException | None]:
+        """((frame, arrival ns) or None, stream finished, error). Waits at most ``timeout`` s for a frame."""
         with self._cond:
-            if self._frame is None and not self._done:
+            if self._item is None and not self._done:
                 self._cond.wait(timeout)
-            f, self._frame = self._frame, None
-            return f, (self._done and f is None), self._error
+            item, self._item = self._item, None
+            return item, (self._done and item is None), self._error
+
+    def __len__(self) -> int:
+        with self._cond:
+            return int(self._item is not None)
 
 
 def _reader(source: Source, slot: _NewestFrameSlot, stats: LoopStats, stop: threading.Event) -> None:
@@ -249,10 +340,76 @@ def _reader(source: Source, slot: _NewestFrameSlot, stats: LoopStats, stop: thre
             stats.add("source", time.perf_counter() - t0)
             if f is None:
                 break
-            slot.put(f)
+            slot.put(f, time.monotonic_ns())
         slot.finish()
     except BaseException as e:  # handed to the loop thread, which decides (EndOfStream, strict...)
         slot.finish(e)
+
+
+class _Item:
+    """A frame on its way through the loop, with when it was taken and when it arrived."""
+
+    __slots__ = ("frame", "t_taken", "t_arrival_ns", "events")
+
+    def __init__(self, frame: Frame, t_taken: float, t_arrival_ns: int, events: list | None = None) -> None:
+        self.frame = frame
+        self.t_taken = t_taken  # perf_counter when the loop took it (the start of its ``total``)
+        self.t_arrival_ns = t_arrival_ns  # monotonic ns when read() returned it
+        self.events = events or []
+
+
+class _End:
+    """Hand-off marker: the front thread saw the stream end (``reason``) or failed (``error``)."""
+
+    __slots__ = ("reason", "error")
+
+    def __init__(self, reason: str = "", error: BaseException | None = None) -> None:
+        self.reason, self.error = reason, error
+
+
+class _HandOff:
+    """Bounded FIFO between the front thread and the loop thread (at most ``depth`` frames).
+
+    The producer reserves room (:meth:`wait_room`) *before* it takes a frame from the source, so a
+    frame is never read while the loop thread is more than ``depth`` frames behind, and ``put``
+    never blocks: the hand-off cannot grow, whatever the source's pace.
+    """
+
+    def __init__(self, depth: int) -> None:
+        self.depth = max(1, int(depth))
+        self._q: collections.deque = collections.deque()
+        self._cond = threading.Condition()
+        self.max_len = 0
+
+    def wait_room(self, stop: threading.Event) -> bool:
+        """Block until fewer than ``depth`` frames wait; False when ``stop`` is set first."""
+        with self._cond:
+            while len(self._q) >= self.depth:
+                if stop.is_set():
+                    return False
+                self._cond.wait(0.05)
+            return not stop.is_set()
+
+    def put(self, item: Any) -> None:
+        with self._cond:
+            self._q.append(item)
+            self.max_len = max(self.max_len, sum(isinstance(x, _Item) for x in self._q))
+            self._cond.notify_all()
+
+    def take(self, timeout: float) -> Any:
+        """The oldest item, or None when none arrived within ``timeout`` seconds."""
+        with self._cond:
+            if not self._q:
+                self._cond.wait(timeout)
+            if not self._q:
+                return None
+            item = self._q.popleft()
+            self._cond.notify_all()
+            return item
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self._q)
 
 
 @contextlib.contextmanager
@@ -331,6 +488,35 @@ class _StreamEnded(Exception):
         self.reason = reason
 
 
+#: ``[loop] pipeline`` values: "auto" (threads with two or more CPUs), "serial", "threads"
+PIPELINES = ("auto", "serial", "threads")
+
+
+def resolve_pipeline(mode: str, stages: Sequence[Stage]) -> str:
+    """``"serial"`` or ``"threads"`` for ``[loop] pipeline = mode`` and this chain.
+
+    ``auto`` pipelines when the machine has two or more CPUs and there is a stage to run ahead
+    (some stage before the first thread-bound one); ``threads`` always pipelines (with no such
+    stage the worker only reads the source while the loop thread runs the rest).
+    """
+    import os
+
+    if mode not in PIPELINES:
+        raise ValueError(f"[loop] pipeline: expected one of {', '.join(PIPELINES)}, got {mode!r}")
+    if mode != "auto":
+        return mode
+    front = _split_index(stages)
+    return "threads" if (os.cpu_count() or 1) >= 2 and front > 0 else "serial"
+
+
+def _split_index(stages: Sequence[Stage]) -> int:
+    """Index of the first thread-bound stage (the end of the chain when there is none)."""
+    for k, st in enumerate(stages):
+        if getattr(st, "thread_bound", False):
+            return k
+    return len(stages)
+
+
 class _Loop:
     """One run of :func:`run_loop`: its components, its state, and one method per step of a frame."""
 
@@ -346,6 +532,8 @@ class _Loop:
         on_stats: Callable[[dict[str, Any]], None] | None,
         stats: LoopStats,
         stats_interval_s: float,
+        pipeline: str = "serial",
+        depth: int = 1,
     ) -> None:
         self.source = source
         self.stages = list(stages)
@@ -359,25 +547,41 @@ class _Loop:
         self.stats_interval_s = stats_interval_s
         self.failures = _FailureLog()
         self.chain = StageChain(stages, strict=strict, source=source)  # checks the wiring before anything opens
+        self.mode = resolve_pipeline(pipeline, self.stages)
+        if int(depth) < 1:
+            raise ValueError(f"[loop] depth: expected an int >= 1, got {depth!r}")
+        self.depth = int(depth)
+        self.split = _split_index(self.stages) if self.mode == "threads" else len(self.stages)
+        stats.set_pipeline(self.mode, self.depth if self.mode == "threads" else 0)
         self.reader_stop = threading.Event()
         self.reader: threading.Thread | None = None
         self.slot: _NewestFrameSlot | None = None  # set for a live source (flow limiting)
+        self.handoff: _HandOff | None = None  # set when pipelined
+        self.front: threading.Thread | None = None
+        self.front_stop = threading.Event()
         self.current: Frame | None = None  # the frame being processed, for messages
         self.reason = "end of stream"
         self.next_report = time.perf_counter() + stats_interval_s
+        # pacing of a live source's front thread (:meth:`_pace`): recent durations of both halves
+        self._t_back_start: float | None = None
+        self._ema_back = 0.0
+        self._ema_front = 0.0
+        self._drop_logged = False
 
     # -- opening and closing
 
     def open(self, stack: contextlib.ExitStack) -> None:
         """Open the source, the stages and the sinks on ``stack``, and prepare the reader of a live source.
 
-        The close order is the reverse: sinks, stages, reader stop, source, last reader join. The
-        reader thread may be blocked inside read() (waiting for a camera, or replay sleeping until a
-        timestamp): it gets a moment to notice the stop, then closing the source unblocks it.
+        The close order is the reverse: sinks, stages, front thread join, reader stop, source, last
+        reader join. The reader thread may be blocked inside read() (waiting for a camera, or replay
+        sleeping until a timestamp): it gets a moment to notice the stop, then closing the source
+        unblocks it.
         """
         stack.callback(self._join_reader)
         stack.enter_context(self.source)
         stack.callback(self._stop_reader)
+        stack.callback(self._stop_front)  # before the stages close: no stage closes under the worker
         for st in self.stages:
             stack.enter_context(st)
         for sk in self.sinks:
@@ -390,6 +594,9 @@ class _Loop:
                 name="illuminet-source-reader",
                 daemon=True,
             )
+        if self.mode == "threads":
+            self.handoff = _HandOff(self.depth)
+            self.front = threading.Thread(target=self._front_worker, name="illuminet-pipeline-front", daemon=True)
 
     def _stop_reader(self) -> None:
         self.reader_stop.set()
@@ -404,6 +611,13 @@ class _Loop:
                     "source %r did not return from read() within 2 s of being closed", _name(self.source, "source")
                 )
 
+    def _stop_front(self) -> None:
+        self.front_stop.set()
+        if self.front is not None and self.front.ident is not None:
+            self.front.join(timeout=10.0)
+            if self.front.is_alive():
+                log.warning("the pipeline's front thread did not finish its frame within 10 s of the stop")
+
     # -- running
 
     def run(self) -> None:
@@ -411,12 +625,15 @@ class _Loop:
         self.stats.start()
         if self.reader is not None:
             self.reader.start()
+        if self.front is not None:
+            self.front.start()
         try:
-            self.reason = self._frames()
+            self.reason = self._frames() if self.front is None else self._frames_pipelined()
         except BaseException as e:
             self.reason = f"error: {type(e).__name__}: {e}" if not isinstance(e, KeyboardInterrupt) else "interrupted"
             raise
         finally:
+            self._stop_front()
             self.stats.stop(self.reason)
             try:
                 self.report()
@@ -424,27 +641,90 @@ class _Loop:
                 log.exception("stats callback failed")
 
     def _frames(self) -> str:
-        """The frame loop; returns why it ended."""
+        """The frame loop (serial); returns why it ended."""
         while True:
             if self.stop.is_set():
                 return "stopped"
             if self.max_frames and self.stats.frames >= self.max_frames:
                 return "max_frames"
             try:
-                frame, t_frame = self.next_frame()
+                item = self.next_frame()
             except _StreamEnded as e:
                 return e.reason
-            if frame is not None:  # None: a live source had nothing new yet; check the stop flags again
-                frame = self.run_stages(frame)
-                self.write_sinks(frame)
-                self.stats.add("total", time.perf_counter() - t_frame)
-                self.stats.frame_done()
-            if time.perf_counter() >= self.next_report:
-                self.report()
-                self.next_report = time.perf_counter() + self.stats_interval_s
+            if item is not None:  # None: a live source had nothing new yet; check the stop flags again
+                frame, events = self.chain.run(item.frame, on_time=self._stage_time)
+                self.finish(item, frame, events)
+            self._maybe_report()
 
-    def next_frame(self) -> tuple[Frame | None, float]:
-        """The next frame and when it was taken (the start of its ``total`` time).
+    def _frames_pipelined(self) -> str:
+        """The loop thread's half of the pipelined loop: the thread-bound stages and the sinks."""
+        assert self.handoff is not None
+        while True:
+            if self.stop.is_set():
+                return "stopped"
+            if self.max_frames and self.stats.frames >= self.max_frames:
+                return "max_frames"
+            item = self.handoff.take(timeout=0.1)
+            if isinstance(item, _End):
+                if item.error is not None:
+                    raise item.error
+                return item.reason
+            if item is not None:
+                t0 = time.perf_counter()
+                self._t_back_start = t0
+                frame, events = self.chain.run(item.frame, on_time=self._stage_time, start=self.split)
+                self.finish(item, frame, item.events + events)
+                self._ema_back = _ema(self._ema_back, time.perf_counter() - t0)
+            self._maybe_report()
+
+    def _front_worker(self) -> None:
+        """The front thread: take frames (only when the hand-off has room) and run the stages before the cut."""
+        assert self.handoff is not None
+        handoff, taken = self.handoff, 0
+        try:
+            while not (self.stop.is_set() or self.front_stop.is_set()):
+                if not handoff.wait_room(self.front_stop):
+                    return
+                if self.max_frames and taken >= self.max_frames:
+                    handoff.put(_End("max_frames"))
+                    return
+                self._pace()
+                try:
+                    item = self.next_frame()
+                except _StreamEnded as e:
+                    handoff.put(_End(e.reason))
+                    return
+                if item is None:
+                    continue
+                taken += 1
+                t0 = time.perf_counter()
+                item.frame, item.events = self.chain.run(item.frame, on_time=self._stage_time, stop=self.split)
+                self._ema_front = _ema(self._ema_front, time.perf_counter() - t0)
+                handoff.put(item)
+                self.stats.note_in_flight(handoff.max_len)
+        except BaseException as e:  # re-raised on the loop thread (strict, or a source error)
+            handoff.put(_End(error=e))
+
+    def _pace(self) -> None:
+        """Start the next frame so that its front half is done just before the loop thread frees.
+
+        The front half of a frame takes ~``ema_front``, the loop thread's half ~``ema_back``; when the
+        latter is longer, taking a frame at once would leave it finished and waiting in the hand-off
+        (a live camera's newer frames meanwhile dropped): the latency would be two back halves
+        instead of one front and one back half. Taking it later costs no frame rate (the worker
+        would wait for the hand-off anyway); a margin of a tenth of the back half (and 0.5 ms)
+        absorbs the jitter of the estimates. The output does not depend on it: frames and their
+        order are the same, only when the worker takes them changes.
+        """
+        if self._t_back_start is None:
+            return
+        margin = 0.1 * self._ema_back + 5e-4
+        wait = self._t_back_start + self._ema_back - self._ema_front - margin - time.perf_counter()
+        if wait > 0:
+            self.front_stop.wait(min(wait, 0.05))
+
+    def next_frame(self) -> _Item | None:
+        """The next frame, when it was taken (the start of its ``total`` time) and when it arrived.
 
         A live source's frame comes from the newest-frame slot (None when none arrived within
         0.1 s); any other source is read here. Raises :class:`_StreamEnded` at the end of the
@@ -452,15 +732,22 @@ class _Loop:
         re-raises any other error of the source.
         """
         if self.slot is not None:
-            frame, finished, err = self.slot.take(timeout=0.1)
-            if err is not None and frame is None:
+            got, finished, err = self.slot.take(timeout=0.1)
+            if err is not None and got is None:
                 if isinstance(err, EndOfStream):
                     log.error("source ended: %s", err)
                     raise _StreamEnded(f"source error: {err}")
                 raise err
             if finished:
                 raise _StreamEnded("end of stream")
-            return frame, time.perf_counter()
+            if got is None:
+                return None
+            if self.slot.dropped and not self._drop_logged:
+                self._drop_logged = True
+                advice = getattr(self.source, "drop_advice", "")
+                if advice:
+                    log.warning("%s (logged once; the count is in the statistics as 'dropped')", advice)
+            return _Item(got[0], time.perf_counter(), got[1])
         t_frame = time.perf_counter()
         try:
             frame = self.source.read()
@@ -470,12 +757,35 @@ class _Loop:
         self.stats.add("source", time.perf_counter() - t_frame)
         if frame is None:
             raise _StreamEnded("end of stream")
-        return frame, t_frame
+        return _Item(frame, t_frame, time.monotonic_ns())
+
+    def finish(self, item: _Item, frame: Frame, events: list) -> None:
+        """Count the frame's stage events, measure its latency, hand it to the sinks, time it."""
+        self.count_events(frame, events)
+        t_out = time.monotonic_ns()
+        t_cap = frame.t_host_ns
+        if not (isinstance(t_cap, int) and 0 <= item.t_arrival_ns - t_cap <= CAPTURE_STAMP_WINDOW_NS):
+            t_cap = item.t_arrival_ns  # no capture stamp on this clock: from the arrival
+        self.stats.add("latency", max(0, t_out - t_cap) * 1e-9)
+        self.write_sinks(frame)
+        self.stats.add("total", time.perf_counter() - item.t_taken)
+        self.stats.frame_done()
+
+    def _maybe_report(self) -> None:
+        if time.perf_counter() >= self.next_report:
+            self.report()
+            self.next_report = time.perf_counter() + self.stats_interval_s
 
     def run_stages(self, frame: Frame) -> Frame:
         """The stages (StageChain: the one failure / missing-input policy); failures and skips counted and logged."""
         self.current = frame
         frame, events = self.chain.run(frame, on_time=self._stage_time)
+        self.count_events(frame, events)
+        return frame
+
+    def count_events(self, frame: Frame, events: list) -> None:
+        """Count and log (once per kind) the failures and skips of one frame's stages."""
+        self.current = frame
         counted = False
         for ev in events:
             failed = ev.kind == "failed"
@@ -485,7 +795,6 @@ class _Loop:
                 self.failures.report(ev.key, frame, ev.error, "The frame goes on with this stage's last good result.")
             else:
                 self.failures.report_skip(ev.key, frame)
-        return frame
 
     def _stage_time(self, name: str, seconds: float) -> None:
         self.stats.add(f"stage:{name}", seconds)
@@ -519,6 +828,10 @@ class _Loop:
             self.failures.report(f"stats: {type(e).__name__}", self.current, e, "Statistics may be stale.")
 
 
+def _ema(prev: float, x: float, a: float = 0.2) -> float:
+    return x if prev == 0.0 else (1.0 - a) * prev + a * x
+
+
 def run_loop(
     source: Source,
     stages: Sequence[Stage],
@@ -531,6 +844,8 @@ def run_loop(
     stats: LoopStats | None = None,
     stats_interval_s: float = 1.0,
     install_signals: bool = True,
+    pipeline: str = "serial",
+    depth: int = 1,
 ) -> LoopStats:
     """Run ``source`` through ``stages`` into ``sinks`` until the stream ends or a stop is requested.
 
@@ -557,6 +872,12 @@ def run_loop(
         Use this object (e.g. created earlier so a status page can poll its ``snapshot``).
     install_signals : bool
         Install SIGINT/SIGTERM handlers (only effective in the main thread).
+    pipeline : {"serial", "threads", "auto"}
+        ``[loop] pipeline``: one thread, or the stages before the first thread-bound one (the
+        renderer) on a worker thread one frame ahead (module docstring); ``auto`` pipelines with two
+        or more CPUs. The output is the same either way.
+    depth : int
+        Pipelined: most frames finished by the worker and waiting for the loop thread (``[loop] depth``).
 
     Returns
     -------
@@ -580,6 +901,8 @@ def run_loop(
         on_stats=on_stats,
         stats=stats,
         stats_interval_s=stats_interval_s,
+        pipeline=pipeline,
+        depth=depth,
     )
     # signal handlers stay installed until everything is closed: a SIGTERM during finalisation must
     # not kill the process with the default handler half-way through closing a recording

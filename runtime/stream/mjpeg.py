@@ -418,7 +418,8 @@ class MjpegSink(Sink):
     stats : callable, optional
         Returns a JSON-serialisable dict of loop figures shown on the page, e.g. the streaming loop's
         ``LoopStats.snapshot`` (keys used by the page: ``fps``, ``fps_recent``, ``frames``,
-        ``dropped``, ``failed_frames``, ``stages_ms``, ``source``; others are passed through).
+        ``dropped``, ``failed_frames``, ``latency_ms``, ``cpu_ms_per_frame``, ``pipeline``,
+        ``stages_ms``, ``source``; others are passed through).
     quality : int
         JPEG quality 1..100.
     max_fps : float

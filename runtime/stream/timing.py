@@ -33,6 +33,11 @@ class Samples:
     def __len__(self) -> int:
         return len(self._values)
 
+    @property
+    def values(self) -> list[float]:
+        """The durations kept, in the order they were added (a copy)."""
+        return list(self._values)
+
     def summary(self) -> dict[str, float]:
         """``{"n", "median_ms", "p99_ms", "max_ms"}`` (zeros when empty)."""
         if not self._values:
