@@ -282,7 +282,7 @@ SCHEMA: dict[str, dict[str, Field]] = {
             str,
             "auto",
             "run the stages before the renderer on a worker thread, one frame ahead of rendering and the "
-            "outputs (same output as serial; auto: threads with two or more CPUs; docs/runtime.md)",
+            "outputs (same output as serial; auto: threads with four or more CPUs; docs/runtime.md)",
             choices=("auto", "serial", "threads"),
         ),
         "depth": _f(

@@ -488,14 +488,20 @@ class _StreamEnded(Exception):
         self.reason = reason
 
 
-#: ``[loop] pipeline`` values: "auto" (threads with two or more CPUs), "serial", "threads"
+#: ``[loop] pipeline`` values: "auto" (threads with AUTO_THREADS_MIN_CPUS or more CPUs), "serial", "threads"
 PIPELINES = ("auto", "serial", "threads")
+
+
+#: ``[loop] pipeline = "auto"`` threads from this many CPUs: on 2 cores with a software rasteriser
+#: (llvmpipe's own threads) the front thread and the renderer fight over the cores and the pipelined loop
+#: was slower than the serial one (``illuminet bench demo``: x0.91 fps, latency p99 95 vs 50 ms)
+AUTO_THREADS_MIN_CPUS = 4
 
 
 def resolve_pipeline(mode: str, stages: Sequence[Stage]) -> str:
     """``"serial"`` or ``"threads"`` for ``[loop] pipeline = mode`` and this chain.
 
-    ``auto`` pipelines when the machine has two or more CPUs and there is a stage to run ahead
+    ``auto`` pipelines with :data:`AUTO_THREADS_MIN_CPUS` or more CPUs and a stage to run ahead
     (some stage before the first thread-bound one); ``threads`` always pipelines (with no such
     stage the worker only reads the source while the loop thread runs the rest).
     """
@@ -506,7 +512,7 @@ def resolve_pipeline(mode: str, stages: Sequence[Stage]) -> str:
     if mode != "auto":
         return mode
     front = _split_index(stages)
-    return "threads" if (os.cpu_count() or 1) >= 2 and front > 0 else "serial"
+    return "threads" if (os.cpu_count() or 1) >= AUTO_THREADS_MIN_CPUS and front > 0 else "serial"
 
 
 def _split_index(stages: Sequence[Stage]) -> int:
