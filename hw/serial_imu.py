@@ -63,7 +63,8 @@ import numpy as np
 import serial
 import serial.tools.list_ports
 
-from illuminet.runtime.config import Config
+from illuminet.runtime.config import Config, ConfigError
+from illuminet.runtime.errors import SourceError
 from illuminet.runtime.frame import Frame, ImuSample
 from illuminet.runtime.stage import LogOnce, Stage
 
@@ -97,6 +98,10 @@ _NUMBER = re.compile(rb"[+-]?(?:(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]{1,
 
 class ImuProtocolError(ValueError):
     """One line of the serial IMU protocol is malformed (the message says how)."""
+
+
+class SerialImuError(SourceError, OSError):
+    """The serial IMU's port cannot be opened (exit status 1); an ``OSError`` as before."""
 
 
 class ImuImplausible(ImuProtocolError):
@@ -548,7 +553,7 @@ class SerialImu:
             try:
                 self._port = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=0.05)
             except (serial.SerialException, ValueError) as e:
-                raise OSError(
+                raise SerialImuError(
                     f"serial IMU: cannot open {self.url!r} at {self.baudrate} baud: {e}. "
                     "Check the device path (`illuminet doctor` lists serial ports) and that you may "
                     "access it (on Linux: be in the 'dialout' group)."
@@ -685,10 +690,13 @@ class ImuStage(Stage):
         sec = cfg.imu
         if not sec.url:
             return None
-        matcher = ImuMatcher(
-            max_skew_ms=sec.max_skew_ms, rotation=rotation_from_list(sec.rotation), tau_s=sec.gravity_tau_s
-        )
-        return cls(SerialImu(sec.url, baudrate=sec.baudrate, matcher=matcher, clock=sec.clock))
+        try:
+            matcher = ImuMatcher(
+                max_skew_ms=sec.max_skew_ms, rotation=rotation_from_list(sec.rotation), tau_s=sec.gravity_tau_s
+            )
+            return cls(SerialImu(sec.url, baudrate=sec.baudrate, matcher=matcher, clock=sec.clock))
+        except ValueError as e:  # a malformed URL or a rotation that is not one: a configuration mistake
+            raise ConfigError(f"[imu] {'rotation' if 'rotation' in str(e) else 'url'}: {e}") from None
 
     def open(self) -> None:
         self.reader.open()
