@@ -42,10 +42,18 @@ class Field:
     min: float | None = None
     max: float | None = None
     gt: float | None = None
+    # strings (and every string of a list of ``item`` = str): must not be empty or only blanks
+    nonempty: bool = False
+    # lists whose elements are not numbers: the element type (a list of host names: str)
+    item: type | None = None
 
     def type_name(self) -> str:
         names = {bool: "bool", int: "int", float: "float", str: "string", list: "list"}
         s = " or ".join(names.get(t, t.__name__) for t in self.types)
+        if self.item is not None:
+            s += f" of {'non-empty ' if self.nonempty else ''}{names.get(self.item, self.item.__name__)}s"
+        elif self.nonempty:
+            s = "non-empty " + s
         if self.length is not None:
             s += f" of length {self.length}"
         if float in self.types or (list in self.types and self.length is not None):
@@ -75,10 +83,22 @@ class Field:
         return not (self.max is not None and not v <= self.max)
 
 
-def _f(types, default, doc, choices=None, length=None, *, min=None, max=None, gt=None) -> Field:  # noqa: A002
+def _f(
+    types,
+    default,
+    doc,
+    choices=None,
+    length=None,
+    *,
+    min=None,
+    max=None,
+    gt=None,
+    nonempty=False,
+    item=None,  # noqa: A002
+) -> Field:
     if not isinstance(types, tuple):
         types = (types,)
-    return Field(types, default, doc, choices, length, min, max, gt)
+    return Field(types, default, doc, choices, length, min, max, gt, nonempty, item)
 
 
 #: section -> key -> Field. Keep config.toml in step with this table.
@@ -95,6 +115,14 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "calibration": _f(str, "", "calibration file for v4l2:// stereo cameras (see `illuminet calibrate`)"),
         "reconnect": _f(bool, True, "live sources: reconnect with backoff when the device is lost"),
         "response_curve": _f(str, "", "camera response curve from `illuminet calibrate photometric` ('' = sRGB)"),
+        "oakd_protocol": _f(
+            str,
+            "any",
+            "how DepthAI looks for OAK devices: any (USB, and a UDP broadcast on every network for PoE "
+            "models), usb (USB only: nothing is sent on the network), tcpip (network only); "
+            "oakd://?protocol= overrides it",
+            choices=("any", "usb", "tcpip"),
+        ),
     },
     "planes": {
         "method": _f(
@@ -213,8 +241,21 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "png_dir": _f(str, "", "write a PNG per frame into this folder ('' = off)"),
         "record": _f(str, "", "record the input session into this folder ('' = off)"),
         "mjpeg": _f(bool, False, "serve MJPEG over HTTP with a status page"),
-        "listen": _f(str, "127.0.0.1", "MJPEG bind address; 0.0.0.0 serves the local network"),
+        "listen": _f(
+            str, "127.0.0.1", "MJPEG bind address; 0.0.0.0 serves the local network (never empty)", nonempty=True
+        ),
         "port": _f(int, 8080, "MJPEG port (0 = a free port the system picks)", min=0, max=65535),
+        "max_clients": _f(
+            int, 32, "MJPEG connections served at once; more get 503 and are closed at once", min=1, max=1024
+        ),
+        "allowed_hosts": _f(
+            list,
+            [],
+            "host names the MJPEG server answers besides localhost, this machine's name and IP addresses "
+            "(a Host header naming anything else gets 421: the DNS-rebinding defence); '*' = any",
+            item=str,
+            nonempty=True,
+        ),
         "fps": _f(float, 30.0, "frame rate written into video files", gt=0, max=1000),
         "record_color": _f(
             str,
@@ -338,17 +379,25 @@ def _check_value(where: str, section: str, key: str, value: Any) -> Any:
         value, ok = float(value), True
     if ok and fld.length is not None and len(value) != fld.length:
         ok = False
-    if ok and list in fld.types and fld.length is not None:
+    if ok and list in fld.types and fld.item is not None and isinstance(value, list):
+        ok = all(isinstance(v, fld.item) and not isinstance(v, bool) for v in value)
+        if ok and fld.nonempty:
+            ok = all(str(v).strip() for v in value)
+    elif ok and list in fld.types and fld.length is not None:
         ok = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+    if ok and fld.nonempty and isinstance(value, str):
+        ok = bool(value.strip())
     if ok and fld.choices is not None and value not in fld.choices:
         ok = False
     if ok and isinstance(value, (int, float)) and not isinstance(value, bool):
         ok = fld.in_range(value)
-    if ok and isinstance(value, list):
+    if ok and isinstance(value, list) and fld.item is None:
         ok = all(fld.in_range(v) for v in value)
     if not ok:
+        # a value that must not be empty: say what the key is for, since "" gives no hint of it
+        hint = f" ({fld.doc})" if fld.nonempty else ""
         raise ConfigError(
-            f"{where}: [{section}] {key}: expected {fld.type_name()}, got {type(value).__name__} {value!r}"
+            f"{where}: [{section}] {key}: expected {fld.type_name()}, got {type(value).__name__} {value!r}{hint}"
         )
     return value
 
