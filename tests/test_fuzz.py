@@ -162,6 +162,13 @@ session_mutations = st.one_of(
 
 def _mutate_session(s: Path, outside: Path, m: tuple) -> set[int] | None:
     """Apply one mutation; the frame numbers it may cost (None: the whole session, e.g. its manifest)."""
+    try:
+        return _apply(s, outside, m)
+    except (OSError, ValueError):  # an earlier mutation made it impossible (a folder, a link loop, not JSON)
+        return {m[1]} if m[0] in ("file", "index_set", "index_del", "timestamp", "index_line") else None
+
+
+def _apply(s: Path, outside: Path, m: tuple) -> set[int] | None:
     index = s / "frames.jsonl"
     lines = index.read_bytes().split(b"\n")[:-1]
     kind = m[0]
@@ -679,7 +686,9 @@ def test_fuzz_bundle_json(bundle_copy, budget):
                     break
             if isinstance(node, dict) and delete:
                 node.pop(path[-1], None)
-            elif isinstance(node, dict) or (isinstance(node, list) and path[-1] < len(node)):
+            elif isinstance(node, dict) or (
+                isinstance(node, list) and isinstance(path[-1], int) and path[-1] < len(node)
+            ):
                 node[path[-1]] = value
         text = json.dumps(edits[0][2]) if whole_garbage else json.dumps(meta)
         (bundle_copy / "bundle.json").write_text(text)

@@ -46,7 +46,7 @@ def run(args, cfg) -> dict:
     # the loop's samples are in frame order, so total_i - source_i is frame i's pipeline time
     tot_s = getattr(stats.samples.get("total"), "_values", None)
     src_s = getattr(stats.samples.get("source"), "_values", None)
-    if tot_s and src_s and len(tot_s) == len(src_s):
+    if tot_s is not None and src_s is not None and len(tot_s) and len(tot_s) == len(src_s):
         pipe_ms = float(np.median(np.asarray(tot_s) - np.asarray(src_s))) * 1e3
     else:  # fall back to the sum of the steps' medians
         pipe_ms = sum(v["median_ms"] for k, v in steps.items() if k not in ("total", "source"))

@@ -28,7 +28,11 @@ BENCHES: dict[str, str] = {
     "stereo": "host stereo depth (SGBM + WLS) per 640x400 pair",
     "demo": "the whole demo pipeline end to end, per-stage timing and peak memory",
     "shadows": "light direction from real shadows: accuracy on synthetic box scenes, full search and local refine",
+    "soak": "memory over a long run: the demo pipeline in real time with MJPEG and estimate clients attached; "
+    "RSS slope in MB/min after warm-up (--minutes N, default 30; only when named)",
 }
+#: benchmarks that run only when named (``illuminet bench`` alone skips them: they take many minutes)
+ON_REQUEST = ("soak",)
 
 
 def register(sub) -> None:
@@ -38,14 +42,20 @@ def register(sub) -> None:
         help="run benchmarks and print their figures",
         description="Benchmarks: " + "; ".join(f"{n}: {BENCHES[n]}" for n in names),
     )
-    p.add_argument("names", nargs="*", metavar="NAME", help=f"which to run (default: all): {', '.join(names)}")
+    p.add_argument(
+        "names",
+        nargs="*",
+        metavar="NAME",
+        help=f"which to run (default: all but {', '.join(ON_REQUEST)}): {', '.join(names)}",
+    )
     p.add_argument("--quick", action="store_true", help="fewer repetitions (smoke test)")
     p.add_argument("--json", metavar="PATH", help="also write all figures as JSON")
+    p.add_argument("--minutes", type=float, metavar="N", help="soak: how long to stream (default 30; with --quick 0.5)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace, cfg) -> int:
-    names = args.names or list(BENCHES)
+    names = args.names or [n for n in BENCHES if n not in ON_REQUEST]
     unknown = [n for n in names if n not in BENCHES]
     if unknown:
         print(
