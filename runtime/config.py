@@ -213,7 +213,7 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "temporal_smoothing": _f(float, 0.7, "exponential smoothing of predicted shading, 0 = none", min=0, max=0.999),
     },
     "render": {
-        "object_scale": _f(float, 1.0, "extra scale applied to the object's mesh", gt=0, max=1000),
+        "object_scale": _f(float, 1.0, "extra scale applied to the object's mesh", min=0.001, max=1000),
         "shadow": _f(bool, True, "draw the object's shadow on the anchor plane"),
         "shadow_map": _f(int, 1024, "shadow map resolution, pixels", min=16, max=8192),
         "occlusion": _f(bool, True, "real geometry nearer than the object hides it"),

@@ -44,7 +44,10 @@ from ._sessions import make_session
 
 #: examples in the thorough (``-m slow``) run per example of the quick one
 THOROUGH = 25
-BUDGETS = [pytest.param(1, id="quick"), pytest.param(THOROUGH, id="thorough", marks=pytest.mark.slow)]
+BUDGETS = [
+    pytest.param(1, id="quick"),
+    pytest.param(THOROUGH, id="thorough", marks=[pytest.mark.slow, pytest.mark.timeout(3600)]),
+]
 
 # an exception in a server or decoder thread is a crash of the stream even when the call returns
 pytestmark = pytest.mark.filterwarnings("error::pytest.PytestUnhandledThreadExceptionWarning")

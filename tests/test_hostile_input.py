@@ -41,6 +41,7 @@ BAD_INPUTS = [
     (["--set", "plane_light.grid=0", "run", "synthetic://indoor"], 2, "[plane_light] grid"),
     (["--set", "render.object_scale=nan", "run", "synthetic://indoor"], 2, "[render] object_scale"),
     (["--set", "render.object_scale=inf", "run", "synthetic://indoor"], 2, "[render] object_scale"),
+    (["--set", "render.object_scale=1e-282", "run", "synthetic://indoor"], 2, "[render] object_scale"),  # fuzz
     (["--set", "imu.rotation=[1,0,0,0,1,0,0,0,nan]", "run", "synthetic://indoor"], 2, "[imu] rotation"),
     (["--set", "render.msaa=64", "run", "synthetic://indoor"], 2, "[render] msaa"),
     (["--set", "planes.smoothing=1.5", "run", "synthetic://indoor"], 2, "[planes] smoothing"),
