@@ -46,6 +46,9 @@ class Field:
     nonempty: bool = False
     # lists whose elements are not numbers: the element type (a list of host names: str)
     item: type | None = None
+    # numbers: 0 is allowed besides the range (0 = "off" or "every frame", while a tiny positive value
+    # would divide into infinity: a rate of 1e-309 Hz)
+    zero_ok: bool = False
 
     def type_name(self) -> str:
         names = {bool: "bool", int: "int", float: "float", str: "string", list: "list"}
@@ -70,12 +73,16 @@ class Field:
             s += f" <= {self.max:g}"
         if self.choices is not None:
             s += " (one of " + ", ".join(repr(c) for c in self.choices) + ")"
+        if self.zero_ok:
+            s = "0 or " + s
         return s
 
     def in_range(self, v: float) -> bool:
         """Whether the number ``v`` is finite and inside this field's bounds."""
         if isinstance(v, float) and not math.isfinite(v):
             return False
+        if self.zero_ok and v == 0:
+            return True
         if self.gt is not None and not v > self.gt:
             return False
         if self.min is not None and not v >= self.min:
@@ -95,10 +102,11 @@ def _f(
     gt=None,
     nonempty=False,
     item=None,  # noqa: A002
+    zero_ok=False,
 ) -> Field:
     if not isinstance(types, tuple):
         types = (types,)
-    return Field(types, default, doc, choices, length, min, max, gt, nonempty, item)
+    return Field(types, default, doc, choices, length, min, max, gt, nonempty, item, zero_ok)
 
 
 #: section -> key -> Field. Keep config.toml in step with this table.
@@ -135,7 +143,7 @@ SCHEMA: dict[str, dict[str, Field]] = {
             float,
             0.03,
             "distance of an inlier at 1 m; grows with z^2 like stereo noise (0.045 for integer-disparity depth)",
-            gt=0,
+            min=0.0001,
             max=1,
         ),
         "smoothing": _f(float, 0.8, "temporal smoothing of plane parameters, 0 = none, <1", min=0, max=0.999),
@@ -155,9 +163,9 @@ SCHEMA: dict[str, dict[str, Field]] = {
     },
     "plane_light": {
         "grid": _f(int, 32, "plane OI grid is grid x grid vertices", min=2, max=512),
-        "extent_m": _f(float, 1.0, "side of the square plane patch around the anchor, metres", gt=0, max=100),
+        "extent_m": _f(float, 1.0, "side of the square plane patch around the anchor, metres", min=0.01, max=100),
         "fusion": _f(float, 0.9, "temporal fusion weight of the previous estimate, 0 = none", min=0, max=0.999),
-        "assumed_albedo": _f(float, 0.5, "mean albedo assumed for the plane (radiance -> irradiance)", gt=0, max=1),
+        "assumed_albedo": _f(float, 0.5, "mean albedo assumed for the plane (radiance -> irradiance)", min=0.01, max=1),
         "smoothing_cells": _f(
             float,
             1.5,
@@ -181,7 +189,12 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "emitters": _f(bool, True, "take the primary light's direction from bright emitters in view"),
         "shadows": _f(bool, True, "take the primary light's direction from real cast shadows"),
         "rate_hz": _f(
-            float, 10.0, "estimates per second (frames in between reuse the last one; 0 = every frame)", min=0, max=1000
+            float,
+            10.0,
+            "estimates per second (frames in between reuse the last one; 0 = every frame)",
+            min=0.01,
+            max=1000,
+            zero_ok=True,
         ),
         "pipelined": _f(
             bool, True, "compute the estimate on a worker thread, collected one update later (deterministic)"
@@ -256,7 +269,7 @@ SCHEMA: dict[str, dict[str, Field]] = {
             item=str,
             nonempty=True,
         ),
-        "fps": _f(float, 30.0, "frame rate written into video files", gt=0, max=1000),
+        "fps": _f(float, 30.0, "frame rate written into video files", min=0.1, max=1000),
         "record_color": _f(
             str,
             "raw",

@@ -42,6 +42,7 @@ BAD_INPUTS = [
     (["--set", "render.object_scale=nan", "run", "synthetic://indoor"], 2, "[render] object_scale"),
     (["--set", "render.object_scale=inf", "run", "synthetic://indoor"], 2, "[render] object_scale"),
     (["--set", "render.object_scale=1e-282", "run", "synthetic://indoor"], 2, "[render] object_scale"),  # fuzz
+    (["--set", "light.rate_hz=2.2e-309", "run", "synthetic://indoor"], 2, "[light] rate_hz"),  # fuzz: 1e9/rate = inf
     (["--set", "imu.rotation=[1,0,0,0,1,0,0,0,nan]", "run", "synthetic://indoor"], 2, "[imu] rotation"),
     (["--set", "render.msaa=64", "run", "synthetic://indoor"], 2, "[render] msaa"),
     (["--set", "planes.smoothing=1.5", "run", "synthetic://indoor"], 2, "[planes] smoothing"),
