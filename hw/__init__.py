@@ -151,7 +151,10 @@ def query_choice(*choices: str, lower: bool = False) -> Callable[[str], str]:
 
 def open_source(url: str, config: Config | None = None) -> Source:
     """Create the source for ``url`` (not yet opened; use it as a context manager)."""
-    scheme = urlsplit(url).scheme
+    try:
+        scheme = urlsplit(url).scheme
+    except ValueError as e:  # "Invalid IPv6 URL": an unbalanced '[' in the host part
+        raise SourceURLError(f"source {url!r} is not a URL: {e}") from None
     if not scheme:
         raise SourceURLError(f"source {url!r} has no scheme; expected one of " + ", ".join(f"{s}://" for s in SCHEMES))
     if scheme not in SCHEMES:

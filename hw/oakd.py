@@ -6,8 +6,15 @@ This module owns everything that talks to a Luxonis OAK device. URL syntax::
     oakd://14442C10D13EABCE00    a device by MXID (device id)
     oakd://192.168.1.44          a PoE device by IP address
     oakd://?fps=30&size=640x400&queue=2&imu=1&preset=default
+    oakd://?protocol=usb         search USB only: nothing is broadcast on the network
 
 Query parameters (all optional): see :class:`OakdOptions`.
+
+Device discovery and the network: unless told otherwise, DepthAI looks for devices on USB **and** by
+a UDP broadcast (port 11491) on every network interface, to find PoE models; ``illuminet doctor``
+and ``oakd://`` without a device id do that. ``protocol=usb`` (or ``[source] oakd_protocol =
+"usb"``) sets ``DEPTHAI_PROTOCOL=usb`` before DepthAI's first search, and nothing is sent on the
+network (:func:`select_protocol`). DepthAI reads that variable once per process, at its first search.
 
 How it is split, so that everything but the device itself is tested on a machine without one:
 
@@ -29,6 +36,7 @@ Telemetry is off: ``DEPTHAI_TELEMETRY=0`` is set before ``depthai`` is imported.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import logging
 import os
@@ -110,6 +118,9 @@ class OakdOptions:
         No frame for this long means the device is lost.
     reconnect : bool or None
         Override ``[source] reconnect`` (``reconnect=0``/``1``).
+    protocol : str
+        How devices are searched (``protocol=usb``): ``any`` (USB and a UDP broadcast on the
+        network), ``usb``, ``tcpip``; ``""`` = ``[source] oakd_protocol``.
     """
 
     device: str = ""
@@ -129,6 +140,7 @@ class OakdOptions:
     sync_ms: float = 0.0
     timeout_s: float = 5.0
     reconnect: bool | None = None
+    protocol: str = ""
 
     @property
     def sync_threshold(self) -> datetime.timedelta:
@@ -159,6 +171,7 @@ def parse_url(url: str) -> OakdOptions:
         "sync_ms": query_float,
         "timeout_s": query_float,
         "reconnect": query_bool,
+        "protocol": query_choice(*PROTOCOLS, lower=True),
     }
     kw: dict[str, Any] = {"mono_size" if k == "mono" else k: v for k, v in parse_query(url, parsers).items()}
     kw["device"] = (parts.netloc + parts.path).strip("/")
@@ -173,7 +186,56 @@ def parse_url(url: str) -> OakdOptions:
         )
     if o.timeout_s <= 0 or o.imu_rate <= 0:
         raise ValueError(f"{url}: timeout_s and imu_rate must be positive")
+    if o.protocol == "usb" and _is_ip(o.device):
+        raise ValueError(f"{url}: protocol=usb cannot reach the network device {o.device}; drop one of them")
     return o
+
+
+def _is_ip(name: str) -> bool:
+    parts = name.split(".")
+    return len(parts) == 4 and all(p.isdigit() and int(p) < 256 for p in parts)
+
+
+# ---------------------------------------------------------------------------------------- discovery
+
+#: how DepthAI may look for devices (``DEPTHAI_PROTOCOL``): any = USB and a UDP broadcast on the network
+PROTOCOLS = ("any", "usb", "tcpip")
+#: the protocol DepthAI searched with in this process (it reads DEPTHAI_PROTOCOL once, at its first search)
+_searched_with: str | None = None
+
+
+def select_protocol(protocol: str) -> str:
+    """Make DepthAI search devices over ``protocol`` only; call before every device search.
+
+    ``"usb"`` or ``"tcpip"`` set ``DEPTHAI_PROTOCOL`` (``usb``: nothing is broadcast on the network);
+    ``"any"`` leaves DepthAI's default, or a ``DEPTHAI_PROTOCOL`` the user set. DepthAI reads the
+    variable once per process, at its first search, so a later call asking for another protocol is
+    refused rather than silently ignored.
+
+    Returns
+    -------
+    str
+        The protocol in effect.
+
+    Raises
+    ------
+    OakdError
+        DepthAI already searched with another protocol in this process.
+    """
+    global _searched_with
+    if protocol not in PROTOCOLS:
+        raise ValueError(f"OAK protocol {protocol!r}: expected one of {', '.join(PROTOCOLS)}")
+    want = protocol if protocol != "any" else (os.environ.get("DEPTHAI_PROTOCOL", "").lower() or "any")
+    if _searched_with is None:
+        if protocol != "any":
+            os.environ["DEPTHAI_PROTOCOL"] = protocol
+        _searched_with = want
+    elif _searched_with != want:
+        raise OakdError(
+            f"DepthAI already searched for devices over {_searched_with!r} in this process and keeps that; "
+            f"protocol {want!r} needs a new process (set [source] oakd_protocol or DEPTHAI_PROTOCOL before it starts)"
+        )
+    return want
 
 
 # ---------------------------------------------------------------------------------------- calibration
@@ -429,8 +491,12 @@ def build_device_pipeline(pipeline: dai.Pipeline, opts: OakdOptions, has_imu: bo
 # ---------------------------------------------------------------------------------------- devices
 
 
-def list_devices() -> list[dict[str, str]]:
-    """OAK devices DepthAI can see: ``[{"id", "name", "state", "protocol", "platform"}]`` (for doctor)."""
+def list_devices(protocol: str = "any") -> list[dict[str, str]]:
+    """OAK devices DepthAI can see: ``[{"id", "name", "state", "protocol", "platform"}]`` (for doctor).
+
+    ``protocol``: see :func:`select_protocol` (``"any"`` broadcasts on the network to find PoE models).
+    """
+    select_protocol(protocol)
     out = []
     for d in dai.Device.getAllAvailableDevices():
         out.append(
@@ -484,10 +550,14 @@ def connect_device(opts: OakdOptions, imu_rotation: Any = None, max_skew_ms: flo
     OakdError
         When no such device can be opened (with what DepthAI sees and how to fix access).
     """
+    protocol = select_protocol(opts.protocol or "any")
     try:
         device = dai.Device(dai.DeviceInfo(opts.device)) if opts.device else dai.Device()
     except RuntimeError as e:
-        found = ", ".join(d["id"] for d in list_devices()) or "none"
+        try:
+            found = ", ".join(d["id"] for d in list_devices(protocol)) or "none"
+        except RuntimeError as e2:  # the search itself fails (no USB stack in a container)
+            found = f"none (the search failed: {e2})"
         raise OakdError(
             f"cannot open OAK device {opts.device or '(first available)'}: {e}. Devices found: {found}. "
             "Check the USB cable/port (USB3 preferred) or PoE link, and on Linux the udev rule "
@@ -690,6 +760,8 @@ class OakdSource(Source):
 def open_url(url: str, config: Config) -> OakdSource:
     """The source registry's entry point: an unopened :class:`OakdSource` for ``oakd://...``."""
     opts = parse_url(url)
+    if not opts.protocol:
+        opts = dataclasses.replace(opts, protocol=config.source.oakd_protocol)
     rot = config.imu.rotation
     custom_rot = None if np.allclose(np.reshape(rot, (3, 3)), np.eye(3)) else rot
     return OakdSource(

@@ -24,6 +24,19 @@ One sample per line, NMEA-style, ASCII::
   unparsable numbers are counted and skipped. After garbage (noise, a partial line after the reader
   starts mid-stream, another protocol) the parser resynchronises on the next ``$``.
 
+Plausibility
+------------
+A checksum only proves that the line arrived as it was sent, not that its values are physical. Lines
+whose values no IMU reports are skipped and counted (``implausible``): a timestamp that is not an
+integer in 0..2**63-1, an acceleration component beyond :data:`MAX_ACCEL` (32 g) or a rate beyond
+:data:`MAX_GYRO` (4000 deg/s). Timestamps must advance like the host's clock: a line whose ``t_ns``
+is not after the last accepted one, or runs ahead of it by more than :data:`MAX_CLOCK_LEAD_S` beyond
+the time that passed on this host, is skipped and counted (``time_rejected``), so one far-future
+line cannot stop the reader from accepting the lines after it. A sender that really restarted its
+clock is followed once :data:`RESYNC_LINES` consecutive lines agree with each other on the new
+timeline (``clock_resyncs``). With ``clock="host"`` a ``t_ns`` later than this host's clock (plus
+:data:`MAX_CLOCK_LEAD_S`) is never accepted.
+
 Clocks
 ------
 ``clock="device"`` (default): the sender's ``t_ns`` is mapped onto this host's
@@ -39,6 +52,7 @@ from __future__ import annotations
 import collections
 import logging
 import math
+import re
 import threading
 import time
 from collections.abc import Iterable, Sequence
@@ -49,9 +63,10 @@ import numpy as np
 import serial
 import serial.tools.list_ports
 
-from illuminet.runtime.config import Config
+from illuminet.runtime.config import Config, ConfigError
+from illuminet.runtime.errors import SourceError
 from illuminet.runtime.frame import Frame, ImuSample
-from illuminet.runtime.stage import Stage
+from illuminet.runtime.stage import LogOnce, Stage
 
 log = logging.getLogger(__name__)
 
@@ -63,10 +78,48 @@ MAX_LINE = 256
 OFFSET_WINDOW_S = 10.0
 #: pySerial's loop:// (and small USB FIFOs) block on large writes without a reader: write this much at a time
 WRITE_CHUNK = 1024
+#: standard gravity, m/s^2
+G = 9.80665
+#: largest acceleration component accepted, m/s^2 (32 g: beyond every consumer MEMS range; 16 g parts saturate below)
+MAX_ACCEL = 32 * G
+#: largest angular-rate component accepted, rad/s (4000 deg/s: the widest consumer gyro range)
+MAX_GYRO = 70.0
+#: a sender's clock may run ahead of this host's by at most this much between two accepted lines, s
+MAX_CLOCK_LEAD_S = 1.0
+#: this many consecutive lines that agree with each other, but not with the accepted timeline, start a new one
+RESYNC_LINES = 20
+#: largest timestamp, ns (signed 64-bit, as every clock API holds it)
+MAX_T_NS = 2**63 - 1
+
+_T_NS = re.compile(rb"[0-9]{1,19}")
+# decimal numbers (nan and inf parse, to be refused as non-finite with that reason)
+_NUMBER = re.compile(rb"[+-]?(?:(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]{1,4})?|nan|inf|infinity)", re.IGNORECASE)
 
 
 class ImuProtocolError(ValueError):
     """One line of the serial IMU protocol is malformed (the message says how)."""
+
+
+class SerialImuError(SourceError, OSError):
+    """The serial IMU's port cannot be opened (exit status 1); an ``OSError`` as before."""
+
+
+class ImuImplausible(ImuProtocolError):
+    """A well-formed line whose values no IMU reports (a timestamp out of range, |a| beyond 32 g, ...)."""
+
+
+def check_plausible(accel: Sequence[float], gyro: Sequence[float] | None = None, where: str = "") -> None:
+    """Raise :class:`ImuImplausible` unless every value is finite and within :data:`MAX_ACCEL` / :data:`MAX_GYRO`."""
+    checks = (("acceleration", accel, MAX_ACCEL, "m/s^2"), ("angular rate", gyro, MAX_GYRO, "rad/s"))
+    for name, vals, limit, unit in checks:
+        if vals is None:
+            continue
+        for v in vals:
+            if not (math.isfinite(v) and abs(v) <= limit):
+                raise ImuImplausible(
+                    f"{where}{name} {list(vals)!r} is not physical: each component must be finite and within "
+                    f"+-{limit:g} {unit}"
+                )
 
 
 # ---------------------------------------------------------------------------------------- protocol
@@ -139,14 +192,19 @@ def parse_line(line: bytes) -> ImuSample:
         raise ImuProtocolError(
             f"expected 4 fields (t_ns, ax, ay, az) or 7 (… gx, gy, gz) after IMU, got {len(fields) - 1}"
         )
-    try:
-        t_ns = int(fields[1])
-        vals = [float(f) for f in fields[2:]]
-    except ValueError as e:
-        raise ImuProtocolError(f"a field is not a number: {e}") from None
+    if not _T_NS.fullmatch(fields[1]):
+        raise ImuProtocolError(f"timestamp {fields[1][:24]!r} is not an integer number of nanoseconds")
+    bad = [f for f in fields[2:] if not _NUMBER.fullmatch(f)]
+    if bad:
+        raise ImuProtocolError(f"a field is not a number: {bad[0][:24]!r}")
+    t_ns = int(fields[1])
+    vals = [float(f) for f in fields[2:]]
     if not all(math.isfinite(v) for v in vals):
-        raise ImuProtocolError(f"non-finite value in {vals}")
+        raise ImuImplausible(f"non-finite value in {vals}")
+    if t_ns > MAX_T_NS:
+        raise ImuImplausible(f"timestamp {t_ns} is beyond 2**63-1 ns")
     gyro = tuple(vals[3:6]) if len(vals) == 6 else None
+    check_plausible(vals[0:3], gyro)
     return ImuSample(t_ns=t_ns, accel=(vals[0], vals[1], vals[2]), gyro=gyro)
 
 
@@ -155,9 +213,10 @@ class LineParser:
 
     Attributes
     ----------
-    good, bad_checksum, malformed, overlong, garbage_bytes : int
+    good, bad_checksum, malformed, implausible, overlong, garbage_bytes : int
         Counters: samples parsed; lines skipped for a checksum mismatch, for any other format error,
-        for exceeding :data:`MAX_LINE`; bytes discarded while looking for the next ``$``.
+        for values no IMU reports (:class:`ImuImplausible`), for exceeding :data:`MAX_LINE`; bytes
+        discarded while looking for the next ``$``.
     """
 
     def __init__(self) -> None:
@@ -165,6 +224,7 @@ class LineParser:
         self.good = 0
         self.bad_checksum = 0
         self.malformed = 0
+        self.implausible = 0
         self.overlong = 0
         self.garbage_bytes = 0
         self.last_error = ""
@@ -208,7 +268,9 @@ class LineParser:
                 out.append(parse_line(line))
                 self.good += 1
             except ImuProtocolError as e:
-                if "checksum mismatch" in str(e):
+                if isinstance(e, ImuImplausible):
+                    self.implausible += 1
+                elif "checksum mismatch" in str(e):
                     self.bad_checksum += 1
                 else:
                     self.malformed += 1
@@ -220,6 +282,7 @@ class LineParser:
             "good": self.good,
             "bad_checksum": self.bad_checksum,
             "malformed": self.malformed,
+            "implausible": self.implausible,
             "overlong": self.overlong,
             "garbage_bytes": self.garbage_bytes,
         }
@@ -296,19 +359,41 @@ class ImuMatcher:
         self._entries: collections.deque[_Entry] = collections.deque()
         self._lp: np.ndarray | None = None
         self._last_t: int | None = None
+        self._stale_run = 0
         self.matched = 0
         self.unmatched = 0
         self.out_of_order = 0
+        self.implausible = 0
+        self.timeline_resets = 0
 
     def add(self, sample: ImuSample) -> None:
-        """Add one sample (IMU axes, ``t_ns`` on the frames' clock). Older-than-last samples are dropped."""
+        """Add one sample (IMU axes, ``t_ns`` on the frames' clock). Older-than-last samples are dropped.
+
+        Values no IMU reports (non-finite, beyond :data:`MAX_ACCEL` / :data:`MAX_GYRO`) are dropped and
+        counted (``implausible``): one such sample would otherwise hold the low-passed gravity at
+        zero for minutes. When :data:`RESYNC_LINES` samples in a row are more than ``keep_s`` older
+        than the newest one accepted, that one was the outlier (a far-future timestamp) or the clock
+        restarted: the history is dropped and the new timeline followed (``timeline_resets``).
+        """
+        try:
+            check_plausible(sample.accel, sample.gyro)
+        except ImuImplausible:
+            with self._lock:
+                self.implausible += 1
+            return
         acc = self.rotation @ np.asarray(sample.accel, dtype=np.float64)
         gyro = None if sample.gyro is None else tuple(float(v) for v in self.rotation @ np.asarray(sample.gyro))
         cam = ImuSample(t_ns=int(sample.t_ns), accel=(float(acc[0]), float(acc[1]), float(acc[2])), gyro=gyro)
         with self._lock:
             if self._last_t is not None and cam.t_ns <= self._last_t:
                 self.out_of_order += 1  # timestamps must only increase (a resync or a sender reset)
-                return
+                self._stale_run = self._stale_run + 1 if cam.t_ns < self._last_t - self.keep_ns else 0
+                if self._stale_run < RESYNC_LINES:
+                    return
+                self.timeline_resets += 1  # the newest accepted sample was the outlier: follow the others
+                self._entries.clear()
+                self._lp = self._last_t = None
+            self._stale_run = 0
             if self._lp is None or self.tau_ns == 0:
                 lp = acc
             else:
@@ -371,6 +456,48 @@ class _OffsetClock:
         return t_dev + h[0][1]
 
 
+class _TimeGate:
+    """Accepts a line's timestamp only when it advances like the host's clock since the last accepted one.
+
+    ``accept(t, arrival)``: True when ``t`` is after the last accepted timestamp and ahead of it by at
+    most the host time that passed plus ``lead_ns`` (transport delay only makes lines arrive later,
+    never earlier, so a sender clock running ahead of the host's is a bad line). Rejected lines that
+    agree with each other form a candidate timeline; ``resync_lines`` of them in a row replace the
+    accepted timeline (:attr:`resynced` is then set until read), which follows a sender that really
+    restarted its clock while one far-off line never moves it.
+    """
+
+    def __init__(self, lead_s: float = MAX_CLOCK_LEAD_S, resync_lines: int = RESYNC_LINES):
+        self.lead_ns = int(lead_s * 1e9)
+        self.resync_lines = int(resync_lines)
+        self._last: tuple[int, int] | None = None
+        self._cand: tuple[int, int] | None = None
+        self._cand_n = 0
+        self.rejected = 0
+        self.resyncs = 0
+        self.resynced = False
+
+    def _follows(self, ref: tuple[int, int], t: int, arrival: int) -> bool:
+        return 0 < t - ref[0] <= (arrival - ref[1]) + self.lead_ns
+
+    def accept(self, t: int, arrival: int) -> bool:
+        if self._last is None or self._follows(self._last, t, arrival):
+            self._last, self._cand, self._cand_n = (t, arrival), None, 0
+            return True
+        if self._cand is not None and self._follows(self._cand, t, arrival):
+            self._cand_n += 1
+        else:
+            self._cand_n = 1
+        self._cand = (t, arrival)
+        if self._cand_n >= self.resync_lines:
+            self._last, self._cand, self._cand_n = (t, arrival), None, 0
+            self.resyncs += 1
+            self.resynced = True
+            return True
+        self.rejected += 1
+        return False
+
+
 # ---------------------------------------------------------------------------------------- the port
 
 
@@ -408,6 +535,9 @@ class SerialImu:
         self.clock = clock
         self.parser = LineParser()
         self._clock = _OffsetClock()
+        self._gate = _TimeGate()
+        self._log = LogOnce(log, f"serial IMU {self.url}")
+        self.future_host_time = 0
         self._port = port
         self._own_port = port is None
         self._thread: threading.Thread | None = None
@@ -423,7 +553,7 @@ class SerialImu:
             try:
                 self._port = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=0.05)
             except (serial.SerialException, ValueError) as e:
-                raise OSError(
+                raise SerialImuError(
                     f"serial IMU: cannot open {self.url!r} at {self.baudrate} baud: {e}. "
                     "Check the device path (`illuminet doctor` lists serial ports) and that you may "
                     "access it (on Linux: be in the 'dialout' group)."
@@ -446,10 +576,29 @@ class SerialImu:
                 continue
             arrival = time.monotonic_ns()
             for s in self.parser.feed(data):
-                t = s.t_ns if self.clock == "host" else self._clock.to_host(s.t_ns, arrival)
-                s = ImuSample(t_ns=t, accel=s.accel, gyro=s.gyro)
-                self.last_sample = s
-                self.matcher.add(s)
+                self._accept(s, arrival)
+
+    def _accept(self, s: ImuSample, arrival: int) -> None:
+        """Check one parsed sample's timestamp (see the module docstring), map it to the host clock, add it."""
+        if self.clock == "host" and s.t_ns > arrival + self._gate.lead_ns:
+            self.future_host_time += 1  # stamped later than now on this host's own clock: never valid
+            self._log("future", f"a line's host timestamp {s.t_ns} is ahead of this host's clock ({arrival}); skipped")
+            return
+        if not self._gate.accept(s.t_ns, arrival):
+            self._log(
+                "time",
+                f"a line's timestamp {s.t_ns} does not follow the previous ones (not after them, or ahead of "
+                f"this host's clock by more than {MAX_CLOCK_LEAD_S:g} s); skipped",
+            )
+            return
+        if self._gate.resynced:  # the sender restarted its clock: the old offset no longer applies
+            self._gate.resynced = False
+            self._clock = _OffsetClock()
+            log.warning("serial IMU %s: the sender's clock restarted; following the new timeline", self.url)
+        t = s.t_ns if self.clock == "host" else self._clock.to_host(s.t_ns, arrival)
+        s = ImuSample(t_ns=t, accel=s.accel, gyro=s.gyro)
+        self.last_sample = s
+        self.matcher.add(s)
 
     def close(self) -> None:
         """Stop the reader and close the port (if this object opened it). Idempotent."""
@@ -469,6 +618,8 @@ class SerialImu:
             matched=self.matcher.matched,
             unmatched=self.matcher.unmatched,
             out_of_order=self.matcher.out_of_order,
+            time_rejected=self._gate.rejected + self.future_host_time,
+            clock_resyncs=self._gate.resyncs,
             read_errors=self.read_errors,
         )
         return d
@@ -539,10 +690,13 @@ class ImuStage(Stage):
         sec = cfg.imu
         if not sec.url:
             return None
-        matcher = ImuMatcher(
-            max_skew_ms=sec.max_skew_ms, rotation=rotation_from_list(sec.rotation), tau_s=sec.gravity_tau_s
-        )
-        return cls(SerialImu(sec.url, baudrate=sec.baudrate, matcher=matcher, clock=sec.clock))
+        try:
+            matcher = ImuMatcher(
+                max_skew_ms=sec.max_skew_ms, rotation=rotation_from_list(sec.rotation), tau_s=sec.gravity_tau_s
+            )
+            return cls(SerialImu(sec.url, baudrate=sec.baudrate, matcher=matcher, clock=sec.clock))
+        except ValueError as e:  # a malformed URL or a rotation that is not one: a configuration mistake
+            raise ConfigError(f"[imu] {'rotation' if 'rotation' in str(e) else 'url'}: {e}") from None
 
     def open(self) -> None:
         self.reader.open()

@@ -133,7 +133,8 @@ def build_sinks(
         ``output.estimates`` -> :class:`~illuminet.runtime.stream.sinks.EstimateSink` (JSONL),
         ``output.mjpeg`` -> ``illuminet.runtime.stream.mjpeg.MjpegSink`` on ``listen``:``port``
         (its ``/viewer`` draws ``output.viewer_model``, default the ``[model] bundle``'s built-in
-        object, else ``builtin:vase``).
+        object, else ``builtin:vase``; at most ``max_clients`` connections, ``Host`` checked against
+        ``allowed_hosts``).
     stats : callable, optional
         Returns live loop figures (``LoopStats.snapshot``) for the MJPEG status page.
     source_url : str, optional
@@ -173,7 +174,15 @@ def build_sinks(
         model = out.viewer_model or (bundle if bundle.startswith("builtin:") else "builtin:vase")
         try:
             sinks.append(
-                MjpegSink(out.listen, out.port, stats=stats, viewer_model=model, object_scale=cfg.render.object_scale)
+                MjpegSink(
+                    out.listen,
+                    out.port,
+                    stats=stats,
+                    viewer_model=model,
+                    object_scale=cfg.render.object_scale,
+                    max_clients=out.max_clients,
+                    allowed_hosts=out.allowed_hosts,
+                )
             )
         except ValueError as e:  # the viewer model: a one-line message naming the key
             raise ConfigError(str(e)) from None

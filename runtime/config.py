@@ -42,10 +42,21 @@ class Field:
     min: float | None = None
     max: float | None = None
     gt: float | None = None
+    # strings (and every string of a list of ``item`` = str): must not be empty or only blanks
+    nonempty: bool = False
+    # lists whose elements are not numbers: the element type (a list of host names: str)
+    item: type | None = None
+    # numbers: 0 is allowed besides the range (0 = "off" or "every frame", while a tiny positive value
+    # would divide into infinity: a rate of 1e-309 Hz)
+    zero_ok: bool = False
 
     def type_name(self) -> str:
         names = {bool: "bool", int: "int", float: "float", str: "string", list: "list"}
         s = " or ".join(names.get(t, t.__name__) for t in self.types)
+        if self.item is not None:
+            s += f" of {'non-empty ' if self.nonempty else ''}{names.get(self.item, self.item.__name__)}s"
+        elif self.nonempty:
+            s = "non-empty " + s
         if self.length is not None:
             s += f" of length {self.length}"
         if float in self.types or (list in self.types and self.length is not None):
@@ -62,12 +73,16 @@ class Field:
             s += f" <= {self.max:g}"
         if self.choices is not None:
             s += " (one of " + ", ".join(repr(c) for c in self.choices) + ")"
+        if self.zero_ok:
+            s = "0 or " + s
         return s
 
     def in_range(self, v: float) -> bool:
         """Whether the number ``v`` is finite and inside this field's bounds."""
         if isinstance(v, float) and not math.isfinite(v):
             return False
+        if self.zero_ok and v == 0:
+            return True
         if self.gt is not None and not v > self.gt:
             return False
         if self.min is not None and not v >= self.min:
@@ -75,10 +90,23 @@ class Field:
         return not (self.max is not None and not v <= self.max)
 
 
-def _f(types, default, doc, choices=None, length=None, *, min=None, max=None, gt=None) -> Field:  # noqa: A002
+def _f(
+    types,
+    default,
+    doc,
+    choices=None,
+    length=None,
+    *,
+    min=None,
+    max=None,
+    gt=None,
+    nonempty=False,
+    item=None,  # noqa: A002
+    zero_ok=False,
+) -> Field:
     if not isinstance(types, tuple):
         types = (types,)
-    return Field(types, default, doc, choices, length, min, max, gt)
+    return Field(types, default, doc, choices, length, min, max, gt, nonempty, item, zero_ok)
 
 
 #: section -> key -> Field. Keep config.toml in step with this table.
@@ -95,6 +123,14 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "calibration": _f(str, "", "calibration file for v4l2:// stereo cameras (see `illuminet calibrate`)"),
         "reconnect": _f(bool, True, "live sources: reconnect with backoff when the device is lost"),
         "response_curve": _f(str, "", "camera response curve from `illuminet calibrate photometric` ('' = sRGB)"),
+        "oakd_protocol": _f(
+            str,
+            "any",
+            "how DepthAI looks for OAK devices: any (USB, and a UDP broadcast on every network for PoE "
+            "models), usb (USB only: nothing is sent on the network), tcpip (network only); "
+            "oakd://?protocol= overrides it",
+            choices=("any", "usb", "tcpip"),
+        ),
     },
     "planes": {
         "method": _f(
@@ -107,7 +143,7 @@ SCHEMA: dict[str, dict[str, Field]] = {
             float,
             0.03,
             "distance of an inlier at 1 m; grows with z^2 like stereo noise (0.045 for integer-disparity depth)",
-            gt=0,
+            min=0.0001,
             max=1,
         ),
         "smoothing": _f(float, 0.8, "temporal smoothing of plane parameters, 0 = none, <1", min=0, max=0.999),
@@ -127,9 +163,9 @@ SCHEMA: dict[str, dict[str, Field]] = {
     },
     "plane_light": {
         "grid": _f(int, 32, "plane OI grid is grid x grid vertices", min=2, max=512),
-        "extent_m": _f(float, 1.0, "side of the square plane patch around the anchor, metres", gt=0, max=100),
+        "extent_m": _f(float, 1.0, "side of the square plane patch around the anchor, metres", min=0.01, max=100),
         "fusion": _f(float, 0.9, "temporal fusion weight of the previous estimate, 0 = none", min=0, max=0.999),
-        "assumed_albedo": _f(float, 0.5, "mean albedo assumed for the plane (radiance -> irradiance)", gt=0, max=1),
+        "assumed_albedo": _f(float, 0.5, "mean albedo assumed for the plane (radiance -> irradiance)", min=0.01, max=1),
         "smoothing_cells": _f(
             float,
             1.5,
@@ -153,7 +189,12 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "emitters": _f(bool, True, "take the primary light's direction from bright emitters in view"),
         "shadows": _f(bool, True, "take the primary light's direction from real cast shadows"),
         "rate_hz": _f(
-            float, 10.0, "estimates per second (frames in between reuse the last one; 0 = every frame)", min=0, max=1000
+            float,
+            10.0,
+            "estimates per second (frames in between reuse the last one; 0 = every frame)",
+            min=0.01,
+            max=1000,
+            zero_ok=True,
         ),
         "pipelined": _f(
             bool, True, "compute the estimate on a worker thread, collected one update later (deterministic)"
@@ -185,7 +226,7 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "temporal_smoothing": _f(float, 0.7, "exponential smoothing of predicted shading, 0 = none", min=0, max=0.999),
     },
     "render": {
-        "object_scale": _f(float, 1.0, "extra scale applied to the object's mesh", gt=0, max=1000),
+        "object_scale": _f(float, 1.0, "extra scale applied to the object's mesh", min=0.001, max=1000),
         "shadow": _f(bool, True, "draw the object's shadow on the anchor plane"),
         "shadow_map": _f(
             int,
@@ -227,9 +268,22 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "png_dir": _f(str, "", "write a PNG per frame into this folder ('' = off)"),
         "record": _f(str, "", "record the input session into this folder ('' = off)"),
         "mjpeg": _f(bool, False, "serve MJPEG over HTTP with a status page"),
-        "listen": _f(str, "127.0.0.1", "MJPEG bind address; 0.0.0.0 serves the local network"),
+        "listen": _f(
+            str, "127.0.0.1", "MJPEG bind address; 0.0.0.0 serves the local network (never empty)", nonempty=True
+        ),
         "port": _f(int, 8080, "MJPEG port (0 = a free port the system picks)", min=0, max=65535),
-        "fps": _f(float, 30.0, "frame rate written into video files", gt=0, max=1000),
+        "max_clients": _f(
+            int, 32, "MJPEG connections served at once; more get 503 and are closed at once", min=1, max=1024
+        ),
+        "allowed_hosts": _f(
+            list,
+            [],
+            "host names the MJPEG server answers besides localhost, this machine's name and IP addresses "
+            "(a Host header naming anything else gets 421: the DNS-rebinding defence); '*' = any",
+            item=str,
+            nonempty=True,
+        ),
+        "fps": _f(float, 30.0, "frame rate written into video files", min=0.1, max=1000),
         "record_color": _f(
             str,
             "raw",
@@ -369,17 +423,25 @@ def _check_value(where: str, section: str, key: str, value: Any) -> Any:
         value, ok = float(value), True
     if ok and fld.length is not None and len(value) != fld.length:
         ok = False
-    if ok and list in fld.types and fld.length is not None:
+    if ok and list in fld.types and fld.item is not None and isinstance(value, list):
+        ok = all(isinstance(v, fld.item) and not isinstance(v, bool) for v in value)
+        if ok and fld.nonempty:
+            ok = all(str(v).strip() for v in value)
+    elif ok and list in fld.types and fld.length is not None:
         ok = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+    if ok and fld.nonempty and isinstance(value, str):
+        ok = bool(value.strip())
     if ok and fld.choices is not None and value not in fld.choices:
         ok = False
     if ok and isinstance(value, (int, float)) and not isinstance(value, bool):
         ok = fld.in_range(value)
-    if ok and isinstance(value, list):
+    if ok and isinstance(value, list) and fld.item is None:
         ok = all(fld.in_range(v) for v in value)
     if not ok:
+        # a value that must not be empty: say what the key is for, since "" gives no hint of it
+        hint = f" ({fld.doc})" if fld.nonempty else ""
         raise ConfigError(
-            f"{where}: [{section}] {key}: expected {fld.type_name()}, got {type(value).__name__} {value!r}"
+            f"{where}: [{section}] {key}: expected {fld.type_name()}, got {type(value).__name__} {value!r}{hint}"
         )
     return value
 

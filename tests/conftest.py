@@ -26,6 +26,30 @@ def _shared_data_dir() -> Path:
 
 SHARED_DATA = _shared_data_dir()
 
+# ---- Hypothesis (tests/test_fuzz.py) ------------------------------------------------------------------
+# "illuminet": the default suite's profile. No deadline: on a shared 2-core machine an example's time is
+# no property (the fuzz tests bound wall-clock time themselves, generously). "illuminet-slow": loaded for
+# `-m slow` runs, where the fuzz tests' "thorough" variants run 25x the examples; it prints statistics.
+# HYPOTHESIS_PROFILE=NAME picks one explicitly.
+try:
+    from hypothesis import HealthCheck, settings
+
+    _slow_checks = [HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.filter_too_much]
+    settings.register_profile("illuminet", max_examples=20, deadline=None, suppress_health_check=_slow_checks)
+    settings.register_profile(
+        "illuminet-slow", max_examples=500, deadline=None, suppress_health_check=_slow_checks, print_blob=True
+    )
+    settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "illuminet"))
+except ImportError:  # pragma: no cover - hypothesis is in the test extra; only the fuzz tests need it
+    settings = None
+
+
+def pytest_configure(config):
+    markexpr = config.getoption("markexpr", "") or ""
+    if settings is not None and "HYPOTHESIS_PROFILE" not in os.environ:
+        if "slow" in markexpr and "not slow" not in markexpr:
+            settings.load_profile("illuminet-slow")
+
 
 @pytest.fixture(scope="session")
 def shared_data() -> Path:

@@ -41,6 +41,8 @@ BAD_INPUTS = [
     (["--set", "plane_light.grid=0", "run", "synthetic://indoor"], 2, "[plane_light] grid"),
     (["--set", "render.object_scale=nan", "run", "synthetic://indoor"], 2, "[render] object_scale"),
     (["--set", "render.object_scale=inf", "run", "synthetic://indoor"], 2, "[render] object_scale"),
+    (["--set", "render.object_scale=1e-282", "run", "synthetic://indoor"], 2, "[render] object_scale"),  # fuzz
+    (["--set", "light.rate_hz=2.2e-309", "run", "synthetic://indoor"], 2, "[light] rate_hz"),  # fuzz: 1e9/rate = inf
     (["--set", "imu.rotation=[1,0,0,0,1,0,0,0,nan]", "run", "synthetic://indoor"], 2, "[imu] rotation"),
     (["--set", "render.msaa=64", "run", "synthetic://indoor"], 2, "[render] msaa"),
     (["--set", "planes.smoothing=1.5", "run", "synthetic://indoor"], 2, "[planes] smoothing"),
@@ -426,3 +428,183 @@ def test_bad_relight_inputs_are_one_line_each(tmp_path, capsys, change, expect):
     lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert len(lines) == 1 and expect.replace("{tmp}", str(tmp_path)) in lines[0], lines
     assert not (tmp_path / "r.npz").exists() and not (tmp_path / "missing").exists()
+
+
+# --------------------------------------------------------------------- class 6: server hardening
+
+
+def _http(port: int, raw: bytes, timeout: float = 5.0) -> tuple[int, bytes]:
+    """Send ``raw`` on a fresh connection; (status, whole answer until the server closes or times out)."""
+    import socket
+
+    with socket.create_connection(("127.0.0.1", port), timeout=timeout) as s:
+        s.sendall(raw)
+        data = b""
+        try:
+            while chunk := s.recv(65536):
+                data += chunk
+                if b"\r\n\r\n" in data and b"Content-Length" in data.split(b"\r\n\r\n")[0]:
+                    head, body = data.split(b"\r\n\r\n", 1)
+                    n = int(head.split(b"Content-Length: ")[1].split(b"\r\n")[0])
+                    if len(body) >= n:
+                        break
+        except TimeoutError:
+            pass
+    status = int(data.split(b" ", 2)[1]) if data.startswith(b"HTTP/") else 0
+    return status, data
+
+
+def _get(port: int, host: str | None, path: str = "/stats.json", version: str = "HTTP/1.1", extra: str = "") -> int:
+    head = f"GET {path} {version}\r\n" + (f"Host: {host}\r\n" if host is not None else "") + extra
+    return _http(port, (head + "Connection: close\r\n\r\n").encode())[0]
+
+
+def test_host_header_must_name_this_server(tmp_path):
+    """DNS rebinding: a page at evil.example resolving to 127.0.0.1 must not read /stats.json."""
+    import socket
+
+    from illuminet.runtime.stream.mjpeg import MjpegSink
+
+    me = socket.gethostname()
+    with MjpegSink(port=0, allowed_hosts=["ar-box.example"]) as sink:
+        p = sink.port
+        for host in [
+            f"127.0.0.1:{p}",
+            "localhost",
+            f"LOCALHOST:{p}",
+            f"[::1]:{p}",
+            "192.168.1.20:8080",
+            me,
+            f"{me.split('.')[0]}.local:{p}",
+            "ar-box.example",
+            "ar-box.example.",
+            "viewer.localhost",
+        ]:
+            assert _get(p, host) == 200, host
+        for host in [
+            "evil.example",
+            f"evil.example:{p}",
+            "localhost.evil.example",
+            "127.0.0.1.evil.example",
+            "",
+            "a:b:c",
+            "[::1",
+            "user@127.0.0.1",
+            "ar-box.example.evil",
+        ]:
+            status, data = _http(p, f"GET /stats.json HTTP/1.1\r\nHost: {host}\r\n\r\n".encode())
+            assert status in (400, 421) and b'"sink"' not in data, (host, data[:200])
+        status, data = _http(p, f"GET /estimate.json HTTP/1.1\r\nHost: evil.example:{p}\r\n\r\n".encode())
+        assert status == 421 and b"allowed_hosts" in data
+        assert _get(p, None) == 400  # HTTP/1.1 needs a Host
+        assert _get(p, None, version="HTTP/1.0") == 200  # HTTP/1.0 may omit it: no browser does
+        assert _get(p, "127.0.0.1", extra="Host: evil.example\r\n") == 400  # two Host headers
+        st = sink.status()["sink"]
+        assert st["refused_host"] >= 8
+    with MjpegSink(port=0, allowed_hosts=["*"]) as sink:
+        assert _get(sink.port, "evil.example") == 200
+
+
+def test_connections_are_capped_with_a_503_and_a_flood_is_survived():
+    import socket
+    import threading as th
+
+    from illuminet.runtime.stream.mjpeg import LISTEN_BACKLOG, MjpegSink
+
+    with MjpegSink(port=0, max_clients=3) as sink:
+        p = sink.port
+        assert sink._server.request_queue_size == LISTEN_BACKLOG > 5
+        streams = []
+        for _ in range(3):  # three stream clients hold every slot
+            s = socket.create_connection(("127.0.0.1", p), timeout=5)
+            s.sendall(b"GET /stream.mjpg HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+            assert s.recv(12).startswith(b"HTTP/1.1 200")
+            streams.append(s)
+        t0 = time.monotonic()
+        status, data = _http(p, b"GET /stats.json HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+        assert status == 503 and b"Retry-After" in data and time.monotonic() - t0 < 3
+        # a flood of connections: threads stay bounded, none hangs, the server still answers
+        threads_before = th.active_count()
+        flood = [socket.create_connection(("127.0.0.1", p), timeout=5) for _ in range(150)]
+        assert th.active_count() <= threads_before + 2
+        for s in flood:
+            s.close()
+        streams.pop().close()
+        deadline = time.monotonic() + 5
+        while sink.connections >= 3 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert _get(p, "127.0.0.1") == 200  # a freed slot serves again
+        assert sink.status()["sink"]["refused_busy"] >= 2
+        for s in streams:
+            s.close()
+
+
+def test_an_empty_listen_address_is_refused(capsys):
+    from illuminet.runtime.stream.mjpeg import MjpegSink
+
+    for value in ["", "  "]:
+        assert main(["run", "synthetic://indoor", "--mjpeg", "--listen", value]) == 2
+        lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+        assert len(lines) == 1 and "[output] listen" in lines[0] and "0.0.0.0" in lines[0], lines
+        with pytest.raises(ValueError, match="listen address is empty"):
+            MjpegSink(listen=value)
+    assert main(["--set", "output.max_clients=0", "run", "synthetic://indoor"]) == 2
+    assert main(["--set", 'output.allowed_hosts=[""]', "run", "synthetic://indoor"]) == 2
+    assert "[output] allowed_hosts" in capsys.readouterr().err
+
+
+def test_usb_only_oak_search_sends_nothing_on_the_network():
+    """DepthAI's default search broadcasts on UDP 11491 (loopback included); protocol=usb sends nothing."""
+    import socket
+
+    from illuminet.hw import oakd
+
+    assert oakd.parse_url("oakd://?protocol=usb").protocol == "usb"
+    with pytest.raises(ValueError, match="protocol=usb cannot reach the network device"):
+        oakd.parse_url("oakd://192.168.1.44?protocol=usb")
+    assert oakd.open_url("oakd://", _sessions_cfg("usb")).opts.protocol == "usb"
+    assert oakd.open_url("oakd://?protocol=tcpip", _sessions_cfg("usb")).opts.protocol == "tcpip"
+    listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        listener.bind(("", 11491))
+    except OSError as e:
+        pytest.skip(f"UDP port 11491 is in use here: {e}")
+    listener.settimeout(0.3)
+    # each in a fresh process: DepthAI reads DEPTHAI_PROTOCOL once, at its first search
+    code = (
+        "import sys\nfrom illuminet.hw import oakd\ntry:\n    oakd.list_devices(sys.argv[1])\n"
+        "except RuntimeError as e:\n    print('search failed:', e)\n"
+    )
+    got = {}
+    try:
+        for proto in ("usb", "any"):
+            env = _sessions.env()
+            env.pop("DEPTHAI_PROTOCOL", None)
+            subprocess.run([sys.executable, "-c", code, proto], cwd=REPO, env=env, timeout=120, capture_output=True)
+            packets = []
+            try:
+                while True:
+                    packets.append(listener.recvfrom(64)[0])
+            except TimeoutError:
+                pass
+            got[proto] = packets
+    finally:
+        listener.close()
+    if not got["any"]:
+        pytest.skip("no DepthAI discovery broadcast reached the loopback listener here (no broadcast route)")
+    assert got["usb"] == [], got
+    # and asking for another protocol after the first search is refused, not silently ignored
+    oakd._searched_with = None
+    try:
+        assert oakd.select_protocol("any") in ("any", "usb", "tcpip")
+        with pytest.raises(errors.SourceError, match="needs a new process"):
+            oakd.select_protocol("tcpip" if oakd._searched_with != "tcpip" else "usb")
+    finally:
+        oakd._searched_with = None
+
+
+def _sessions_cfg(protocol: str):
+    from illuminet.runtime.config import apply_overrides, defaults
+
+    return apply_overrides(defaults(), [("source", "oakd_protocol", protocol)])

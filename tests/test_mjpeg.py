@@ -112,7 +112,7 @@ def test_two_clients_share_one_encoding_and_a_stalled_client_does_not_block():
         # a client that connects and never reads: its socket buffer fills, it must not stall others
         stalled = socket.create_connection(("127.0.0.1", sink.port))
         stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-        stalled.sendall(b"GET /stream.mjpg HTTP/1.1\r\nHost: x\r\n\r\n")
+        stalled.sendall(b"GET /stream.mjpg HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
         results: dict[int, list[bytes]] = {}
 
         def client(k):

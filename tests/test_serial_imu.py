@@ -211,3 +211,143 @@ def test_stage_from_config_over_loop():
 def test_list_ports_returns_dicts():
     for p in list_ports():
         assert set(p) == {"device", "description", "hwid"}
+
+
+# ------------------------------------------- issue 13, class 4: plausible-looking garbage is not trusted
+
+
+def _line(t_ns: int, accel, gyro=None) -> bytes:
+    return format_line(t_ns, accel, gyro)
+
+
+def _raw(payload: bytes) -> bytes:
+    return b"$" + payload + b"*" + f"{checksum(payload):02X}".encode() + b"\r\n"
+
+
+@pytest.mark.parametrize(
+    "payload, why",
+    [
+        (b"IMU,1000,0,0,1e308", "acceleration .* is not physical"),
+        (b"IMU,1000,0,0,314", "acceleration .* is not physical"),  # 32 g
+        (b"IMU,1000,0,0,9.8,0,0,1e6", "angular rate .* is not physical"),
+        (b"IMU,1000,0,0,1e999", "non-finite"),
+        (b"IMU,18446744073709551616,0,0,9.8", "not an integer number of nanoseconds"),  # 2**64: 20 digits
+        (b"IMU,9999999999999999999,0,0,9.8", "beyond 2\\*\\*63-1"),
+        (b"IMU,-5,0,0,9.8", "not an integer number of nanoseconds"),
+        (b"IMU,1_000,0,0,9.8", "not an integer number of nanoseconds"),
+        (b"IMU,1000,0,0, 9.8", "not a number"),
+    ],
+)
+def test_implausible_values_with_a_valid_checksum_are_refused(payload, why):
+    with pytest.raises(ImuProtocolError, match=why):
+        parse_line(_raw(payload))
+    p = LineParser()
+    assert p.feed(_line(1, (0, 0, G)) + _raw(payload) + _line(2, (0, 0, G))) != []
+    assert p.good == 2 and p.implausible + p.malformed == 1
+
+
+def _reader(clock: str = "device") -> SerialImu:
+    # the reader's line handling without a port: _accept(sample, arrival) is what its thread calls
+    return SerialImu("loop://", matcher=ImuMatcher(max_skew_ms=10.0, tau_s=0.3), clock=clock)
+
+
+def test_one_huge_acceleration_line_does_not_zero_gravity():
+    """|a| = 1e308 with a valid checksum used to hold the low-passed gravity at zero for ~100 s."""
+    imu = _reader()
+    host0 = 10**12
+    stream = b"".join(_line(i * 5_000_000, (0.0, 0.0, G)) for i in range(50))
+    stream += _raw(b"IMU,250000000,0,0,1e308") + _raw(b"IMU,250000001,1e300,0,0")
+    stream += b"".join(_line(i * 5_000_000, (0.0, 0.0, G)) for i in range(51, 100))
+    for k, s in enumerate(imu.parser.feed(stream)):
+        imu._accept(s, host0 + s.t_ns + 1_000_000 + k)
+    _, g = imu.matcher.match(host0 + 60 * 5_000_000)
+    np.testing.assert_allclose(g, [0, 0, -1], atol=1e-6)
+    st = imu.stats()
+    assert st["implausible"] == 2 and st["good"] == 99
+
+
+def test_a_far_future_timestamp_does_not_disable_the_imu():
+    """One line stamped far in the future used to make every later line 'out of order' for good."""
+    for clock in ("device", "host"):
+        imu = _reader(clock)
+        host0 = 10**12
+        t0 = host0 if clock == "host" else 0
+        for i in range(100):
+            t = t0 + i * 5_000_000
+            arrival = host0 + i * 5_000_000 + 1_000_000
+            if i == 40:
+                imu._accept(ImuSample(t + 10**18, (0.0, 0.0, G)), arrival)  # ~31 years ahead
+            imu._accept(ImuSample(t, (0.0, 0.0, G)), arrival)
+        st = imu.stats()
+        assert st["time_rejected"] == 1 and st["out_of_order"] == 0, (clock, st)
+        samples, g = imu.matcher.match(host0 + 99 * 5_000_000 + 1_000_000)
+        assert samples and g is not None, clock
+        np.testing.assert_allclose(g, [0, 0, -1], atol=1e-6)
+
+
+def test_a_sender_clock_restart_is_followed_after_agreeing_lines():
+    from illuminet.hw.serial_imu import RESYNC_LINES
+
+    imu = _reader("device")
+    host0 = 10**12
+    for i in range(50):  # sender clock at 1000 s, then the board resets to 0
+        imu._accept(ImuSample(10**12 + i * 5_000_000, (0.0, 0.0, G)), host0 + i * 5_000_000)
+    n = RESYNC_LINES + 400  # 2 s after the restart: the gravity low-pass (tau 0.3 s) has settled
+    for j in range(n):  # ... and the board is now held on its side
+        imu._accept(ImuSample(j * 5_000_000, (0.0, G, 0.0)), host0 + (50 + j) * 5_000_000)
+    st = imu.stats()
+    assert st["clock_resyncs"] == 1 and st["time_rejected"] == RESYNC_LINES - 1
+    _, g = imu.matcher.match(host0 + (50 + n - 1) * 5_000_000)
+    np.testing.assert_allclose(g, [0, -1, 0], atol=1e-2)  # the new timeline's samples are used
+
+
+def test_a_first_line_far_in_the_future_is_outlived():
+    # nothing to compare the very first line with: it is accepted, and the real timeline takes over
+    imu = _reader("device")
+    host0 = 10**12
+    imu._accept(ImuSample(2**62, (0.0, 0.0, G)), host0)
+    for i in range(1, 80):
+        imu._accept(ImuSample(i * 5_000_000, (0.0, 0.0, G)), host0 + i * 5_000_000)
+    assert imu.stats()["clock_resyncs"] == 1
+    samples, g = imu.matcher.match(host0 + 79 * 5_000_000)
+    assert samples and g is not None
+
+
+def test_matcher_refuses_implausible_samples_and_outlives_a_future_one():
+    from illuminet.hw.serial_imu import RESYNC_LINES
+
+    m = ImuMatcher(max_skew_ms=10.0, tau_s=0.3)
+    t = 1_000_000_000
+    for i in range(10):
+        m.add(ImuSample(t + i * 5_000_000, (0.0, 0.0, G)))
+    m.add(ImuSample(t + 10 * 5_000_000, (0.0, 0.0, 1e308)))
+    m.add(ImuSample(t + 11 * 5_000_000, (float("nan"), 0.0, G)))
+    assert m.implausible == 2
+    np.testing.assert_allclose(m.match(t + 9 * 5_000_000)[1], [0, 0, -1], atol=1e-6)
+    m.add(ImuSample(t + 10**18, (0.0, 0.0, G)))  # reached the matcher by another path (an OAK's IMU)
+    for i in range(12, 12 + RESYNC_LINES + 5):
+        m.add(ImuSample(t + i * 5_000_000, (0.0, 0.0, G)))
+    assert m.timeline_resets == 1
+    assert m.match(t + (12 + RESYNC_LINES + 4) * 5_000_000)[1] is not None
+
+
+def test_loop_port_with_hostile_lines_keeps_gravity():
+    """End to end over loop://: a 1e308 line and a far-future line among good ones, host clock."""
+    port = serial.serial_for_url("loop://", timeout=0.05)
+    matcher = ImuMatcher(max_skew_ms=10.0, tau_s=0.3)
+    with SerialImu("loop://", matcher=matcher, clock="host", port=port) as imu:
+        t0 = time.monotonic_ns() - 10**9  # stamped in the last second, as a host-clock sender does
+        good = [ImuSample(t0 + i * 5_000_000, (0.0, 0.0, G)) for i in range(100)]
+        write_samples(port, good[:50])
+        port.write(_raw(f"IMU,{good[50].t_ns - 1},0,0,1e308".encode()))
+        port.write(_line(t0 + 10**18, (0.0, 0.0, G)))
+        write_samples(port, good[50:])
+        deadline = time.time() + 5
+        while imu.parser.good + imu.parser.implausible < 102 and time.time() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.05)
+        st = imu.stats()
+    port.close()
+    assert st["implausible"] == 1 and st["time_rejected"] == 1 and st["out_of_order"] == 0, st
+    _, g = matcher.match(good[99].t_ns)
+    np.testing.assert_allclose(g, [0, 0, -1], atol=1e-6)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import collections
+import math
 import threading
 import time
 from pathlib import Path
@@ -497,6 +498,19 @@ _PARAMS = {
 }
 
 
+#: most work the scene's bake may take: lights x (1 + occluders) x sqrt(pixels / 640x400). Baking the
+#: ground truth (irradiance with shadows) costs ~0.04 s per unit on a 2-core machine, so a scene within
+#: it starts in seconds; beyond it a URL like lights=1024&boxes=12&size=4096x4096 stalled for minutes
+MAX_BAKE_WORK = 512
+
+
+def bake_work(kind: str, lights: int, boxes: int | None, table: bool | None, size: tuple[int, int]) -> float:
+    """The bake cost of a scene in :data:`MAX_BAKE_WORK` units (an upper estimate from its parameters)."""
+    n_boxes = boxes if boxes is not None else (4 if kind == "cluttered" else 0)
+    n_table = 1 if (table if table is not None else kind == "indoor") else 0
+    return lights * (1 + n_boxes + n_table) * math.sqrt(size[0] * size[1] / (640 * 400))
+
+
 def open_url(url: str, config=None) -> SyntheticSource:
     """Create the synthetic source for ``synthetic://SCENE?...`` (see the module docstring)."""
     parts = urlsplit(url)
@@ -512,6 +526,14 @@ def open_url(url: str, config=None) -> SyntheticSource:
         raise SyntheticError(f"{url!r}: HDR map not found: {hdr}")
     size = q.get("size") or (q.get("width", 640), q.get("height", 400))  # or the width=640&height=400 spelling
     frames = q.get("frames", 60)
+    work = bake_work(kind, q.get("lights", 32), boxes, q.get("table"), size)
+    if work > MAX_BAKE_WORK:
+        raise SyntheticError(
+            f"{url!r}: lights={q.get('lights', 32)} with {boxes if boxes is not None else 'the default'} boxes at "
+            f"{size[0]}x{size[1]} would take minutes to build (ground-truth work {work:.0f}, at most "
+            f"{MAX_BAKE_WORK}: lights x (1 + boxes + table) x sqrt(pixels / 640x400)); use fewer lights or boxes, "
+            "or a smaller size"
+        )
     scene = build_scene(
         kind,
         q.get("seed", 0),

@@ -30,7 +30,11 @@ BENCHES: dict[str, str] = {
     "capture-to-output latency, CPU per frame, peak memory",
     "live": "a live synthetic camera faster than the pipeline: dropped frames, latency per quarter of the run",
     "shadows": "light direction from real shadows: accuracy on synthetic box scenes, full search and local refine",
+    "soak": "memory over a long run: the demo pipeline in real time with MJPEG and estimate clients attached; "
+    "RSS slope in MB/min after warm-up (--minutes N, default 30; only when named)",
 }
+#: benchmarks that run only when named (``illuminet bench`` alone skips them: they take many minutes)
+ON_REQUEST = ("soak",)
 
 
 def register(sub) -> None:
@@ -40,7 +44,12 @@ def register(sub) -> None:
         help="run benchmarks and print their figures",
         description="Benchmarks: " + "; ".join(f"{n}: {BENCHES[n]}" for n in names),
     )
-    p.add_argument("names", nargs="*", metavar="NAME", help=f"which to run (default: all): {', '.join(names)}")
+    p.add_argument(
+        "names",
+        nargs="*",
+        metavar="NAME",
+        help=f"which to run (default: all but {', '.join(ON_REQUEST)}): {', '.join(names)}",
+    )
     p.add_argument("--quick", action="store_true", help="fewer repetitions (smoke test)")
     p.add_argument("--json", metavar="PATH", help="also write all figures as JSON")
     p.add_argument("--size", metavar="WxH", help="demo, live: output (camera) size (demo: 1280x800, live: 640x400)")
@@ -54,11 +63,12 @@ def register(sub) -> None:
     p.add_argument("--rounds", type=int, metavar="N", help="demo: runs per mode, alternating (default 2; --quick 1)")
     p.add_argument("--fps", metavar="LIST", help="live: camera frame rates, comma-separated (default 60,120)")
     p.add_argument("--seconds", type=float, metavar="S", help="live: seconds per camera rate (default 10; --quick 3)")
+    p.add_argument("--minutes", type=float, metavar="N", help="soak: how long to stream (default 30; with --quick 0.5)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace, cfg) -> int:
-    names = args.names or list(BENCHES)
+    names = args.names or [n for n in BENCHES if n not in ON_REQUEST]
     unknown = [n for n in names if n not in BENCHES]
     if unknown:
         print(

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 
 
 def register(sub) -> None:
@@ -21,11 +20,28 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _toml_string(s: str) -> str:
+    """A TOML basic string: quotes, backslashes and control characters escaped, everything else as is.
+
+    (``json.dumps`` is not TOML: it writes characters beyond U+FFFF as surrogate pairs, which TOML
+    refuses, and leaves DEL unescaped.)
+    """
+    out = []
+    for ch in s:
+        if ch in '"\\':
+            out.append("\\" + ch)
+        elif ord(ch) < 0x20 or ord(ch) == 0x7F:
+            out.append(f"\\u{ord(ch):04X}")
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'
+
+
 def _toml_value(v) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, str):
-        return json.dumps(v)
+        return _toml_string(v)
     if isinstance(v, list):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     return repr(v)
@@ -37,7 +53,7 @@ def run(args: argparse.Namespace, cfg) -> int:
 
         print(chain_diagram(build_stages(cfg)))
         return 0
-    print(f"# effective configuration (from {cfg.origin})")
+    print(f"# effective configuration (from {cfg.origin!r})")
     for section, values in cfg.items():
         print(f"\n[{section}]")
         for key, value in values.items():

@@ -163,18 +163,21 @@ def check_pyav() -> Check:
     return Check("PyAV (H.264 video)", OK, f"{av.__version__}; libx264 (MP4 as H.264, yuv420p)")
 
 
-def check_depthai() -> Check:
+def check_depthai(protocol: str = "any") -> Check:
+    """OAK devices DepthAI finds; ``protocol`` ([source] oakd_protocol): "usb" broadcasts nothing on the network."""
     try:
         oakd = importlib.import_module("illuminet.hw.oakd")
     except ImportError as e:
         return Check("DepthAI (OAK)", MISSING, f"not importable: {e}", "pip install 'depthai>=3'")
+    where = {"any": "USB and the network (UDP broadcast)", "usb": "USB only", "tcpip": "the network only"}
+    searched = f"searched {where.get(protocol, protocol)} ([source] oakd_protocol)"
     try:
-        devices = oakd.list_devices()
+        devices = oakd.list_devices(protocol)
     except Exception as e:  # USB stack problems surface here
         return Check(
             "DepthAI (OAK)",
             MISSING,
-            f"{oakd.depthai_version()}; device search failed: {e}",
+            f"{oakd.depthai_version()}; {searched}; device search failed: {e}",
             "check USB access (udev rule below) or run with the device's IP for PoE models",
         )
     items = [f"{d['id']}  {d['name']}  {d['state']} {d['protocol']} {d['platform']}" for d in devices]
@@ -182,7 +185,7 @@ def check_depthai() -> Check:
         return Check(
             "DepthAI (OAK)",
             NONE,
-            f"{oakd.depthai_version()}; no OAK device found",
+            f"{oakd.depthai_version()}; {searched}; no OAK device found",
             'plug the OAK in (USB3 port and cable); on Linux allow access once: echo \'SUBSYSTEM=="usb", '
             'ATTRS{idVendor}=="03e7", MODE="0666"\' | sudo tee /etc/udev/rules.d/80-movidius.rules && '
             "sudo udevadm control --reload-rules && sudo udevadm trigger; in a container pass "
@@ -240,14 +243,16 @@ def check_serial(imu_url: str) -> Check:
     return Check("serial ports", OK, f"{len(ports)} port(s){configured}", items=items)
 
 
-def run_checks(imu_url: str = "", gl_backend: str = "egl", gl_api: str = "auto") -> list[Check]:
+def run_checks(
+    imu_url: str = "", gl_backend: str = "egl", gl_api: str = "auto", oakd_protocol: str = "any"
+) -> list[Check]:
     """All checks, in report order; a check that crashes is reported as MISSING with the error."""
     checks: list[tuple[str, Callable[[], Check]]] = [
         ("OpenGL (EGL)", lambda: check_gl(gl_backend, gl_api)),
         ("onnxruntime", check_onnxruntime),
         ("OpenCV", check_opencv),
         ("PyAV (H.264 video)", check_pyav),
-        ("DepthAI (OAK)", check_depthai),
+        ("DepthAI (OAK)", lambda: check_depthai(oakd_protocol)),
         ("V4L2 cameras", check_v4l2),
         ("serial ports", lambda: check_serial(imu_url)),
     ]
@@ -302,7 +307,7 @@ def run(args: argparse.Namespace, cfg) -> int:
         # DepthAI prints its warnings to stdout when it is imported; keep the JSON parseable
         os.environ.setdefault("DEPTHAI_LEVEL", "error")
     if cfg is not None:
-        checks = run_checks(cfg.imu.url, cfg.render.gl_backend, cfg.render.gl_api)
+        checks = run_checks(cfg.imu.url, cfg.render.gl_backend, cfg.render.gl_api, cfg.source.oakd_protocol)
     else:
         checks = run_checks()
     if getattr(args, "json", False):

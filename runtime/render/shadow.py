@@ -423,8 +423,11 @@ class ShadowCaster:
             obj.release()
         h = np.maximum(h, 0.0)
         w = np.clip(1.0 - h / h0, 0.0, 1.0) ** 2
-        sigma_px = sigma_m / ((rect[2] - rect[0]) / res)
-        ao = cv2.GaussianBlur(w.astype(np.float32), (0, 0), sigmaX=max(sigma_px, 0.5))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sigma_px = float(sigma_m / ((rect[2] - rect[0]) / res))
+        if not np.isfinite(sigma_px):  # a degenerate (zero-size) mesh: a one-pixel blur, not an OpenCV error
+            sigma_px = 0.5
+        ao = cv2.GaussianBlur(w.astype(np.float32), (0, 0), sigmaX=min(max(sigma_px, 0.5), res))
         # normalise so that the middle of a broad base is fully occluded
         peak = float(ao.max())
         if peak > 1e-6:

@@ -43,16 +43,36 @@ How a frame travels, and why the loop never waits for a client::
   sends the newest one at most ``max_fps`` times a second.
 * The server binds 127.0.0.1 by default. ``listen="0.0.0.0"`` serves the local network (a headset);
   there is no authentication, so only do that on a network you trust.
+
+Hardening (what a hostile page or client meets):
+
+* **Host check (DNS rebinding).** A web page on another site can make a browser send requests to
+  127.0.0.1 under the page's own host name, by resolving that name to 127.0.0.1 after the page is
+  loaded; the browser then lets the page read the answers. So a request is answered only when its
+  ``Host`` header names this server: an IP address literal (a page cannot rebind a literal),
+  ``localhost`` (and ``*.localhost``), this machine's host name (also ``NAME.local``), or a name in
+  ``allowed_hosts`` (``"*"``: any). Anything else gets ``421 Misdirected Request`` with a line saying
+  which key to set; an HTTP/1.1 request without a ``Host`` (or with two) gets ``400``.
+* **Connection cap.** At most ``max_clients`` connections are served at once (one thread each);
+  one more gets ``503 Service Unavailable`` with ``Retry-After`` from a single refusing thread and is
+  closed at once, so a flood of connections cannot exhaust threads. The listen backlog is
+  :data:`LISTEN_BACKLOG` (the standard library's default is 5, which drops connections under bursts).
+* Idle keep-alive connections close after 30 s; a stream client that accepts nothing for
+  ``client_timeout_s`` is dropped. The server serves no files other than its packaged pages.
 """
 
 from __future__ import annotations
 
 import collections
+import ipaddress
 import json
 import logging
+import queue
+import select
+import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
@@ -72,6 +92,80 @@ log = logging.getLogger(__name__)
 BOUNDARY = "illuminetframe"
 #: an idle event stream sends a comment this often, so dead clients are noticed and proxies keep it open
 SSE_KEEPALIVE_S = 10.0
+#: connections the kernel queues before the server accepts them (socketserver's default is 5)
+LISTEN_BACKLOG = 128
+#: refused connections waiting for their 503; more are closed without one
+REFUSE_QUEUE = 64
+#: how long the refusing thread waits for a refused client's request before answering it, seconds
+REFUSE_READ_S = 0.5
+
+
+def host_name_of(header: str) -> str | None:
+    """The host part of a ``Host`` header, lower case, without port or trailing dot; None when malformed.
+
+    ``"LocalHost:8080"`` -> ``"localhost"``, ``"[::1]:80"`` -> ``"::1"``, ``"a:b:c"`` -> None.
+    """
+    h = header.strip().lower()
+    if not h or any(c.isspace() or c in "/@?#\\" for c in h):
+        return None
+    if h.startswith("["):  # an IPv6 literal: [addr] or [addr]:port
+        end = h.find("]")
+        if end < 0:
+            return None
+        host, rest = h[1:end], h[end + 1 :]
+        if rest and not (rest.startswith(":") and rest[1:].isdigit()):
+            return None
+        return host or None
+    host, colon, port = h.partition(":")
+    if colon and not port.isdigit():
+        return None  # a second colon (an unbracketed IPv6 address) or a port that is not a number
+    host = host.rstrip(".")
+    return host or None
+
+
+class HostCheck:
+    """Which ``Host`` header values the server answers (see the module docstring: DNS rebinding).
+
+    Parameters
+    ----------
+    listen : str
+        The bound address (answered, as every IP literal is).
+    allowed : iterable of str
+        Further names (``[output] allowed_hosts``); ``"*"`` allows any.
+    """
+
+    def __init__(self, listen: str, allowed: Iterable[str] = ()):
+        self.any = False
+        names = {"localhost"}
+        for n in list(allowed) + [listen]:
+            if str(n).strip() == "*":
+                self.any = True
+                continue
+            h = host_name_of(str(n)) or str(n).strip().lower().strip("[]").rstrip(".")
+            if h:
+                names.add(h)
+        try:
+            me = socket.gethostname().lower().rstrip(".")
+        except OSError:  # pragma: no cover - no host name configured
+            me = ""
+        if me:
+            short = me.split(".")[0]
+            names |= {me, short, f"{short}.local"}
+        self.names = frozenset(names)
+
+    def allows(self, header: str | None) -> bool:
+        if self.any:
+            return True
+        host = host_name_of(header or "")
+        if host is None:
+            return False
+        if host in self.names or host.endswith(".localhost"):
+            return True
+        try:
+            ipaddress.ip_address(host.split("%", 1)[0])  # an address literal (an IPv6 zone id allowed)
+            return True
+        except ValueError:
+            return False
 
 
 class _Hub:
@@ -287,7 +381,44 @@ def _make_handler(sink: MjpegSink):
                 HTTPStatus.NOT_FOUND,
             )
 
+        def _peer_closed(self) -> bool:
+            """Whether the client closed its end (checked while a stream idles: nothing written, nothing noticed)."""
+            try:
+                r, _, _ = select.select([self.connection], [], [], 0)
+                return bool(r) and self.connection.recv(1, socket.MSG_PEEK) == b""
+            except (OSError, ValueError):
+                return True
+
+        def _host_ok(self) -> bool:
+            """Answer 400/421 and return False unless the request's ``Host`` names this server."""
+            hosts = self.headers.get_all("Host") or []
+            if len(hosts) > 1 or (not hosts and self.request_version == "HTTP/1.1"):
+                self.close_connection = True
+                self._send_bytes(
+                    b"an HTTP/1.1 request needs exactly one Host header\n",
+                    "text/plain; charset=utf-8",
+                    HTTPStatus.BAD_REQUEST,
+                )
+                return False
+            if not hosts or sink._hosts.allows(hosts[0]):
+                return True  # HTTP/1.0 without Host: not a browser, so not a rebinding page
+            with sink._count_lock:
+                sink.refused_host += 1
+            sink._log("host", f"refused a request for Host {hosts[0][:80]!r} (not this server's name)")
+            self.close_connection = True
+            self._send_bytes(
+                (
+                    f"Host {hosts[0][:80]!r} is not a name of this server; open it by its IP address, localhost "
+                    "or this machine's name, or add the name to [output] allowed_hosts\n"
+                ).encode("utf-8", "replace"),
+                "text/plain; charset=utf-8",
+                HTTPStatus.MISDIRECTED_REQUEST,
+            )
+            return False
+
         def do_GET(self) -> None:  # noqa: N802 (http.server naming)
+            if not self._host_ok():
+                return
             path, _, query = self.path.partition("?")
             if path in ("/", "/index.html"):
                 self._static("index.html")
@@ -349,7 +480,7 @@ def _make_handler(sink: MjpegSink):
                 self.wfile.flush()
                 while True:
                     if not box.wait_newer(seq, timeout=0.5):
-                        if box.closed or sink._server is None:
+                        if box.closed or sink._server is None or self._peer_closed():
                             return
                         if time.monotonic() - last_write > SSE_KEEPALIVE_S:
                             self.wfile.write(b": keep-alive\n\n")
@@ -390,6 +521,8 @@ def _make_handler(sink: MjpegSink):
                     if hub.closed:
                         return
                     if jpeg is None:
+                        if self._peer_closed():  # no frames to write: a gone client would hold its slot
+                            return
                         continue
                     seq = new_seq
                     head = (f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n\r\n").encode()
@@ -403,6 +536,83 @@ def _make_handler(sink: MjpegSink):
                 hub.add_client(-1)
 
     return Handler
+
+
+class _Server(ThreadingHTTPServer):
+    """The threading HTTP server with a connection cap and a longer listen backlog (module docstring)."""
+
+    request_queue_size = LISTEN_BACKLOG
+    daemon_threads = True  # client threads never keep the process alive
+
+    def __init__(self, address: tuple[str, int], handler: type, sink: MjpegSink):
+        self.sink = sink
+        self._refuse_q: queue.Queue = queue.Queue(maxsize=REFUSE_QUEUE)
+        self._refuser: threading.Thread | None = None
+        super().__init__(address, handler)  # on a failed bind this calls server_close() and raises
+        self._refuser = threading.Thread(target=self._refuse_loop, name="illuminet-mjpeg-refuse", daemon=True)
+        self._refuser.start()
+
+    def process_request(self, request, client_address) -> None:
+        sink = self.sink
+        with sink._count_lock:
+            busy = sink.connections >= sink.max_clients
+            if busy:
+                sink.refused_busy += 1
+            else:
+                sink.connections += 1
+        if not busy:
+            try:
+                super().process_request(request, client_address)  # a thread for this connection
+            except Exception:
+                with sink._count_lock:
+                    sink.connections -= 1
+                raise
+            return
+        sink._log("busy", f"{sink.max_clients} connections are open ([output] max_clients); refusing more with 503")
+        try:
+            self._refuse_q.put_nowait(request)
+        except queue.Full:  # a flood: no 503 for these, just the close
+            self.shutdown_request(request)
+
+    def process_request_thread(self, request, client_address) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            with self.sink._count_lock:
+                self.sink.connections -= 1
+
+    def _refuse_loop(self) -> None:
+        """One thread answers every refused connection: read its request (briefly), 503, close."""
+        body = b"too many connections to this server; try again shortly\n"
+        msg = (
+            b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain; charset=utf-8\r\n"
+            b"Content-Length: %d\r\nRetry-After: 2\r\nConnection: close\r\n\r\n%s" % (len(body), body)
+        )
+        while True:
+            request = self._refuse_q.get()
+            if request is None:
+                return
+            try:
+                request.settimeout(REFUSE_READ_S)
+                try:
+                    request.recv(65536)  # the request: read so that closing does not reset the connection
+                except OSError:
+                    pass
+                request.sendall(msg)
+            except OSError:
+                pass
+            finally:
+                self.shutdown_request(request)
+
+    def server_close(self) -> None:
+        super().server_close()
+        if self._refuser is None:
+            return
+        try:
+            self._refuse_q.put_nowait(None)
+        except queue.Full:
+            pass
+        self._refuser.join(timeout=2.0)
 
 
 class MjpegSink(Sink):
@@ -433,6 +643,11 @@ class MjpegSink(Sink):
         (:func:`illuminet.runtime.stream.viewer.model_glb`); checked here, made on first request.
     object_scale : float
         ``[render] object_scale``, applied to converted viewer models.
+    max_clients : int
+        Connections served at once (``[output] max_clients``); more get 503 and are closed.
+    allowed_hosts : iterable of str
+        ``Host`` names answered besides IP literals, localhost and this machine's name
+        (``[output] allowed_hosts``; ``"*"`` = any). See the module docstring.
 
     Attributes
     ----------
@@ -454,12 +669,28 @@ class MjpegSink(Sink):
         max_fps: float = 30.0,
         viewer_model: str = "builtin:vase",
         object_scale: float = 1.0,
+        max_clients: int = 32,
+        allowed_hosts: Iterable[str] = (),
     ):
         if not (1 <= int(quality) <= 100):
             raise ValueError(f"MjpegSink quality must be within 1..100, got {quality!r}")
         if not (0 <= int(port) <= 65535):
             raise ValueError(f"MjpegSink port must be within 0..65535, got {port!r}")
-        self.listen = str(listen)
+        if not str(listen).strip():
+            raise ValueError(
+                "MjpegSink listen address is empty; give 127.0.0.1 (this machine) or 0.0.0.0 (the local network)"
+            )
+        if int(max_clients) < 1:
+            raise ValueError(f"MjpegSink max_clients must be >= 1, got {max_clients!r}")
+        self.listen = str(listen).strip()
+        self.max_clients = int(max_clients)
+        self.allowed_hosts = tuple(str(h) for h in allowed_hosts)
+        self._hosts = HostCheck(self.listen, self.allowed_hosts)
+        self._count_lock = threading.Lock()
+        self.connections = 0
+        self.refused_busy = 0
+        self.refused_host = 0
+        self._log = LogOnce(log, "MJPEG server")
         self.port = int(port)
         self.stats_fn = stats
         self.client_timeout_s = float(client_timeout_s)
@@ -498,13 +729,15 @@ class MjpegSink(Sink):
         self._camera_hub = _Hub(self._quality, self.max_fps)
         self._estimates = _EstimateBox()
         try:
-            server = ThreadingHTTPServer((self.listen, self.port), _make_handler(self))
-        except OSError as e:
-            raise OSError(
-                f"MJPEG server cannot listen on {self.listen}:{self.port}: {e.strerror or e}. "
-                f"Pick another port ([output] port, or 0 for any free one) or stop what uses it."
-            ) from e
-        server.daemon_threads = True  # client threads never keep the process alive
+            server = _Server((self.listen, self.port), _make_handler(self), self)
+        except (OSError, ValueError, UnicodeError) as e:  # in use, no such address, a NUL in the name
+            why = getattr(e, "strerror", None) or e
+            fix = (
+                "Pick another port ([output] port, or 0 for any free one) or stop what uses it."
+                if getattr(e, "errno", None) in (98, 48, 10048)  # EADDRINUSE (Linux, macOS, Windows)
+                else "Check [output] listen: an address of this machine (127.0.0.1, 0.0.0.0 or an interface's)."
+            )
+            raise OSError(f"MJPEG server cannot listen on {self.listen}:{self.port}: {why}. {fix}") from e
         self._server = server
         self.port = server.server_address[1]
         self._threads = [
@@ -561,6 +794,12 @@ class MjpegSink(Sink):
         with box.cond:
             sink["estimate_clients"], sink["estimates_sent"] = box.listeners, box.sent
         sink["fps"] = round(hub.fps(), 2)
+        with self._count_lock:
+            sink["connections"], sink["refused_busy"], sink["refused_host"] = (
+                self.connections,
+                self.refused_busy,
+                self.refused_host,
+            )
         loop: dict[str, Any] = {}
         if self.stats_fn is not None:
             try:
@@ -578,6 +817,8 @@ class MjpegSink(Sink):
             "sent": hub.sent,
             "port": self.port,
             "estimates_sent": self._estimates.sent,
+            "refused_busy": self.refused_busy,
+            "refused_host": self.refused_host,
         }
 
     def close(self) -> None:

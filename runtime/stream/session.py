@@ -44,7 +44,7 @@ import datetime as _dt
 import json
 import logging
 import os
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -583,6 +583,31 @@ def _check_exposure(exp: Exposure, where: str) -> None:
         raise SessionError(f"{where}: key 'exposure.wb_gains': expected finite positive gains, got {exp.wb_gains!r}")
 
 
+def _longest_increasing(values: Sequence[int]) -> list[bool]:
+    """Which of ``values`` form a longest strictly increasing subsequence (one of them; O(n log n))."""
+    tails: list[int] = []  # tails[L]: index of the smallest last value of an increasing run of length L+1
+    prev = [-1] * len(values)
+    for i, v in enumerate(values):
+        lo, hi = 0, len(tails)
+        while lo < hi:  # first run whose last value is >= v
+            mid = (lo + hi) // 2
+            if values[tails[mid]] < v:
+                lo = mid + 1
+            else:
+                hi = mid
+        prev[i] = tails[lo - 1] if lo > 0 else -1
+        if lo == len(tails):
+            tails.append(i)
+        else:
+            tails[lo] = i
+    keep = [False] * len(values)
+    i = tails[-1] if tails else -1
+    while i >= 0:
+        keep[i] = True
+        i = prev[i]
+    return keep
+
+
 class SessionReader:
     """Open and validate a recorded session; read its frames by index.
 
@@ -731,24 +756,35 @@ class SessionReader:
         lines = data.split(b"\n")
         tail = lines.pop()  # after the last "\n": empty for a cleanly written index
         self._index_lines = len(lines)
-        entries: list[FrameEntry] = []
-        last_t: int | None = None
+        parsed: list[FrameEntry] = []
+        problems: list[tuple[int, str]] = []
         for no, raw in enumerate(lines, start=1):
             where = f"{ipath}: line {no}"
             try:
                 d = json.loads(raw.decode("utf-8"))
                 if not isinstance(d, dict):
                     raise SessionError(f"{where}: expected a JSON object, got {type(d).__name__}")
-                e = self._entry(d, no, where)
-            except (json.JSONDecodeError, UnicodeDecodeError) as ex:
-                self.problems.append(f"{where}: malformed index line ({ex}); frame skipped")
-                continue
+                parsed.append(self._entry(d, no, where))
+            except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as ex:
+                problems.append((no, f"{where}: malformed index line ({type(ex).__name__}: {ex}); frame skipped"))
             except SessionError as ex:
-                self.problems.append(f"{ex}; frame skipped")
-                continue
-            if last_t is not None and e.t_device_ns <= last_t:
-                self.problems.append(
-                    f"{where}: timestamp {e.t_device_ns} ns does not increase (previous {last_t} ns); frame skipped"
+                problems.append((no, f"{ex}; frame skipped"))
+        # Timestamps must increase. One corrupt timestamp must cost one frame, not every frame after it
+        # (a far-future value would otherwise make all later frames "not increase"): the frames kept
+        # are the longest increasing run of timestamps, so the fewest are skipped.
+        keep = _longest_increasing([e.t_device_ns for e in parsed])
+        entries: list[FrameEntry] = []
+        last_t: int | None = None
+        for k, e in enumerate(parsed):
+            where = f"{ipath}: line {e.line}"
+            if not keep[k]:
+                prev = "" if last_t is None else f" (previous {last_t} ns)"
+                problems.append(
+                    (
+                        e.line,
+                        f"{where}: timestamp {e.t_device_ns} ns does not increase{prev}, or is out of order "
+                        "with the frames around it; frame skipped",
+                    )
                 )
                 continue
             if last_t is not None and e.t_device_ns - last_t > MAX_FRAME_GAP_NS:
@@ -759,6 +795,7 @@ class SessionReader:
                 )
             last_t = e.t_device_ns
             entries.append(e)
+        self.problems += [m for _, m in sorted(problems, key=lambda x: x[0])]
         if tail.strip():
             self.problems.append(
                 f"{ipath}: line {len(lines) + 1} is torn ({len(tail)} bytes without a line end: the recording "

@@ -1,0 +1,217 @@
+"""``illuminet bench soak --minutes N``: does the process grow while it streams for a long time?
+
+Runs what ``illuminet demo --mjpeg`` runs -- the built-in default session replayed in real time
+(recorded timing), looped, through the whole pipeline (planes -> anchor -> plane light -> light
+estimate -> shading -> render) into the MJPEG server -- with two real HTTP clients attached for the
+whole run: one reads the MJPEG stream (``/stream.mjpg``, parsing every part, as a browser's network
+layer does), one the lighting estimate as Server-Sent Events (``/estimates``). Every second the
+process's resident memory (``VmRSS`` of ``/proc/self/status``) is sampled.
+
+Printed: the RSS slope in MB per minute after a warm-up (a least-squares line through the samples
+after the first 20 % of the run, at most 2 minutes: imports, the bundle, caches and the first
+frames' buffers settle there), RSS at the start of the fit, at the end and its peak; frames
+processed; failures (failed frames, sink failures, client errors and reconnects); the per-frame
+loop time (median, p99); frames and events the clients received. Target: a slope <= 0.1 MB/min over
+30 minutes (the default). A short run's slope is noisy (allocator and page-cache effects of a few
+MB weigh more over a few minutes): quote the 30-minute figure.
+
+Only named runs execute it (``illuminet bench soak``): ``illuminet bench`` without names skips it.
+Nothing is read from ../shared/data.
+"""
+
+from __future__ import annotations
+
+import argparse
+import http.client
+import math
+import resource
+import sys
+import threading
+import time
+
+import numpy as np
+
+from illuminet.runtime.config import apply_overrides
+from illuminet.runtime.errors import ConfigError
+
+SLOPE_TARGET_MB_PER_MIN = 0.1
+DEFAULT_MINUTES = 30.0
+#: share of the run, and most seconds, before the slope's fit starts
+WARMUP_SHARE, WARMUP_MAX_S = 0.2, 120.0
+
+
+def rss_mb() -> float:
+    """Resident memory of this process now, MB (``VmRSS``); the peak (``ru_maxrss``) where /proc is missing."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return r / 1024.0 if sys.platform != "darwin" else r / (1024.0 * 1024.0)
+
+
+def slope_mb_per_min(t_s: np.ndarray, mb: np.ndarray) -> float:
+    """Least-squares slope of ``mb`` over ``t_s``, in MB per minute (NaN with fewer than 3 samples)."""
+    if len(t_s) < 3 or np.ptp(t_s) <= 0:
+        return float("nan")
+    return float(np.polyfit(np.asarray(t_s) / 60.0, np.asarray(mb), 1)[0])
+
+
+class _Client(threading.Thread):
+    """A real HTTP client on ``path`` for the whole run; reconnects if the server drops it (counted)."""
+
+    def __init__(self, port: int, path: str, stop: threading.Event):
+        super().__init__(daemon=True, name=f"soak-client{path}")
+        self.port, self.path = port, path
+        self.items = 0
+        self.bytes = 0
+        self.errors = 0
+        self.last_error = ""
+        self.stop = stop  # the run's end: the server closing the stream then is no error
+
+    def run(self) -> None:
+        from illuminet.runtime.stream.mjpeg import BOUNDARY
+
+        marker = f"--{BOUNDARY}".encode()
+        while not self.stop.is_set():
+            conn = http.client.HTTPConnection("127.0.0.1", self.port, timeout=10)
+            try:
+                conn.request("GET", self.path)
+                resp = conn.getresponse()
+                if resp.status != 200:
+                    raise OSError(f"HTTP {resp.status}")
+                while not self.stop.is_set():
+                    line = resp.fp.readline()
+                    if not line:
+                        raise OSError("the server closed the stream")
+                    if self.path == "/estimates":
+                        if line.startswith(b"data: "):
+                            self.items += 1
+                            self.bytes += len(line)
+                        continue
+                    if line.strip() != marker:
+                        continue
+                    length = 0
+                    while True:
+                        h = resp.fp.readline().strip()
+                        if not h:
+                            break
+                        if h.lower().startswith(b"content-length:"):
+                            length = int(h.split(b":", 1)[1])
+                    self.bytes += len(resp.fp.read(length))
+                    self.items += 1
+            except (OSError, http.client.HTTPException, ValueError) as e:
+                if self.stop.is_set():
+                    break
+                self.errors += 1
+                self.last_error = f"{type(e).__name__}: {e}"
+                self.stop.wait(0.5)
+            finally:
+                conn.close()
+
+
+def run(args: argparse.Namespace, cfg) -> dict:
+    from illuminet.commands.demo import default_source_url, demo_stages
+    from illuminet.hw import open_source
+    from illuminet.runtime.stream.loop import LoopStats, run_loop
+    from illuminet.runtime.stream.mjpeg import MjpegSink
+
+    minutes = getattr(args, "minutes", None)
+    if minutes is None:
+        minutes = 0.5 if getattr(args, "quick", False) else DEFAULT_MINUTES
+    if not (isinstance(minutes, (int, float)) and math.isfinite(minutes) and minutes > 0):
+        raise ConfigError(f"bench soak --minutes: expected a finite number of minutes > 0, got {minutes!r}")
+    duration = float(minutes) * 60.0
+    # the demo session in real time, looped: the pace of a camera, for as long as asked
+    cfg = apply_overrides(cfg, [("source", "timing", "recorded"), ("source", "loop", True)])
+    url = default_source_url()
+    stats = LoopStats()
+    source = open_source(url, cfg)
+    stages = demo_stages(cfg)
+    sink = MjpegSink("127.0.0.1", 0, stats=stats.snapshot, viewer_model="builtin:vase")
+    sink.open()  # before the loop, so the clients connect first; run_loop's open is then a no-op
+    samples: list[tuple[float, float]] = []
+    stop = threading.Event()
+    clients = [_Client(sink.port, "/stream.mjpg", stop), _Client(sink.port, "/estimates", stop)]
+    for c in clients:
+        c.start()
+    t0 = time.monotonic()
+    interval = min(1.0, max(0.05, duration / 200))
+
+    def sample() -> None:
+        while True:
+            samples.append((time.monotonic() - t0, rss_mb()))
+            if stop.wait(interval) or time.monotonic() - t0 >= duration:
+                stop.set()
+                return
+
+    sampler = threading.Thread(target=sample, name="soak-rss", daemon=True)
+    sampler.start()
+    print(
+        f"soak: {url} in real time, looped, whole pipeline -> MJPEG server with a stream client and an "
+        f"estimate client, for {minutes:g} min; RSS sampled every {interval:g} s"
+    )
+    sys.stdout.flush()
+    try:
+        run_loop(source, stages, [sink], stop_event=stop, stats=stats, install_signals=False)
+    finally:
+        stop.set()
+        sink.close()
+        for c in clients:
+            c.join(5)
+        sampler.join(5)
+
+    t = np.array([s[0] for s in samples])
+    mb = np.array([s[1] for s in samples])
+    warmup = min(WARMUP_SHARE * duration, WARMUP_MAX_S)
+    fit = t >= warmup
+    slope = slope_mb_per_min(t[fit], mb[fit])
+    d = stats.to_dict()
+    total = d["steps"].get("total", {"median_ms": 0.0, "p99_ms": 0.0})
+    client_errors = sum(c.errors for c in clients)
+    failures = int(d["failed_frames"]) + int(d["sink_failures"]) + client_errors
+    print(stats.format_stats())
+    print(
+        f"frames: {d['frames']} in {t[-1] if len(t) else 0:.0f} s; per-frame loop time median "
+        f"{total['median_ms']:.1f} ms, p99 {total['p99_ms']:.1f} ms"
+    )
+    print(
+        f"clients: {clients[0].items} MJPEG frames ({clients[0].bytes / 1e6:.1f} MB), {clients[1].items} estimate "
+        f"events; client errors/reconnects {client_errors}"
+        + (f" (last: {'; '.join(c.last_error for c in clients if c.last_error)})" if client_errors else "")
+    )
+    print(
+        f"failures: {failures} (failed frames {d['failed_frames']}, sink failures {d['sink_failures']}, "
+        f"client errors {client_errors})"
+    )
+    fit_from = float(mb[fit][0]) if fit.any() else float("nan")
+    print(
+        f"RSS: {fit_from:.1f} MB after the {warmup:.0f} s warm-up, {float(mb[-1]) if len(mb) else 0:.1f} MB at the "
+        f"end, peak {float(mb.max()) if len(mb) else 0:.1f} MB; {int(fit.sum())} samples fitted"
+    )
+    verdict = "met" if slope <= SLOPE_TARGET_MB_PER_MIN else ("NOT met" if math.isfinite(slope) else "no figure")
+    note = "" if minutes >= DEFAULT_MINUTES else f" (a {minutes:g}-minute run: noisy; the target is over 30 min)"
+    print(f"RSS slope: {slope:+.3f} MB/min after warm-up; target <= {SLOPE_TARGET_MB_PER_MIN} MB/min: {verdict}{note}")
+    return {
+        "minutes": float(minutes),
+        "source": url,
+        "frames": d["frames"],
+        "failures": failures,
+        "failed_frames": d["failed_frames"],
+        "sink_failures": d["sink_failures"],
+        "client_errors": client_errors,
+        "client_mjpeg_frames": clients[0].items,
+        "client_estimate_events": clients[1].items,
+        "frame_median_ms": total["median_ms"],
+        "frame_p99_ms": total["p99_ms"],
+        "rss_slope_mb_per_min": slope,
+        "rss_after_warmup_mb": fit_from,
+        "rss_end_mb": float(mb[-1]) if len(mb) else float("nan"),
+        "rss_peak_mb": float(mb.max()) if len(mb) else float("nan"),
+        "warmup_s": warmup,
+        "rss_samples": [[round(float(a), 2), round(float(b), 2)] for a, b in samples],
+        "target_mb_per_min": SLOPE_TARGET_MB_PER_MIN,
+    }
