@@ -535,8 +535,10 @@ class Odometry:
         vi = np.clip(np.round(v).astype(np.int64), 2, H - 3)
         z = np.stack([depth[vi, ui], depth[vi, ui - 2], depth[vi, ui + 2], depth[vi - 2, ui], depth[vi + 2, ui]])
         with np.errstate(invalid="ignore"):
-            # the median of the 5 samples: stereo depth jumps by whole disparity steps at random
-            zc = np.median(z, axis=0)
+            # the median of the 5 samples: stereo depth jumps by whole disparity steps at random (the
+            # middle of the sorted five: np.median's bits where all five are finite, the only case
+            # kept below, in a sixth of its time)
+            zc = np.sort(z, axis=0)[2]
             ok = np.all((z > Z_MIN) & (z < Z_MAX), axis=0)
             # the neighbours must agree: corners often sit on depth edges, where depth is unreliable
             ok &= (z.max(axis=0) - z.min(axis=0)) < 0.02 + 0.02 * zc * zc
