@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from illuminet.cli import main
@@ -536,6 +536,7 @@ def test_fuzz_source_urls(budget):
 
     @fuzz(40, budget)
     @given(source_urls())
+    @example("synthetic://lamp?size=64x48&frames=3&boxes=1")  # a scene that builds and gives a frame
     def prop(url):
         t0 = time.monotonic()
         try:
@@ -777,6 +778,7 @@ def test_fuzz_relight_inputs(tmp_path, budget):
             lambda v: f"{v[0]},{v[1]}"), st.text(max_size=8)),
         st.sampled_from(["ok", "missing_dir", "is_dir"]),
     )  # fmt: skip
+    @example(None, None, "50,50,32,24", "32,40", "ok")  # the valid inputs: a relit object every run
     def prop(color, depth, intr, anchor, out):
         k = next(counter)
         c = good_c if color is None else _write_image(tmp_path / f"c{k}", color)

@@ -9,7 +9,9 @@ process's resident memory (``VmRSS`` of ``/proc/self/status``) is sampled.
 
 Printed: the RSS slope in MB per minute after a warm-up (a least-squares line through the samples
 after the first 20 % of the run, at most 2 minutes: imports, the bundle, caches and the first
-frames' buffers settle there), RSS at the start of the fit, at the end and its peak; frames
+frames' buffers settle there), and the drift between the medians of the first and the last fifth of
+those samples (robust to the allocator returning and re-taking ~10 MB at a time, which dominates a
+short run's slope); RSS at the start of the fit, at the end and its peak; frames
 processed; failures (failed frames, sink failures, client errors and reconnects); the per-frame
 loop time (median, p99); frames and events the clients received. Target: a slope <= 0.1 MB/min over
 30 minutes (the default). A short run's slope is noisy (allocator and page-cache effects of a few
@@ -192,6 +194,16 @@ def run(args: argparse.Namespace, cfg) -> dict:
         f"RSS: {fit_from:.1f} MB after the {warmup:.0f} s warm-up, {float(mb[-1]) if len(mb) else 0:.1f} MB at the "
         f"end, peak {float(mb.max()) if len(mb) else 0:.1f} MB; {int(fit.sum())} samples fitted"
     )
+    # a figure robust to the allocator's swings (glibc returning and re-taking ~10 MB at a time): the
+    # change between the medians of the first and the last fifth of the fitted samples, per minute
+    fm, ft = mb[fit], t[fit]
+    k = max(1, len(fm) // 5)
+    drift = (
+        float((np.median(fm[-k:]) - np.median(fm[:k])) / ((np.median(ft[-k:]) - np.median(ft[:k])) / 60.0))
+        if len(fm) >= 10
+        else float("nan")
+    )
+    print(f"RSS drift: {drift:+.3f} MB/min between the medians of the first and last fifth after warm-up")
     verdict = "met" if slope <= SLOPE_TARGET_MB_PER_MIN else ("NOT met" if math.isfinite(slope) else "no figure")
     note = "" if minutes >= DEFAULT_MINUTES else f" (a {minutes:g}-minute run: noisy; the target is over 30 min)"
     print(f"RSS slope: {slope:+.3f} MB/min after warm-up; target <= {SLOPE_TARGET_MB_PER_MIN} MB/min: {verdict}{note}")
@@ -208,6 +220,7 @@ def run(args: argparse.Namespace, cfg) -> dict:
         "frame_median_ms": total["median_ms"],
         "frame_p99_ms": total["p99_ms"],
         "rss_slope_mb_per_min": slope,
+        "rss_drift_mb_per_min": drift,
         "rss_after_warmup_mb": fit_from,
         "rss_end_mb": float(mb[-1]) if len(mb) else float("nan"),
         "rss_peak_mb": float(mb.max()) if len(mb) else float("nan"),
