@@ -136,7 +136,7 @@ def _env(**extra) -> dict:
 def test_every_render_test_passes_on_gles():
     """tests/test_render.py on an ES context: the conftest's shared context follows ILLUMINET_GL_API."""
     r = subprocess.run(
-        [sys.executable, "-m", "pytest", "tests/test_render.py", "-q", "-p", "no:cacheprovider", "-x"],
+        [sys.executable, "-m", "pytest", "tests/test_render.py", "-q", "-rs", "-p", "no:cacheprovider", "-x"],
         cwd=REPO,
         env=_env(ILLUMINET_GL_API="gles"),
         capture_output=True,
@@ -145,7 +145,10 @@ def test_every_render_test_passes_on_gles():
     )
     tail = (r.stdout + r.stderr)[-3000:]
     assert r.returncode == 0, tail
-    assert " passed" in tail and "skipped" not in tail.split("\n")[-2], tail
+    assert " passed" in tail, tail
+    # the only skip allowed is a test on real captures where ../shared/data is absent (a fresh clone)
+    skips = [ln for ln in tail.splitlines() if ln.startswith("SKIPPED")]
+    assert all("shared data not found" in ln for ln in skips), tail
 
 
 def _demo_png(tmp: Path, api: str, extra_env: dict | None = None) -> np.ndarray:
