@@ -85,6 +85,19 @@ class _Composite(Stage):
         return frame.with_result(COMPOSITE, cv2.addWeighted(frame.color, 0.7, self._overlay, 0.3, 0.0))
 
 
+def read_part(fp) -> int:
+    """After a part's boundary line of a multipart MJPEG stream: read its headers and body, return
+    the body's length in bytes."""
+    length = 0
+    while True:
+        h = fp.readline().strip()
+        if not h:
+            break
+        if h.lower().startswith(b"content-length:"):
+            length = int(h.split(b":", 1)[1])
+    return len(fp.read(length))
+
+
 class _Client(threading.Thread):
     """A real HTTP client reading the MJPEG stream until stopped; counts parts and bytes."""
 
@@ -110,14 +123,7 @@ class _Client(threading.Thread):
                     break
                 if line.strip() != marker:
                     continue
-                length = 0
-                while True:
-                    h = resp.fp.readline().strip()
-                    if not h:
-                        break
-                    if h.lower().startswith(b"content-length:"):
-                        length = int(h.split(b":", 1)[1])
-                self.bytes += len(resp.fp.read(length))
+                self.bytes += read_part(resp.fp)
                 self.parts += 1
             conn.close()
         except Exception as e:  # reported in the figures, not raised from a thread

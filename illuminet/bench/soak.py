@@ -75,6 +75,7 @@ class _Client(threading.Thread):
         self.stop = stop  # the run's end: the server closing the stream then is no error
 
     def run(self) -> None:
+        from illuminet.bench.mjpeg import read_part
         from illuminet.runtime.stream.mjpeg import BOUNDARY
 
         marker = f"--{BOUNDARY}".encode()
@@ -96,14 +97,7 @@ class _Client(threading.Thread):
                         continue
                     if line.strip() != marker:
                         continue
-                    length = 0
-                    while True:
-                        h = resp.fp.readline().strip()
-                        if not h:
-                            break
-                        if h.lower().startswith(b"content-length:"):
-                            length = int(h.split(b":", 1)[1])
-                    self.bytes += len(resp.fp.read(length))
+                    self.bytes += read_part(resp.fp)
                     self.items += 1
             except (OSError, http.client.HTTPException, ValueError) as e:
                 if self.stop.is_set():
