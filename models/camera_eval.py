@@ -244,6 +244,8 @@ class CameraEval:
 
     def url(self, suite: str, i: int, seed: int, frames: int) -> str:
         u = f"synthetic://{suite}?seed={SEED_BASE + 31 * seed + i}&frames={frames}"
+        if suite == "spatial":  # the camera frames the position evaluated (scene_case: i % count)
+            u += f"&position={i}"
         if suite == "outdoor" and self.hdr_maps:
             u += f"&hdr={self.hdr_maps[(i + seed) % len(self.hdr_maps)]}"
         return u

@@ -42,6 +42,7 @@ def test_registered_and_reads_until_end():
         ("synthetic://indoor?size=16x16", "size='16x16': expected WIDTHxHEIGHT with sides in 32..4096"),
         ("synthetic://indoor?frames=0", "frames='0': expected an integer in 1..10000000"),
         ("synthetic://outdoor?boxes=13", "boxes='13': expected an integer in 0..12"),
+        ("synthetic://spatial?position=-1", "position='-1': expected an integer in 0..1000"),
     ],
 )
 def test_bad_urls_say_what_is_wrong(url, match):
@@ -140,6 +141,28 @@ def test_default_anchor_is_in_view_on_the_floor(indoor):
     assert 0.15 * K.width < u < 0.85 * K.width and 0.3 * K.height < v < K.height
     # the anchor's +Y is the floor normal: up, against gravity
     np.testing.assert_allclose(T[:3, 1], -f.gravity, atol=1e-9)
+
+
+def test_position_frames_the_chosen_object_position():
+    # an AR user looks at where the object stands: every position of a spatial room is framed in turn
+    n = len(open_url("synthetic://spatial?seed=3&frames=1&size=320x200").scene.object_positions)
+    assert n >= 3
+    centred = []
+    for k in range(n):
+        src = open_url(f"synthetic://spatial?seed=3&frames=1&size=320x200&position={k}")
+        with src:
+            f = src.read()
+        x = src.scene.default_anchor(0, position=k)[:3, 3]
+        K = f.intrinsics
+        u, v = K.fx * x[0] / x[2] + K.cx, K.fy * x[1] / x[2] + K.cy
+        assert 0.1 * K.width < u < 0.9 * K.width and 0.2 * K.height < v < K.height, (k, u, v)
+        centred.append((u, v))
+    # the same room (positions) whichever is framed; position wraps around the list
+    same = open_url(f"synthetic://spatial?seed=3&frames=1&size=320x200&position={n}").scene
+    np.testing.assert_allclose(same.object_positions, src.scene.object_positions)
+    np.testing.assert_allclose(
+        same.T_cam_world(0), open_url("synthetic://spatial?seed=3&frames=1&size=320x200").scene.T_cam_world(0)
+    )
 
 
 def test_true_object_shading_is_frame_independent_and_matches_transport():

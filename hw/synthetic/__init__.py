@@ -1,7 +1,7 @@
 """``synthetic://`` — a simulated RGB-D camera in a lit scene, with ground truth for evaluation.
 
 URL
-    ``synthetic://SCENE?seed=N&size=WxH&frames=N&path=static|orbit[&hdr=PATH][&table=0|1][&lights=N][&bounce=N][&boxes=N]``
+    ``synthetic://SCENE?seed=N&size=WxH&frames=N&path=static|orbit[&hdr=PATH][&table=0|1][&lights=N][&bounce=N][&boxes=N][&position=K]``
     (``width=W&height=H`` is accepted for ``size``)
 
     SCENE
@@ -13,7 +13,8 @@ URL
         ``lamp``    a dim room plus one strong warm lamp 0.35-0.7 m from the object (near light:
         strong falloff over the floor).
         ``spatial`` a room lit by the spatially-varying environment; ``scene.object_positions``
-        lists its 3-5 object positions, ``default_anchor(position=k)`` stands on one of them.
+        lists its 3-5 object positions, ``default_anchor(position=k)`` stands on one of them;
+        ``position=K`` makes the camera frame ``object_positions[K % count]`` (default 0).
     seed      every random choice (room, lights, textures, camera, noise) follows from it
     size      ``640x400`` (default) or ``1280x800`` (OAK-D mono-like: fx = fy = 800 at 1280x800),
               other sizes scale the same intrinsics

@@ -577,6 +577,7 @@ def build_scene(
     n_lights: int = 32,
     bounce: int = DEFAULT_BOUNCES,
     boxes: int | None = None,
+    position: int = 0,
 ) -> SyntheticScene:
     """Create a synthetic scene (deterministic in ``seed``); see the module docstring for kinds.
 
@@ -584,6 +585,8 @@ def build_scene(
     on the floor around the object (:func:`_add_boxes`): real objects that cast shadows onto the floor
     and, from some lights, onto the object (default: 2-4 in ``cluttered``, none elsewhere). They come
     from their own random stream, so the rest of the scene is the same with and without them.
+    ``position`` picks the object position the camera frames (``object_positions[position % count]``;
+    only ``spatial`` has more than one): an AR user looks at where the object stands.
     """
     if kind not in SCENES:
         raise SyntheticError(f"synthetic scene must be one of {', '.join(SCENES)}, got {kind!r}")
@@ -635,7 +638,7 @@ def build_scene(
         inf = np.array([np.inf, np.inf])
         planes = [SyntheticPlane("ground", "ground", 1, 0.0, +1.0, (0, 2), -inf, inf, *make_albedo_tile(ground, rng))]
         occluders.append(Occluder(1, 0.0))  # light from below the horizon cannot pass the ground
-    poses = _camera_poses(rng, kind, positions[0], frames, path, room)
+    poses = _camera_poses(rng, kind, positions[int(position) % len(positions)], frames, path, room)
     if room is not None and use_table:
         _add_table(rng, room, positions, poses, planes, occluders, info)
     box_rng = np.random.default_rng([seed, SCENES.index(kind), 17])  # the boxes' own stream

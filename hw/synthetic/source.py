@@ -492,6 +492,7 @@ _PARAMS = {
     "lights": query_int(1, 1024),
     "bounce": query_int(0, MAX_BOUNCES),
     "boxes": query_int(0, 12),
+    "position": query_int(0, 1000),
     "live": query_bool,
     "fps": query_int(1, 1000),
     "queue": query_int(1, 4),
@@ -545,6 +546,7 @@ def open_url(url: str, config=None) -> SyntheticSource:
         q.get("lights", 32),
         q.get("bounce", DEFAULT_BOUNCES),
         boxes,
+        q.get("position", 0),
     )
     if q.get("live"):
         return LiveSyntheticSource(scene, frames, url, fps=q.get("fps", 30), queue=q.get("queue", 2))
