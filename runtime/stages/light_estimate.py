@@ -93,6 +93,16 @@ LOCUS_SIGMA = 0.2
 #: the neutral prior's weight against the share of pixels that voted (0.1: a tenth of the view on the locus
 #: already gives half the measured colour)
 LOCUS_PRIOR = 0.1
+#: the anchor plane's pixels out to this distance from the object (m) join its grid's observations
+FLOOR_RADIUS_M = 1.5
+#: ... and count in the ambient solve with a Gaussian weight of this radius (m): the floor far away is
+#: lit by other lamps' pools as well, and says less about the light at the object
+FLOOR_SIGMA_M = 0.75
+#: a near light is accepted only if it explains at least this share of the spatial variation of the
+#: irradiance on the grid and the other planes (the far floor excluded): a lamp fitted to a distant
+#: pool of light, not to the object's surroundings, is not the light at the object (0.3 -> 0.5 on the
+#: eval's 11 scenes a suite: spatial MAE 0.078 -> 0.073, its colour 1.9 -> 1.3 deg)
+LOCAL_R2_MIN = 0.5
 #: plane samples the near-light fit uses per frame (a random subset, fixed per frame number)
 NEAR_ROWS = 300
 
@@ -264,6 +274,22 @@ class NearFit:
     intercepts: np.ndarray  # (G, 3) per-plane ambient irradiance
 
 
+def explained_share(
+    pos: np.ndarray, x: np.ndarray, n: np.ndarray, e: np.ndarray, w: np.ndarray, groups: np.ndarray
+) -> float:
+    """Share of the planes' spatial variation (within each plane) a lamp at ``pos`` explains (0-1)."""
+    if len(x) < 8:
+        return 0.0
+    G = int(groups.max()) + 1
+    oc = _centred(e @ LUMA, groups, w, G)
+    var = float((w * oc * oc).sum())
+    gc = _centred(_near_basis(np.asarray(pos, np.float64)[None], x, n)[0], groups, w, G)
+    num, den = float(gc @ (w * oc)), float((gc * gc) @ w)
+    if var <= 1e-12 or den <= 1e-12 or num <= 0:
+        return 0.0
+    return num * num / den / var
+
+
 def fit_near_light(
     x: np.ndarray, n: np.ndarray, e: np.ndarray, w: np.ndarray, groups: np.ndarray, seeds: np.ndarray
 ) -> NearFit | None:
@@ -315,6 +341,48 @@ def fit_near_light(
     sw = np.maximum(np.bincount(groups, w64, minlength=G), 1e-12)
     inter = np.stack([np.bincount(groups, w64 * (e[:, c] - slope[c] * g), minlength=G) / sw for c in range(3)], 1)
     return NearFit(position=p, r2=r2, slope=slope, intercepts=inter)
+
+
+#: directions where the ambient radiance must not be negative (the lat-long bin centres)
+_NONNEG_Y = sh9(BIN_DIRS)
+#: passes of the non-negativity active set (each adds the directions still negative)
+NONNEG_PASSES = 4
+
+
+def _solve_nonnegative(G: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Least squares (normal equations ``G x = rhs``, one column of ``rhs`` per colour channel) with the
+    ambient radiance (the first 9 unknowns, SH) kept non-negative in every direction and the primary's
+    irradiance (a 10th unknown, when present) non-negative.
+
+    Light is never negative, but a least-squares split between a primary light and the ambient SH is
+    free to trade one against the other where the observations cannot tell them apart (a floor seen
+    alone sees both from above): it then "pays" for a too-strong primary with negative ambient light
+    from the sky. A few active-set passes add a stiff penalty towards zero at the directions (and on
+    the primary) that came out negative, per channel.
+    """
+    sol = np.linalg.solve(G, rhs)
+    ncol = G.shape[0]
+    stiff = 1e3 * (np.trace(G) / ncol + 1e-12)
+    for c in range(rhs.shape[1]):
+        x = sol[:, c]
+        active = np.zeros(len(_NONNEG_Y), bool)
+        neg_p = False
+        for _ in range(NONNEG_PASSES):
+            vals = _NONNEG_Y @ x[:9]
+            new = (vals < 0) & ~active
+            new_p = ncol > 9 and x[9] < 0 and not neg_p
+            if not new.any() and not new_p:
+                break
+            active |= new
+            neg_p |= new_p
+            Yc = _NONNEG_Y[active]
+            Gc = G.copy()
+            Gc[:9, :9] += stiff / max(len(_NONNEG_Y), 1) * (Yc.T @ Yc)
+            if neg_p:
+                Gc[9, 9] += stiff
+            x = np.linalg.solve(Gc, rhs[:, c])
+        sol[:, c] = x
+    return sol
 
 
 def _sh_extract_primary(L_rad: np.ndarray) -> tuple[np.ndarray | None, float]:
@@ -436,7 +504,7 @@ class LightEstimateStage(Stage):
         if self.use_env and not anchor.synthetic:
             self.env.update(s)
         illum = self._illuminant(s)
-        xs, ns, es, ws, gs, labels = self._plane_rows(pl, s, planes, anchor, illum)
+        xs, ns, es, ws, gs, labels, beyond = self._plane_rows(pl, s, planes, anchor, illum)
         cues: list[str] = []
         primary_dir = primary_pos = None
         near = None
@@ -455,7 +523,12 @@ class LightEstimateStage(Stage):
             if self._near is not None and near is not None and near.r2 < self._near.r2 - 0.2:
                 near = fit_near_light(xs[sub], ns[sub], es[sub], ws[sub], gs[sub], self._near.position[None])
             self._near = near if (near is not None and near.r2 >= 0.3) else None
-        if near is not None and self._plausible(near, es, gs):
+        if (
+            near is not None
+            and self._plausible(near, es, gs)
+            and explained_share(near.position, xs[~beyond], ns[~beyond], es[~beyond], ws[~beyond], gs[~beyond])
+            >= LOCAL_R2_MIN
+        ):
             primary_pos = near.position
             v = near.position - CENTRE
             primary_dir = v / np.linalg.norm(v)
@@ -472,6 +545,10 @@ class LightEstimateStage(Stage):
             if d is not None:
                 primary_dir = d
                 cues.append("emitter")
+        # the floor beyond the grid is lit by other lamps' pools too: it counts less the farther it is
+        if len(xs):
+            r2 = xs[:, 0] ** 2 + xs[:, 2] ** 2
+            ws = np.where(beyond, ws * np.exp(-0.5 * r2 / FLOOR_SIGMA_M**2), ws)
         L_rad, E_p = self._solve(xs, ns, es, ws, primary_dir, primary_pos)
         conf_dir = 0.0
         if primary_dir is None:
@@ -590,10 +667,10 @@ class LightEstimateStage(Stage):
 
     def _plane_rows(self, pl: PlaneLight, s: Samples, planes: tuple, anchor: Anchor, illum: np.ndarray):
         """Plane irradiance observations: positions, normals, RGB irradiance, weights, plane groups."""
-        xs, ns, es, ws, gs, labels = [], [], [], [], [], []
+        xs, ns, es, ws, gs, labels, bs = [], [], [], [], [], [], []
         if not self.use_planes and not self.use_near:
             z3 = np.zeros((0, 3))
-            return z3, z3, z3, np.zeros(0), np.zeros(0, np.int64), labels
+            return z3, z3, z3, np.zeros(0), np.zeros(0, np.int64), labels, np.zeros(0, bool)
         g = 0
         slices = pl.plane_slices or (slice(0, len(pl.irradiance)),)
         for k, sl in enumerate(slices):
@@ -607,14 +684,27 @@ class LightEstimateStage(Stage):
             conf = np.asarray(pl.confidence[sl], np.float64)[m] if pl.confidence is not None else np.ones(m.sum())
             ws.append(np.clip(conf, 0.05, 1.0))
             gs.append(np.full(m.sum(), g))
+            bs.append(np.zeros(m.sum(), bool))
             labels.append(pl.labels[k] if k < len(pl.labels) else "plane")
             g += 1
         if self.use_planes and not anchor.synthetic:
             R = anchor.R
+            half = self._grid_half_extent(pl)
             for k, p in enumerate(planes):
+                on = (s.plane == k) & ~s.saturated  # a clipped pixel says only "at least this bright"
+                group = g
                 if p.id == anchor.plane_id:
-                    continue  # measured by the plane light grid above
-                on = s.plane == k
+                    # the grid above measures the patch around the object; the rest of the floor
+                    # (out to FLOOR_RADIUS_M) shows where a lamp's pool of light peaks and how fast it
+                    # falls off, which the patch alone often cannot (a lamp 0.5 m to the side)
+                    if not xs or half is None:
+                        continue
+                    pos = s.position
+                    with np.errstate(invalid="ignore"):
+                        outside = np.maximum(np.abs(pos[:, 0]), np.abs(pos[:, 2])) > half
+                        near_obj = np.hypot(pos[:, 0], pos[:, 2]) < FLOOR_RADIUS_M
+                    on &= outside & near_obj
+                    group = 0  # same plane, same albedo and ambient as the grid
                 if on.sum() < 20:
                     continue
                 n_obj = np.asarray(p.normal, np.float64) @ R
@@ -623,12 +713,14 @@ class LightEstimateStage(Stage):
                 ns.append(np.repeat(n_obj[None], on.sum(), 0))
                 es.append(self._neutral(e, illum))
                 ws.append(np.full(on.sum(), 0.5))
-                gs.append(np.full(on.sum(), g))
-                labels.append(p.label)
-                g += 1
+                gs.append(np.full(on.sum(), group))
+                bs.append(np.full(on.sum(), group != g))
+                if group == g:
+                    labels.append(p.label)
+                    g += 1
         if not xs:
             z3 = np.zeros((0, 3))
-            return z3, z3, z3, np.zeros(0), np.zeros(0, np.int64), labels
+            return z3, z3, z3, np.zeros(0), np.zeros(0, np.int64), labels, np.zeros(0, bool)
         return (
             np.concatenate(xs),
             np.concatenate(ns),
@@ -636,7 +728,19 @@ class LightEstimateStage(Stage):
             np.concatenate(ws),
             np.concatenate(gs).astype(np.int64),
             labels,
+            np.concatenate(bs),
         )
+
+    @staticmethod
+    def _grid_half_extent(pl: PlaneLight) -> float | None:
+        """Half the side of the anchor plane's grid (object frame, metres), None without a grid."""
+        sl = pl.plane_slices[0] if pl.plane_slices else slice(0, len(pl.irradiance))
+        v = np.asarray(pl.vertices[sl], np.float64)
+        if len(v) < 4:
+            return None
+        side = float(np.max(np.abs(v[:, [0, 2]])))
+        n = max(int(round(math.sqrt(len(v)))), 2)
+        return side + side / (n - 1)  # to the outer edge of the outer cells
 
     @staticmethod
     def _neutral(e: np.ndarray, illum: np.ndarray) -> np.ndarray:
@@ -732,7 +836,7 @@ class LightEstimateStage(Stage):
         # a weak prior towards uniform light at the map's level keeps a barely observed scene sane
         prior = np.zeros((ncol, 3))
         prior[0] = env_scale / 0.282095 if self.env.seen.any() else 0.0
-        sol = np.linalg.solve(G + np.diag(reg), Aw.T @ bw + reg[:, None] * prior)
+        sol = _solve_nonnegative(G + np.diag(reg), Aw.T @ bw + reg[:, None] * prior)
         L_rad = sol[:9]
         E_p = np.maximum(sol[9], 0.0) if has_p else np.zeros(3)
         return L_rad, E_p
