@@ -128,12 +128,16 @@ def test_locus_normal_is_perpendicular_to_black_body_colours():
 def _samples(albedos_and_counts, light_rgb):
     from illuminet.runtime.stages.light_estimate import Samples
 
+    # (albedo, pixel count[, plane index, brightness]): pixels on no plane by default
     rng = np.random.default_rng(0)
-    rad = np.concatenate(
-        [np.asarray(a, float) * light_rgb * rng.uniform(0.7, 1.3, (n, 1)) for a, n in albedos_and_counts]
-    )
+    rad, plane = [], []
+    for a, n, *rest in albedos_and_counts:
+        k, gain = (rest + [-1, 1.0][len(rest) :])[:2]
+        rad.append(np.asarray(a, float) * light_rgb * gain * rng.uniform(0.7, 1.3, (n, 1)))
+        plane.append(np.full(n, k))
+    rad = np.concatenate(rad)
     N = len(rad)
-    return Samples(rad, np.tile([0, 1.0, 0], (N, 1)), np.zeros((N, 3)), np.full(N, -1), np.zeros(N, bool))
+    return Samples(rad, np.tile([0, 1.0, 0], (N, 1)), np.zeros((N, 3)), np.concatenate(plane), np.zeros(N, bool))
 
 
 def _chroma_deg(a, b):
@@ -159,6 +163,25 @@ def test_illuminant_colour_ignores_coloured_surfaces():
     lamp = color_temperature_rgb(2700.0)
     s = _samples([(paint, 2000), (wood, 1500), (carpet, 800)], lamp)
     assert _chroma_deg(stage._illuminant(s), lamp) < 4
+
+
+def test_illuminant_is_voted_by_surfaces_not_pixels():
+    """Wood is orange, close to the locus: a large wood floor brightly lit by a lamp's pool, seen
+    beside two painted walls, reads as a much warmer light when every pixel votes; with one vote per
+    surface (each tracked plane) the walls count as much as the floor."""
+    from illuminet.runtime.groundtruth.lighting import color_temperature_rgb
+    from illuminet.runtime.stages.light_estimate import LightEstimateStage
+
+    stage = LightEstimateStage(defaults())
+    paint, wood = [0.611, 0.64, 0.597], [0.42, 0.27, 0.15]
+    lamp = color_temperature_rgb(3500.0)
+    s = _samples([(wood, 6000, 0, 4.0), (paint, 700, 1), (paint, 500, 2)], lamp)
+    w = stage._illuminant(s)
+    every_pixel = s.radiance.mean(0)
+    assert _chroma_deg(every_pixel, lamp) > 2 * _chroma_deg(w, lamp)  # what a vote per pixel says
+    assert _chroma_deg(w, lamp) < 6, _chroma_deg(w, lamp)  # measured 4.4 (the floor is one of three votes)
+    one = _samples([(wood, 6000, -1, 4.0), (paint, 700, -1), (paint, 500, -1)], lamp)
+    assert _chroma_deg(stage._illuminant(one), lamp) > 10  # the same pixels on no plane: 12.9
 
 
 def test_ambient_light_is_never_negative_where_the_split_is_unobservable():

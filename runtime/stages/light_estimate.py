@@ -90,6 +90,8 @@ SHADOW_MIN_CONFIDENCE = 0.3
 LOCUS_NORMAL = np.array([0.804, 0.594])
 #: pixels this far off the locus (log chromaticity) vote exp(-1) as much as a pixel on it
 LOCUS_SIGMA = 0.2
+#: a surface votes for the light's colour with at least this many pixel samples near the locus
+SURFACE_MIN_VOTES = 5.0
 #: the neutral prior's weight against the share of pixels that voted (0.1: a tenth of the view on the locus
 #: already gives half the measured colour)
 LOCUS_PRIOR = 0.1
@@ -652,19 +654,36 @@ class LightEstimateStage(Stage):
         in log chromaticity (log R/G, log B/G); a pixel's log chromaticity is its surface's plus the
         illuminant's, so a pixel far off that line (grass, brick, a purple carpet) belongs to a
         coloured surface whatever the light, and says nothing about the light's colour. The pixels
-        within :data:`LOCUS_SIGMA` of the line vote (grey world among them), the answer is moved onto
+        within :data:`LOCUS_SIGMA` of the line vote (grey world among them, one vote per surface: a
+        tracked plane, or the pixels on none), the answer is moved onto
         the line, and it is shrunk towards neutral (D65) by how few pixels voted: a view of a green
         lawn and a brick wall gives daylight, not a yellow light.
         """
-        rad = s.radiance[np.isfinite(s.position[:, 0]) & ~s.saturated]
-        rad = rad[(rad > 1e-9).all(1)]
+        keep = np.isfinite(s.position[:, 0]) & ~s.saturated
+        rad = s.radiance[keep]
+        grp = s.plane[keep]
+        ok = (rad > 1e-9).all(1)
+        rad, grp = rad[ok], grp[ok]
         if len(rad) < 20:
             return np.ones(3)
         uv = np.log(rad[:, [0, 2]] / rad[:, 1:2])
         off = uv @ LOCUS_NORMAL
         w = np.exp(-((off / LOCUS_SIGMA) ** 2))
         evidence = float(w.mean())
-        m = (w[:, None] * rad).sum(0) / max(float(w.sum()), 1e-12)
+        # grey world over surfaces, not pixels: each plane (and the pixels on no plane, together)
+        # votes once with its mean chroma, so a large, bright wood floor in a lamp's pool does not
+        # outvote the walls (wood is orange, on the locus: pixel-weighted it read as a warmer light)
+        votes = []
+        for gi in np.unique(grp):
+            sel = grp == gi
+            wsum = float(w[sel].sum())
+            if wsum < SURFACE_MIN_VOTES:
+                continue
+            mg = (w[sel, None] * rad[sel]).sum(0) / wsum
+            lg = float(mg @ LUMA)
+            if lg > 1e-12:
+                votes.append(mg / lg)
+        m = np.mean(votes, axis=0) if votes else (w[:, None] * rad).sum(0) / max(float(w.sum()), 1e-12)
         if not np.all(m > 1e-12):
             return np.ones(3)
         uv_m = np.log(m[[0, 2]] / m[1])
