@@ -278,6 +278,24 @@ class NearFit:
     intercepts: np.ndarray  # (G, 3) per-plane ambient irradiance
 
 
+def _shares(
+    cands: np.ndarray,
+    x: np.ndarray,
+    n: np.ndarray,
+    w: np.ndarray,
+    groups: np.ndarray,
+    G: int,
+    oc: np.ndarray,
+    var: float,
+) -> np.ndarray:
+    """Share of the planes' centred luminance ``oc`` (weighted variance ``var``) that point lights at
+    ``cands`` (C, 3) explain, each alone with one slope (0 where the slope would be negative)."""
+    gc = _centred(_near_basis(cands, x, n), groups, w, G)
+    num = gc @ (w * oc)
+    den = (gc * gc) @ w
+    return np.where((num > 0) & (den > 1e-12), num * num / np.maximum(den, 1e-12) / var, 0.0)
+
+
 def explained_share(
     pos: np.ndarray, x: np.ndarray, n: np.ndarray, e: np.ndarray, w: np.ndarray, groups: np.ndarray
 ) -> float:
@@ -287,11 +305,9 @@ def explained_share(
     G = int(groups.max()) + 1
     oc = _centred(e @ LUMA, groups, w, G)
     var = float((w * oc * oc).sum())
-    gc = _centred(_near_basis(np.asarray(pos, np.float64)[None], x, n)[0], groups, w, G)
-    num, den = float(gc @ (w * oc)), float((gc * gc) @ w)
-    if var <= 1e-12 or den <= 1e-12 or num <= 0:
+    if var <= 1e-12:
         return 0.0
-    return num * num / den / var
+    return float(_shares(np.asarray(pos, np.float64)[None], x, n, w, groups, G, oc, var)[0])
 
 
 def fit_near_light(
@@ -319,11 +335,7 @@ def fit_near_light(
         return None
 
     def score(cands: np.ndarray) -> np.ndarray:
-        g = _near_basis(cands.astype(np.float32), x, n)
-        gc = _centred(g, groups, w, G)
-        num = gc @ (w * oc)
-        den = (gc * gc) @ w
-        return np.where((num > 0) & (den > 1e-12), num * num / np.maximum(den, 1e-12) / var, 0.0)
+        return _shares(cands.astype(np.float32), x, n, w, groups, G, oc, var)
 
     r2 = score(seeds)
     best = seeds[np.argsort(r2)[-2:]]
@@ -381,7 +393,7 @@ def _solve_nonnegative(G: np.ndarray, rhs: np.ndarray) -> np.ndarray:
             neg_p |= new_p
             Yc = _NONNEG_Y[active]
             Gc = G.copy()
-            Gc[:9, :9] += stiff / max(len(_NONNEG_Y), 1) * (Yc.T @ Yc)
+            Gc[:9, :9] += stiff / len(_NONNEG_Y) * (Yc.T @ Yc)
             if neg_p:
                 Gc[9, 9] += stiff
             x = np.linalg.solve(Gc, rhs[:, c])
@@ -766,8 +778,7 @@ class LightEstimateStage(Stage):
         if len(v) < 4:
             return None
         side = float(np.max(np.abs(v[:, [0, 2]])))
-        n = max(int(round(math.sqrt(len(v)))), 2)
-        return side + side / (n - 1)  # to the outer edge of the outer cells
+        return side + side / (max(int(pl.grid), 2) - 1)  # to the outer edge of the outer cells
 
     @staticmethod
     def _neutral(e: np.ndarray, illum: np.ndarray) -> np.ndarray:
