@@ -59,6 +59,12 @@ from illuminet.runtime.stage import StageChain
 
 log = logging.getLogger(__name__)
 
+
+def _drawn(sh) -> np.ndarray:
+    """What the renderer draws of an ObjectShading: its render-mesh irradiance when it has one."""
+    return sh.render_irradiance if sh.render_irradiance is not None else sh.irradiance
+
+
 SUITES = ("indoor", "outdoor", "lamp", "spatial", "cluttered")
 #: regularisers tried for the RGB-D SH baseline; the best per suite is reported (its fairest setting)
 SH_LAMBDAS = (0.0, 1e-2, 0.1)
@@ -282,9 +288,7 @@ class CameraEval:
                         d = light.primary_dir
                     elif sh is not None:
                         d = sh.dominant_dir
-                    per_frame.setdefault(v.name, []).append(
-                        None if sh is None else (self._render(sh.irradiance), None, d)
-                    )
+                    per_frame.setdefault(v.name, []).append(None if sh is None else (self._render(_drawn(sh)), None, d))
                     last[v.name] = out
                     if model is None:
                         continue
@@ -296,7 +300,7 @@ class CameraEval:
                         except Exception as e:  # the learned transfer cannot use this frame's plane
                             log.debug("model baseline skipped a frame: %s", e)
                     per_frame.setdefault("model", []).append(
-                        None if ms is None else (self._render(ms.irradiance), None, ms.dominant_dir)
+                        None if ms is None else (self._render(_drawn(ms)), None, ms.dominant_dir)
                     )
                     self._frame_baselines(out, pl, per_frame, BL, linearize, preprocess_plane)
             finally:

@@ -20,6 +20,14 @@ this module only reads and evaluates them, in well under a millisecond per frame
   sharp at the horizon (in the table it would be blurred over the kernel, dimming a low sun).
 * ``bounce`` B_i (9,), optional: one interreflection of the object onto itself for its albedo,
   ``E_i += B_i . (L + primary as SH)``.
+* ``render_transfer``, ``render_bounce`` (R, 9), optional (``illuminet bundle --render-transfer``): the
+  same two integrals at every vertex of the render mesh. The object's self-occlusion varies faster than
+  the lighting proxy's few hundred vertices sample it (the vase's grooves and lip); carried from the
+  proxy, the ambient shading is blurred across them (camera eval, vase, 11 scenes a suite: MAE 0.051 ->
+  0.048 indoor, 0.092 -> 0.085 lamp). With them, :func:`prt_irradiance_render` shades every render vertex:
+  ambient and bounce from its own transfer vectors, the primary light with its own cosine and distance
+  and the proxy's visibility carried (a shadow is smooth; keeping the (K, R) visibility table would take
+  ~37 MB and ~6 ms a frame for a near light).
 
 Primary light: ``E_i += rgb * max(0, n_i . d) * V_i(d)``; for a near light (``primary_pos`` known)
 d is the direction from each vertex to the light and ``rgb`` falls off as ``(|pos| / |pos - x_i|)^2``
@@ -81,6 +89,8 @@ class PrtTables:
     directions: np.ndarray
     visibility: np.ndarray
     bounce: np.ndarray | None = None
+    render_transfer: np.ndarray | None = None  # (R, 9) float32, optional
+    render_bounce: np.ndarray | None = None  # (R, 9) float32, optional
 
     @property
     def n_vertices(self) -> int:
@@ -93,8 +103,9 @@ class PrtTables:
         return float((2.0 * np.sin(min(r, np.pi) / 2.0)) ** 2)
 
     @classmethod
-    def from_arrays(cls, arrays, n_vertices: int) -> PrtTables:
-        """Check ``prt.npz``'s arrays against the proxy vertex count and unpack them.
+    def from_arrays(cls, arrays, n_vertices: int, n_render: int | None = None) -> PrtTables:
+        """Check ``prt.npz``'s arrays against the proxy vertex count (and the render mesh's ``n_render``
+        vertices, for the optional render-mesh arrays) and unpack them.
 
         Raises
         ------
@@ -123,11 +134,24 @@ class PrtTables:
                 raise ValueError(f"bounce must be ({V}, 9), got {bounce.shape}")
         if not (np.isfinite(t).all() and (bounce is None or np.isfinite(bounce).all())):
             raise ValueError("transfer/bounce hold non-finite values")
+        render = {}
+        for key in ("render_transfer", "render_bounce"):
+            if key not in arrays:
+                continue
+            a = np.asarray(arrays[key], np.float32)
+            if n_render is None or a.shape != (n_render, 9):
+                raise ValueError(f"{key} must be ({n_render}, 9) for the render mesh's vertices, got {a.shape}")
+            if not np.isfinite(a).all():
+                raise ValueError(f"{key} holds non-finite values")
+            render[key] = a  # float32: evaluated in float32 (runtime cost, R x 9)
+        if ("render_bounce" in render) != (bounce is not None and "render_transfer" in render):
+            raise ValueError("render_bounce must come with render_transfer and bounce (and only then)")
         return cls(
             transfer=t.astype(np.float64),
             directions=d.astype(np.float64) / np.linalg.norm(d, axis=1, keepdims=True),
             visibility=unpack_visibility(bits, V),
             bounce=None if bounce is None else bounce.astype(np.float64),
+            **render,
         )
 
     def _weights(self, cos: np.ndarray) -> np.ndarray:
@@ -214,6 +238,64 @@ def prt_irradiance(tables: PrtTables, points: np.ndarray, normals: np.ndarray, e
     if tables.bounce is not None:
         E += tables.bounce @ L
     return np.maximum(E, 0.0).astype(np.float32)
+
+
+def prt_irradiance_render(
+    tables: PrtTables,
+    points: np.ndarray,
+    normals: np.ndarray,
+    proxy_index: np.ndarray,
+    carry,
+    estimate,
+) -> np.ndarray:
+    """Irradiance (R, 3) of every render vertex, from the tables' render-mesh arrays (module docstring).
+
+    Parameters
+    ----------
+    tables : PrtTables with ``render_transfer`` (else ValueError)
+    points, normals : (R, 3) the render mesh's vertices (object frame, metres, drawn scale) and normals
+        (float32 is fastest: the whole evaluation runs in float32)
+    proxy_index : (V,) the proxy's vertices among them; carry : proxy values (V, k) -> render values (R, k)
+    estimate : LightEstimate
+
+    Returns
+    -------
+    (R, 3) float32, clamped at 0. At a proxy vertex it is :func:`prt_irradiance` up to the ray noise of
+    the two tables.
+    """
+    if tables.render_transfer is None:
+        raise ValueError("these PRT tables have no render-mesh transfer (illuminet bundle --render-transfer)")
+    f32 = np.float32
+    L = estimate.radiance_sh9()
+    E = tables.render_transfer @ L.astype(f32)
+    d = estimate.primary_dir
+    rgb = np.asarray(estimate.primary_rgb, np.float64).reshape(3)
+    if d is not None and np.any(rgb > 0):
+        d = np.asarray(d, np.float64).reshape(3)
+        d = d / max(np.linalg.norm(d), 1e-12)
+        n = np.asarray(normals, f32)
+        pos = estimate.primary_pos
+        if pos is not None and float(np.dot(pos, pos)) < 1e-6:
+            pos = None
+        if pos is None:
+            g = n @ d.astype(f32)
+            vis = tables.primary_visibility(d)
+        else:
+            pos = np.asarray(pos, np.float64).reshape(3)
+            v = pos.astype(f32)[None, :] - np.asarray(points, f32)
+            r2 = np.maximum(np.einsum("vx,vx->v", v, v), f32(1e-8))
+            inv = 1.0 / np.sqrt(r2)
+            g = np.einsum("vx,vx->v", n, v) * inv * (f32(pos @ pos) / r2)  # cos x falloff
+            vis = tables.primary_visibility_per_vertex((v * inv[:, None])[np.asarray(proxy_index)].astype(np.float64))
+        np.maximum(g, 0.0, out=g)
+        g *= np.asarray(carry(vis.astype(f32)[:, None]), f32)[:, 0]
+        E += g[:, None] * rgb.astype(f32)[None, :]
+        if tables.render_bounce is not None:
+            L = L + primary_radiance_sh9(d, rgb)
+    if tables.render_bounce is not None:
+        E += tables.render_bounce @ L.astype(f32)
+    np.maximum(E, 0.0, out=E)
+    return E
 
 
 def unoccluded_transfer(normals: np.ndarray) -> np.ndarray:

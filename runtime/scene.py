@@ -132,6 +132,10 @@ class ObjectShading:
         Unit direction *towards* the dominant light, object frame.
     dominant_share : float
         Share of the light that the dominant direction carries, in [0, 1] (drives shadow strength).
+    render_irradiance : (R, 3) or None
+        The same on every vertex of the render mesh, when the predictor shades it directly (PRT with
+        the bundle's render-mesh transfer); the renderer then draws it instead of carrying
+        ``irradiance``.
     """
 
     irradiance: np.ndarray
@@ -139,6 +143,7 @@ class ObjectShading:
     oi: np.ndarray | None = None
     dominant_dir: np.ndarray | None = None
     dominant_share: float = 0.0
+    render_irradiance: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

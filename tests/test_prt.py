@@ -322,10 +322,78 @@ def test_shipped_bundles_have_prt_made_by_the_command(name):
     assert b.has_model and b.prt is not None and b.prt.bounce is not None
     p = b.meta["prt"]
     assert p["command"].startswith(f"illuminet bundle --object builtin:{name}") and p["seed"] == 0
-    assert (b.path / "prt.npz").stat().st_size < 200 * 1024
+    # proxy tables (~50 KB) + the transfer and bounce of every render vertex (9026 x 9 x 2 float32)
+    assert (b.path / "prt.npz").stat().st_size < 1024 * 1024
     # the inside of the object is darker in the transfer than outside on average
     ao = b.prt.transfer[:, 0] / unoccluded_transfer(b.proxy_normals)[:, 0]
     assert ao.min() < 0.7 and ao.max() > 0.95
+    # the render-mesh transfer is the same integral: at the proxy's own vertices it matches the proxy's
+    assert p["render_transfer"]["vertices"] == len(b.vertices)
+    rt = b.prt.render_transfer[b.proxy_index]
+    assert np.abs(rt - b.prt.transfer).max() < 1e-3 * np.abs(b.prt.transfer).max() + 1e-6
+    # ... and between them it holds occlusion detail the carried proxy blurs (grooves, the lip)
+    carried = b.carry(b.prt.transfer)[:, 0]
+    assert np.percentile(np.abs(b.prt.render_transfer[:, 0] - carried), 99) > 0.05 * b.prt.render_transfer[:, 0].max()
+
+
+@pytest.fixture(scope="module")
+def render_bundle(tmp_path_factory):
+    d = tmp_path_factory.mktemp("prtr")
+    mesh = _write_mesh(d / "thing.ply")
+    out = d / "bundle"
+    args = ["bundle", "--object", str(mesh), "--out", str(out), "--height", "0.15", "--n-proxy", "120"]
+    rc = main(args + ["--transfer-rays", "512", "--directions", "256", "--render-transfer", "--quiet"])
+    assert rc == 0
+    return out
+
+
+def test_render_transfer_shades_every_render_vertex(render_bundle, prt_bundle):
+    """``--render-transfer``: the stage shades the render mesh itself; the proxy's values are its rows."""
+    b = load_bundle(render_bundle)
+    R = len(b.vertices)
+    assert b.prt.render_transfer.shape == (R, 9) and b.prt.render_bounce.shape == (R, 9)
+    st = _stage(render_bundle, shading="prt", temporal_smoothing=0.0)
+    for est in (
+        _estimate(),
+        LightEstimate(
+            sh9=_ambient(0.3),
+            primary_dir=_unit([0.5, 0.5, 0.1]),
+            primary_rgb=np.array([3.0, 2.5, 2.0]),
+            primary_pos=np.array([0.2, 0.2, 0.04]),
+        ),
+    ):
+        out = st.process(_frame(light=est)).results[SHADING.name]
+        assert out.render_irradiance.shape == (R, 3) and np.isfinite(out.render_irradiance).all()
+        assert np.array_equal(out.irradiance, out.render_irradiance[b.proxy_index])
+        # at the proxy's vertices: the proxy-table shading (same rays; the bounce differs only by how
+        # the hit points' light is interpolated)
+        ref = prt_irradiance(b.prt, b.proxy_vertices, b.proxy_normals, est)
+        rel = np.abs(out.irradiance - ref).mean() / ref.mean()
+        assert rel < 0.03, rel
+        # a light from +x lights the +x side more, on the render mesh too
+        d = np.asarray(est.primary_dir)
+        facing = b.normals @ d
+        assert out.render_irradiance[facing > 0.5].mean() > 1.5 * out.render_irradiance[facing < -0.5].mean()
+    # a bundle without them keeps shading the proxy only (the renderer carries it)
+    plain = _stage(prt_bundle, shading="prt", temporal_smoothing=0.0)
+    assert plain.process(_frame(light=_estimate())).results[SHADING.name].render_irradiance is None
+
+
+def test_damaged_render_transfer_is_reported(tmp_path, render_bundle):
+    import shutil
+
+    from illuminet.models.export import finalize_bundle
+
+    d = tmp_path / "b"
+    shutil.copytree(render_bundle, d)
+    with np.load(d / "prt.npz") as z:
+        arr = {k: z[k] for k in z.files}
+    R = len(arr["render_transfer"])
+    arr["render_transfer"] = arr["render_transfer"][:-1]
+    np.savez_compressed(d / "prt.npz", **arr)
+    finalize_bundle(d, json.loads((d / "bundle.json").read_text()))
+    with pytest.raises(BundleError, match=rf"prt\.npz: render_transfer must be \({R}, 9\)"):
+        load_bundle(d)
 
 
 def test_bundle_command_errors_are_one_line(tmp_path, capsys):

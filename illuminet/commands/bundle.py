@@ -71,6 +71,12 @@ def register(sub) -> None:
         default=1024,
         help="directions of the primary light's visibility table (default 1024, ~6 degrees apart)",
     )
+    p.add_argument(
+        "--render-transfer",
+        action="store_true",
+        help="also compute the transfer of every render vertex: the object's self-occlusion at full "
+        "resolution (camera eval, vase: 5-8 %% lower shading error; ~40 s more for 9000 vertices on 2 cores)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
 
@@ -142,7 +148,14 @@ def run(args: argparse.Namespace, cfg) -> int:
             if not args.quiet:
                 print(f"adding PRT to the bundle in {out} (its mesh, proxy and models are kept)", file=sys.stderr)
             path, res = add_prt(
-                out, args.transfer_rays, args.directions, args.albedo, _command(args), args.seed, progress
+                out,
+                args.transfer_rays,
+                args.directions,
+                args.albedo,
+                _command(args),
+                args.seed,
+                progress,
+                render=args.render_transfer,
             )
         else:
             if out.exists() and (not out.is_dir() or any(out.iterdir())):
@@ -161,6 +174,7 @@ def run(args: argparse.Namespace, cfg) -> int:
                 _command(args),
                 progress,
                 up=args.up,
+                render=args.render_transfer,
             )
     except (ObjectLoadError, BundleError, OSError) as e:
         return fail(str(e))

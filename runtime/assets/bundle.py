@@ -10,8 +10,9 @@ A bundle is a folder::
                          the render vertices, proxy_edges), the carry mapping (carry_index,
                          carry_weight: each render vertex interpolates k proxy vertices) and
                          prior_shading (the constant-prior baseline, relative to the plane's scale)
-    prt.npz              optional: precomputed radiance transfer of the proxy vertices (layout in
-                         :mod:`illuminet.runtime.prt`; made by ``illuminet bundle``)
+    prt.npz              optional: precomputed radiance transfer of the proxy vertices, and optionally
+                         of every render vertex (layout in :mod:`illuminet.runtime.prt`; made by
+                         ``illuminet bundle``)
     transfer_fp32.onnx   optional (``illuminet train``): the learned inference chain, fp32
     transfer_int8.onnx   the same with its FC layers dynamically quantised to int8
 
@@ -247,7 +248,7 @@ def load_bundle(spec: str | Path, verify: bool = True) -> Bundle:
     if PRT_FILE in meta["files"]:
         try:
             with np.load(path / PRT_FILE, allow_pickle=False) as z:
-                b.prt = PrtTables.from_arrays({k: z[k] for k in z.files}, b.n_proxy)
+                b.prt = PrtTables.from_arrays({k: z[k] for k in z.files}, b.n_proxy, len(b.vertices))
         except ValueError as e:
             raise BundleError(f"{path / PRT_FILE}: {e}") from None
         except Exception as e:  # zip/npz errors

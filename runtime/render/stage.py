@@ -153,7 +153,10 @@ class RenderStage(Stage):
         n = self.comp.mesh.n_vertices
         if irr.ndim != 2 or irr.shape[1] != 3:
             raise FrameError(f"shading irradiance must be (V, 3), got {irr.shape} (method {shading.method})")
-        if irr.shape[0] == 1:  # one value for the whole object (e.g. the ambient baseline without a bundle)
+        full = shading.render_irradiance
+        if full is not None and np.shape(full) == (n, 3):  # shaded on the render mesh itself (PRT)
+            out = np.asarray(full, dtype=np.float32)
+        elif irr.shape[0] == 1:  # one value for the whole object (e.g. the ambient baseline without a bundle)
             out = np.repeat(irr, n, axis=0)
         elif self._carry is not None:
             out = np.asarray(self._carry(irr), dtype=np.float32)

@@ -18,7 +18,7 @@ import logging
 
 import numpy as np
 
-from illuminet.runtime.prt import PRT_FILE, prt_irradiance
+from illuminet.runtime.prt import PRT_FILE, prt_irradiance, prt_irradiance_render
 from illuminet.runtime.scene import LIGHT, PLANE_LIGHT, SHADING, ObjectShading
 from illuminet.runtime.sh import sh_eval, sh_fit
 from illuminet.runtime.stage import FrameError, Stage
@@ -177,6 +177,7 @@ class ShadingStage(Stage):
         self.chain = None
         self.fallback = None  # what "auto" uses on frames without a light estimate (set in open)
         self._proxy = None
+        self._render_mesh = None
         self._prev: tuple | None = None
         self.frames = 0
         self.methods: dict[str, int] = {}
@@ -247,13 +248,28 @@ class ShadingStage(Stage):
                     np.asarray(b.proxy_vertices, np.float64) * self.object_scale,
                     np.asarray(b.proxy_normals, np.float64),
                 )
-            irr = prt_irradiance(b.prt, self._proxy[0], self._proxy[1], light)
+            render = None
+            if b.prt.render_transfer is not None:
+                # every render vertex from its own transfer (the self-occlusion in the grooves is finer
+                # than the proxy); the proxy's values are the same at its vertices
+                if self._render_mesh is None:
+                    self._render_mesh = (
+                        np.asarray(b.vertices, np.float32) * np.float32(self.object_scale),
+                        np.asarray(b.normals, np.float32),
+                    )
+                render = prt_irradiance_render(
+                    b.prt, self._render_mesh[0], self._render_mesh[1], b.proxy_index, b.carry, light
+                )
+                irr = render[b.proxy_index]
+            else:
+                irr = prt_irradiance(b.prt, self._proxy[0], self._proxy[1], light)
             d = None if light.primary_dir is None else np.asarray(light.primary_dir, np.float32)
             return ObjectShading(
                 irradiance=irr,
                 method="prt",
                 dominant_dir=d,
                 dominant_share=light.primary_share() if d is not None else 0.0,
+                render_irradiance=render,
             )
         if pl is None:
             raise FrameError(f"shading mode {mode} needs the plane light (results['plane_light']) on this frame")
@@ -318,12 +334,16 @@ class ShadingStage(Stage):
             irr = a * prev[1] + (1 - a) * s.irradiance
             oi = s.oi if (s.oi is None or prev[2] is None) else a * prev[2] + (1 - a) * s.oi
             d, share = dominant_light_from_oi(oi) if oi is not None else (s.dominant_dir, s.dominant_share)
+            r = s.render_irradiance
+            if r is not None and prev[3] is not None and prev[3].shape == r.shape:
+                r = (a * prev[3] + (1 - a) * r).astype(np.float32)
             s = ObjectShading(
                 irradiance=irr.astype(np.float32),
                 method=s.method,
                 oi=None if oi is None else oi.astype(np.float32),
                 dominant_dir=d,
                 dominant_share=share,
+                render_irradiance=r,
             )
-        self._prev = (s.method, s.irradiance, s.oi)
+        self._prev = (s.method, s.irradiance, s.oi, s.render_irradiance)
         return s
