@@ -217,3 +217,29 @@ def test_ambient_light_is_never_negative_where_the_split_is_unobservable():
     x_true = np.concatenate([L_true, [[0.7, 0.6, 0.5]]])
     rhs = A.T @ (A @ x_true)
     np.testing.assert_allclose(A @ _solve_nonnegative(G, rhs), A @ x_true, atol=1e-3)
+
+
+def test_a_plane_lit_from_near_it_counts_less_in_the_ambient_solve():
+    """A wall with a lamp's pool on it (a smooth gradient across it) says how that lamp lights the wall,
+    not the object: it weighs less than an evenly lit wall with the same albedo texture."""
+    from illuminet.runtime.stages.light_estimate import LightEstimateStage
+
+    rng = np.random.default_rng(0)
+    n = 400
+    # two walls 2 m away, 2 x 2 m, brick-like texture (+-30 % albedo noise)
+    yz = rng.uniform(0, 2, (n, 2))
+    even = np.c_[np.full(n, 2.0), yz[:, 0], yz[:, 1] - 1.0]
+    pooled = np.c_[yz[:, 1] - 1.0, yz[:, 0], np.full(n, -2.0)]
+    tex = rng.uniform(0.7, 1.3, 2 * n)
+    lamp = np.array([0.0, 1.6, -1.7])  # 0.3 m in front of the second wall
+    r2 = ((pooled - lamp) ** 2).sum(1)
+    e_even = 10.0 * tex[:n]
+    e_pool = (4.0 + 6.0 * 0.3 / r2**1.5 / (0.3 / 0.3**3)) * tex[n:]
+    floor = np.c_[rng.uniform(-0.5, 0.5, (n, 1)), np.zeros((n, 1)), rng.uniform(-0.5, 0.5, (n, 1))]
+    xs = np.concatenate([floor, even, pooled])
+    es = np.concatenate([np.full(n, 10.0), e_even, e_pool])[:, None] * np.ones(3)
+    gs = np.repeat([0, 1, 2], n)
+    w = LightEstimateStage._distant_weight(xs, es, np.ones(3 * n), gs)
+    assert np.all(w[gs == 0] == 1.0)  # the anchor plane is never down-weighted here
+    assert w[gs == 1].mean() > 0.9, w[gs == 1].mean()  # texture alone: (almost) full weight
+    assert w[gs == 2].mean() < 0.5 * w[gs == 1].mean(), (w[gs == 2].mean(), w[gs == 1].mean())

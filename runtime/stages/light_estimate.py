@@ -107,6 +107,10 @@ FLOOR_WEIGHT_MAX = 0.5
 #: pool of light, not to the object's surroundings, is not the light at the object (0.3 -> 0.5 on the
 #: eval's 11 scenes a suite: spatial MAE 0.078 -> 0.073, its colour 1.9 -> 1.3 deg)
 LOCAL_R2_MIN = 0.5
+#: a plane other than the anchor's whose irradiance varies across it by this much (relative standard
+#: deviation of an affine fit over its surface: the lighting's gradient, not its texture) counts half
+#: in the ambient solve
+LOCAL_VARIATION = 0.1
 #: plane samples the near-light fit uses per frame (a random subset, fixed per frame number)
 NEAR_ROWS = 300
 
@@ -571,6 +575,7 @@ class LightEstimateStage(Stage):
             wb, wg = float(ws[beyond].sum()), float(ws[~beyond & (gs == 0)].sum())
             if wb > FLOOR_WEIGHT_MAX * wg:
                 ws = np.where(beyond, ws * (FLOOR_WEIGHT_MAX * wg / max(wb, 1e-12)), ws)
+            ws = self._distant_weight(xs, es, ws, gs)
         L_rad, E_p = self._solve(xs, ns, es, ws, primary_dir, primary_pos)
         conf_dir = 0.0
         if primary_dir is None:
@@ -769,6 +774,30 @@ class LightEstimateStage(Stage):
             labels,
             np.concatenate(bs),
         )
+
+    @staticmethod
+    def _distant_weight(xs: np.ndarray, es: np.ndarray, ws: np.ndarray, gs: np.ndarray) -> np.ndarray:
+        """Weights of the other planes' rows in the ambient solve, lowered for a plane lit from near it.
+
+        The solve reads a plane's irradiance as the light at the object, which holds for distant
+        light (a sunlit facade, evenly lit at every point). A wall with a lamp's pool on it says how
+        that lamp lights the wall, not the object 2 m away: its irradiance varies smoothly across it.
+        An affine fit over the plane's points measures that variation (the albedo texture averages
+        out); the plane's weight is ``1 / (1 + (variation / LOCAL_VARIATION)^2)``.
+        """
+        out = ws.copy()
+        if LOCAL_VARIATION <= 0:
+            return out
+        lum = es @ LUMA
+        for g in np.unique(gs):
+            m = gs == g
+            if g == 0 or m.sum() < 8:
+                continue
+            X = np.c_[np.ones(int(m.sum())), xs[m] - xs[m].mean(0)]
+            coef, *_ = np.linalg.lstsq(X, lum[m], rcond=None)
+            rel = float(np.std(X[:, 1:] @ coef[1:]) / max(float(np.mean(lum[m])), 1e-12))
+            out[m] *= 1.0 / (1.0 + (rel / LOCAL_VARIATION) ** 2)
+        return out
 
     @staticmethod
     def _grid_half_extent(pl: PlaneLight) -> float | None:
