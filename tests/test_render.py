@@ -458,6 +458,10 @@ def test_shading_on_a_proxy_is_carried_to_the_render_mesh(gl):
         carried = st.render_irradiance(sh)
         assert carried.shape == (render.n_vertices, 3)
         assert np.allclose(carried, full[proxy_index][nearest])
+        # shading that comes with the render mesh's own values (PRT with render-mesh transfer) is drawn
+        # as it is, not carried from the proxy
+        own = ObjectShading(irradiance=full[proxy_index], method="test", render_irradiance=full)
+        assert np.array_equal(st.render_irradiance(own), full.astype(np.float32))
         T = camera_pose()
         out = st.process(make_frame(T, sh)).results["composite"]
     finally:
