@@ -180,8 +180,10 @@ def run(args: argparse.Namespace, cfg) -> int:
         return fail(str(e))
     total = sum((path.parent / f).stat().st_size for f in json.loads(path.read_text())["files"]) + path.stat().st_size
     t = res.timings_s
+    rt = json.loads(path.read_text()).get("prt", {}).get("render_transfer")
+    extra = f" + the transfer of {rt['vertices']} render vertices" if rt else ""
     print(
-        f"wrote {path}: {len(res.transfer)} proxy vertices, PRT {sum(t.values()):.1f} s "
+        f"wrote {path}: {len(res.transfer)} proxy vertices{extra}, PRT {sum(t.values()):.1f} s "
         f"({', '.join(f'{k[:-2]} {v:.2f} s' for k, v in t.items())}), bundle {total / 1024:.0f} KiB, "
         f"total {time.perf_counter() - t0:.1f} s"
     )
