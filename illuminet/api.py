@@ -356,7 +356,7 @@ def render_preview(
         method=result.method,
         dominant_dir=R.T @ np.asarray(result.dominant_dir, np.float64),
         dominant_share=float(result.dominant_share),
-        render_irradiance=None if result.irradiance is None else np.asarray(result.irradiance, np.float32),
+        render_irradiance=np.asarray(result.irradiance, np.float32),
     )
     stage = RenderStage(cfg)
     stage.open()

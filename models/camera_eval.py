@@ -60,9 +60,9 @@ from illuminet.runtime.stage import StageChain
 log = logging.getLogger(__name__)
 
 
-def _drawn(sh) -> np.ndarray:
-    """What the renderer draws of an ObjectShading: its render-mesh irradiance when it has one."""
-    return sh.render_irradiance if sh.render_irradiance is not None else sh.irradiance
+def _as_is(values: np.ndarray) -> np.ndarray:
+    """No carry: :meth:`CameraEval._render` carries proxy values itself."""
+    return values
 
 
 SUITES = ("indoor", "outdoor", "lamp", "spatial", "cluttered")
@@ -288,7 +288,8 @@ class CameraEval:
                         d = light.primary_dir
                     elif sh is not None:
                         d = sh.dominant_dir
-                    per_frame.setdefault(v.name, []).append(None if sh is None else (self._render(_drawn(sh)), None, d))
+                    drawn = None if sh is None else self._render(sh.on_render_mesh(_as_is))
+                    per_frame.setdefault(v.name, []).append(None if drawn is None else (drawn, None, d))
                     last[v.name] = out
                     if model is None:
                         continue
@@ -300,7 +301,7 @@ class CameraEval:
                         except Exception as e:  # the learned transfer cannot use this frame's plane
                             log.debug("model baseline skipped a frame: %s", e)
                     per_frame.setdefault("model", []).append(
-                        None if ms is None else (self._render(_drawn(ms)), None, ms.dominant_dir)
+                        None if ms is None else (self._render(ms.on_render_mesh(_as_is)), None, ms.dominant_dir)
                     )
                     self._frame_baselines(out, pl, per_frame, BL, linearize, preprocess_plane)
             finally:

@@ -196,6 +196,39 @@ def primary_radiance_sh9(direction: np.ndarray, rgb: np.ndarray) -> np.ndarray:
     return sh9(d)[0][:, None] * np.asarray(rgb, np.float64)[None, :]
 
 
+def _shade(transfer, bounce, points, normals, estimate, vis_distant, vis_near, dtype) -> np.ndarray:
+    """Shading of some vertices (the proxy's or the render mesh's) from their transfer and bounce
+    arrays; ``vis_distant(d)`` / ``vis_near(dirs)`` give those vertices' visibility of the primary light
+    (module docstring). Evaluated in ``dtype``; returns float32 clamped at 0."""
+    L = estimate.radiance_sh9()
+    E = transfer @ L.astype(dtype)
+    d = estimate.primary_dir
+    rgb = np.asarray(estimate.primary_rgb, np.float64).reshape(3)
+    if d is not None and np.any(rgb > 0):
+        d = np.asarray(d, np.float64).reshape(3)
+        d = d / max(np.linalg.norm(d), 1e-12)
+        n = np.asarray(normals, dtype)
+        pos = estimate.primary_pos
+        if pos is not None and float(np.dot(pos, pos)) < 1e-6:
+            pos = None  # a "near" light at the anchor itself says nothing about falloff: treat it as distant
+        if pos is None:
+            g = np.maximum(n @ d.astype(dtype), 0.0) * vis_distant(d)
+        else:
+            pos = np.asarray(pos, np.float64).reshape(3)
+            v = pos.astype(dtype)[None, :] - np.asarray(points, dtype)
+            r2 = np.maximum(np.einsum("vx,vx->v", v, v), dtype(1e-8))
+            dv = v / np.sqrt(r2)[:, None]
+            cos = np.maximum(np.einsum("vx,vx->v", n, dv), 0.0)
+            g = cos * (dtype(pos @ pos) / r2) * vis_near(dv)
+        E += g.astype(dtype)[:, None] * rgb.astype(dtype)[None, :]
+        if bounce is not None:
+            L = L + primary_radiance_sh9(d, rgb)
+    if bounce is not None:
+        E += bounce @ L.astype(dtype)
+    np.maximum(E, 0.0, out=E)
+    return E.astype(np.float32, copy=False)
+
+
 def prt_irradiance(tables: PrtTables, points: np.ndarray, normals: np.ndarray, estimate) -> np.ndarray:
     """Irradiance (V, 3) of the proxy vertices under a :class:`~illuminet.runtime.scene.LightEstimate`.
 
@@ -211,33 +244,16 @@ def prt_irradiance(tables: PrtTables, points: np.ndarray, normals: np.ndarray, e
     (V, 3) float32, clamped at 0: ambient through the transfer vectors, the primary light with its
     table visibility, and the bounce when the tables have one.
     """
-    L = estimate.radiance_sh9()
-    E = tables.transfer @ L
-    d = estimate.primary_dir
-    rgb = np.asarray(estimate.primary_rgb, np.float64).reshape(3)
-    if d is not None and np.any(rgb > 0):
-        d = np.asarray(d, np.float64).reshape(3)
-        d = d / max(np.linalg.norm(d), 1e-12)
-        n = np.asarray(normals, np.float64)
-        pos = estimate.primary_pos
-        if pos is not None and float(np.dot(pos, pos)) < 1e-6:
-            pos = None  # a "near" light at the anchor itself says nothing about falloff: treat it as distant
-        if pos is None:
-            cos = np.maximum(n @ d, 0.0)
-            E += (cos * tables.primary_visibility(d))[:, None] * rgb[None, :]
-        else:
-            pos = np.asarray(pos, np.float64).reshape(3)
-            v = pos[None, :] - np.asarray(points, np.float64)
-            r2 = np.maximum(np.einsum("vx,vx->v", v, v), 1e-8)
-            dv = v / np.sqrt(r2)[:, None]
-            cos = np.maximum(np.einsum("vx,vx->v", n, dv), 0.0)
-            fall = float(pos @ pos) / r2
-            E += (cos * fall * tables.primary_visibility_per_vertex(dv))[:, None] * rgb[None, :]
-        if tables.bounce is not None:
-            L = L + primary_radiance_sh9(d, rgb)
-    if tables.bounce is not None:
-        E += tables.bounce @ L
-    return np.maximum(E, 0.0).astype(np.float32)
+    return _shade(
+        tables.transfer,
+        tables.bounce,
+        points,
+        normals,
+        estimate,
+        tables.primary_visibility,
+        tables.primary_visibility_per_vertex,
+        np.float64,
+    )
 
 
 def prt_irradiance_render(
@@ -254,48 +270,32 @@ def prt_irradiance_render(
     ----------
     tables : PrtTables with ``render_transfer`` (else ValueError)
     points, normals : (R, 3) the render mesh's vertices (object frame, metres, drawn scale) and normals
-        (float32 is fastest: the whole evaluation runs in float32)
+        (evaluated in float32)
     proxy_index : (V,) the proxy's vertices among them; carry : proxy values (V, k) -> render values (R, k)
     estimate : LightEstimate
 
     Returns
     -------
     (R, 3) float32, clamped at 0. At a proxy vertex it is :func:`prt_irradiance` up to the ray noise of
-    the two tables.
+    the two tables; the primary light's visibility is the proxy's, carried.
     """
     if tables.render_transfer is None:
         raise ValueError("these PRT tables have no render-mesh transfer (illuminet bundle --render-transfer)")
-    f32 = np.float32
-    L = estimate.radiance_sh9()
-    E = tables.render_transfer @ L.astype(f32)
-    d = estimate.primary_dir
-    rgb = np.asarray(estimate.primary_rgb, np.float64).reshape(3)
-    if d is not None and np.any(rgb > 0):
-        d = np.asarray(d, np.float64).reshape(3)
-        d = d / max(np.linalg.norm(d), 1e-12)
-        n = np.asarray(normals, f32)
-        pos = estimate.primary_pos
-        if pos is not None and float(np.dot(pos, pos)) < 1e-6:
-            pos = None
-        if pos is None:
-            g = n @ d.astype(f32)
-            vis = tables.primary_visibility(d)
-        else:
-            pos = np.asarray(pos, np.float64).reshape(3)
-            v = pos.astype(f32)[None, :] - np.asarray(points, f32)
-            r2 = np.maximum(np.einsum("vx,vx->v", v, v), f32(1e-8))
-            inv = 1.0 / np.sqrt(r2)
-            g = np.einsum("vx,vx->v", n, v) * inv * (f32(pos @ pos) / r2)  # cos x falloff
-            vis = tables.primary_visibility_per_vertex((v * inv[:, None])[np.asarray(proxy_index)].astype(np.float64))
-        np.maximum(g, 0.0, out=g)
-        g *= np.asarray(carry(vis.astype(f32)[:, None]), f32)[:, 0]
-        E += g[:, None] * rgb.astype(f32)[None, :]
-        if tables.render_bounce is not None:
-            L = L + primary_radiance_sh9(d, rgb)
-    if tables.render_bounce is not None:
-        E += tables.render_bounce @ L.astype(f32)
-    np.maximum(E, 0.0, out=E)
-    return E
+    proxy_index = np.asarray(proxy_index)
+
+    def carried(vis: np.ndarray) -> np.ndarray:
+        return np.asarray(carry(vis.astype(np.float32)[:, None]), np.float32)[:, 0]
+
+    return _shade(
+        tables.render_transfer,
+        tables.render_bounce,
+        points,
+        normals,
+        estimate,
+        lambda d: carried(tables.primary_visibility(d)),
+        lambda dv: carried(tables.primary_visibility_per_vertex(dv[proxy_index].astype(np.float64))),
+        np.float32,
+    )
 
 
 def unoccluded_transfer(normals: np.ndarray) -> np.ndarray:

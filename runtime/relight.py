@@ -204,7 +204,7 @@ def relight(
     shading_stage.close()
     R, t = anchor.R, anchor.t
     scale = float(cfg.render.object_scale)
-    irr = np.maximum(sh.render_irradiance if sh.render_irradiance is not None else b.carry(sh.irradiance), 0.0)
+    irr = np.maximum(sh.on_render_mesh(b.carry), 0.0)
     oi = sh.oi if sh.oi is not None else np.zeros((b.n_proxy, 3, 3), np.float32)
     dom = sh.dominant_dir if sh.dominant_dir is not None else np.array([0, 1, 0], np.float32)
     first = pl.plane_slices[0] if pl.plane_slices else slice(None)

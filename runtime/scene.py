@@ -145,6 +145,10 @@ class ObjectShading:
     dominant_share: float = 0.0
     render_irradiance: np.ndarray | None = None
 
+    def on_render_mesh(self, carry) -> np.ndarray:
+        """Irradiance on the render mesh: ``render_irradiance`` when shaded there, else ``carry(irradiance)``."""
+        return self.render_irradiance if self.render_irradiance is not None else carry(self.irradiance)
+
 
 @dataclass(frozen=True)
 class LightEstimate:

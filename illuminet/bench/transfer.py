@@ -112,8 +112,7 @@ def run(args, cfg) -> dict:
 
         def drawn(stage, est):
             """The stage and what the renderer then needs: render-mesh values (carried when only the proxy's)."""
-            s = stage._smooth(stage.predict(None, est))
-            return s.render_irradiance if s.render_irradiance is not None else stage.bundle.carry(s.irradiance)
+            return stage._smooth(stage.predict(None, est)).on_render_mesh(stage.bundle.carry)
 
         for key, near in (("stage_prt", False), ("stage_prt_near", True)):
             est = _estimate(near)
