@@ -17,12 +17,14 @@ when no maps are found), ``lamp`` (a near lamp), ``spatial`` (several object pos
 Methods side by side: the variants, the learned transfer (``[model] shading = "model"`` on the same
 plane light), the constant prior, ambient, SH fitted to every valid RGB-D pixel (the regularised
 fair baseline of :mod:`illuminet.runtime.groundtruth.baselines`, best regulariser per suite), that
-SH shaded with the object's visibility (PRT), and two oracles fitted to the true shading: best SH2
-without visibility, and best SH2 *with* visibility (the PRT oracle: least-squares ``L`` with
-``T_i . L = E_i``, ``T_i = integral max(0, n.w) V_i(w) Y_lm(w) dw``).
+SH shaded with the object's visibility (PRT), and three oracles fitted to the true shading: best
+SH2 without visibility, best SH2 *with* visibility (the PRT oracle: least-squares ``L`` with
+``T_i . L = E_i``, ``T_i = integral max(0, n.w) V_i(w) Y_lm(w) dw`` plus the light the object
+reflects onto itself at the truth's ``object_albedo``), and the PRT oracle restricted to light
+symmetric about the up axis (no azimuth: what an estimate can reach with no cue to the light's side).
 
 Metrics per method (ground truth: ``scene.true_object_shading`` on the render mesh, with indirect
-light; intensities as a camera records a white Lambertian object at the frame's own exposure ``k``):
+light, the object's own included at ``object_albedo``, 0.8 by default; intensities as a camera records a white Lambertian object at the frame's own exposure ``k``):
 
 ``mae``, ``rmse``
     per-vertex error of sRGB intensities ``srgb(clip(a * E * k / pi))`` after the best single gain
@@ -79,8 +81,27 @@ LABELS = {
     "sh_rgbd_prt": "SH fitted to RGB-D, shaded with visibility",
     "oracle_sh": "Oracle SH2 (no visibility)",
     "oracle_prt": "Oracle SH2 with visibility (PRT)",
+    "oracle_prt_zonal": "Oracle SH2 with visibility, no azimuth (zonal)",
 }
 BASELINES = tuple(LABELS)
+
+
+def _zonal_basis() -> np.ndarray:
+    """(9, 3) orthonormal basis of the SH9 coefficient vectors that are symmetric about the object's
+    up axis (y, the anchor plane's normal): Y00, Y1 along y and the band-2 function of y alone.
+
+    ``oracle_prt_zonal`` is the PRT oracle restricted to it: the best any estimate can do that knows
+    how the light varies with height but not from which side it comes. A frame that shows no cue to
+    the light's azimuth (no shadow, wall, emitter or lamp pool in view) bounds every method there."""
+    # 3 y^2 - 1 in the basis of :func:`sh9`: 0.315392 (3 z^2 - 1) and 0.546274 (x^2 - y^2) terms
+    v = np.zeros(9)
+    v[6] = -0.5 / 0.315392
+    v[8] = -1.5 / 0.546274
+    Z = np.stack([np.eye(9)[0], np.eye(9)[1], v / np.linalg.norm(v)], 1)
+    return Z
+
+
+ZONAL_BASIS = _zonal_basis()
 METRICS = ("mae", "rmse", "mae_abs", "rmse_lin", "angle", "chroma", "flicker")
 
 
@@ -188,6 +209,10 @@ class CameraEval:
     variants : more named configurations (:class:`Variant`) run on the same frames.
     hdr_dir : folder of HDR maps for the ``outdoor`` suite (its held-out maps are used).
     vertices : evaluate on this many render vertices (evenly spread; ``None`` = all).
+    object_albedo : grey albedo of the object in the ground truth's light transport: the light it
+        reflects onto itself (its inside, under its lip) is part of the truth. ``None`` = the albedo
+        the renderer draws an uncoloured mesh with (``DEFAULT_ALBEDO``, 0.8); 0 = a black object that
+        only blocks light (the truth of the evaluations before the sixth wave).
     """
 
     def __init__(
@@ -198,11 +223,16 @@ class CameraEval:
         variants=(),
         hdr_dir: str | Path | None = None,
         vertices: int | None = None,
+        object_albedo: float | None = None,
     ):
         import trimesh
 
         from illuminet.runtime.assets.bundle import load_bundle
+        from illuminet.runtime.render.mesh import DEFAULT_ALBEDO
 
+        self.object_albedo = DEFAULT_ALBEDO if object_albedo is None else float(object_albedo)
+        if not 0.0 <= self.object_albedo < 1.0:
+            raise ValueError(f"--object-albedo: expected a number in [0, 1), got {object_albedo!r}")
         self.build_stages = build_stages
         self.spec = bundle or cfg.model.bundle
         self.bundle = load_bundle(self.spec)
@@ -229,11 +259,19 @@ class CameraEval:
 
     # -- object-side precomputation (once per run)
     def transfer(self) -> np.ndarray:
-        """(V, 9) PRT transfer of the evaluated vertices (the ground truth's own hemisphere rays)."""
+        """(V, 9) PRT transfer of the evaluated vertices (the ground truth's own hemisphere rays), with
+        the object's light onto itself at the truth's ``object_albedo``: the oracles and the RGB-D SH
+        baseline shaded "with visibility" get the same object as the ground truth."""
         if self._transfer is None:
+            from illuminet.hw.synthetic import bounce as B
             from illuminet.hw.synthetic.scene import object_hemisphere
 
-            self._transfer = object_hemisphere(self.mesh, self.points, self.normals).transfer_sh9()
+            t = object_hemisphere(self.mesh, self.points, self.normals).transfer_sh9()
+            if self.object_albedo > 0:
+                verts, vn = np.asarray(self.mesh.vertices), np.asarray(self.mesh.vertex_normals)
+                t_mesh = object_hemisphere(self.mesh, verts, vn).transfer_sh9()
+                t = t + B.object_light(self.mesh, self.points, self.normals, t_mesh, self.object_albedo)
+            self._transfer = t
         return self._transfer
 
     def _render(self, proxy_or_render: np.ndarray) -> np.ndarray:
@@ -313,7 +351,9 @@ class CameraEval:
             return None
         T = anchor.T_cam_obj
         fi = frames - 1
-        true_e = sc.true_object_shading(self.mesh, T, frame=fi, points=self.points, normals=self.normals)
+        true_e = sc.true_object_shading(
+            self.mesh, T, frame=fi, points=self.points, normals=self.normals, object_albedo=self.object_albedo
+        )
         k = float(out.exposure.scale)
         d_true = true_dominant(sc, T, fi, self.centre)
         # the oracles: fitted to the true shading (constant over frames)
@@ -325,6 +365,10 @@ class CameraEval:
         L, *_ = np.linalg.lstsq(Tr, true_e, rcond=None)
         raw = Tr @ L
         oracles["oracle_prt"] = (np.maximum(raw, 0), raw, sh_direction(L))
+        Z = ZONAL_BASIS
+        a, *_ = np.linalg.lstsq(Tr @ Z, true_e, rcond=None)
+        raw = Tr @ (Z @ a)
+        oracles["oracle_prt_zonal"] = (np.maximum(raw, 0), raw, sh_direction(Z @ a))
         res = {
             "url": self.url(suite, i, seed, frames),
             "k": k,
@@ -419,6 +463,7 @@ class CameraEval:
             "frames": frames,
             "seed": seed,
             "vertices": int(len(self.sel)),
+            "object_albedo": self.object_albedo,
             "variants": {v.name: [f"{s}.{k}={val!r}" for s, k, val in v.overrides] for v in self.variants},
             "hdr_test_maps": [p.name for p in self.hdr_maps],
             "suites": {},
@@ -494,7 +539,13 @@ def markdown(report: dict) -> str:
         "## End to end on the synthetic camera",
         "",
         f"Bundle `{report['bundle']}`, {report['scenes']} scene(s) per suite, {report['frames']} frames each, "
-        f"{report['vertices']} render vertices; ground truth with indirect light. MAE/RMSE: sRGB intensities "
+        f"{report['vertices']} render vertices; ground truth with indirect light"
+        + (
+            f" and the object's light onto itself (albedo {report['object_albedo']:g})"
+            if report.get("object_albedo")
+            else " (the object black: it only blocks light)"
+        )
+        + ". MAE/RMSE: sRGB intensities "
         "after the best gain; angle: dominant light; chroma: the light's colour; flicker: frame to frame "
         "(see models/camera_eval.py).",
     ]

@@ -3,8 +3,9 @@
 The synthetic camera's ground truth (:meth:`~illuminet.hw.synthetic.scene.SyntheticScene.true_object_shading`)
 is computed in-house: exact direct light from point lights and a radiosity approximation of the
 light the room's planes inter-reflect (:mod:`illuminet.hw.synthetic.bounce`). Here the same scene
-(the same planes with their mean albedo, the same point lights, the object as a black mesh that
-blocks light) is handed to Mitsuba 3, and at a subset of the object's vertices Mitsuba's path tracer
+(the same planes with their mean albedo, the same point lights, the object as a grey diffuse mesh
+of the albedo the renderer draws it with, 0.8, or black with ``object_albedo=0``) is handed to
+Mitsuba 3, and at a subset of the object's vertices Mitsuba's path tracer
 estimates the light arriving *from surfaces*: cosine-distributed rays leave each vertex and
 Mitsuba's ``path`` integrator returns the radiance along them (every bounce; a second run with
 ``max_depth = 2`` gives exactly one bounce). Point lights cannot be hit by a ray, so the direct light
@@ -100,14 +101,20 @@ def _rect_transform(mi, p, lo, hi):
 
 
 def to_mitsuba(
-    mi, scene, mesh=None, T_world_obj: np.ndarray | None = None, max_depth: int = -1, ground_half_m: float = 500.0
+    mi,
+    scene,
+    mesh=None,
+    T_world_obj: np.ndarray | None = None,
+    max_depth: int = -1,
+    ground_half_m: float = 500.0,
+    object_albedo: float = 0.0,
 ):
     """A Mitsuba scene of a :class:`~illuminet.hw.synthetic.scene.SyntheticScene`.
 
     Planes become one-sided diffuse rectangles of their mean albedo (back sides black, as in the
     in-house transport), unbounded ground a ``2 * ground_half_m`` square, point lights ``point``
     emitters of the same RGB intensity, and ``mesh`` (object frame, placed by ``T_world_obj``) a
-    black diffuse mesh: it blocks and reflects nothing.
+    diffuse mesh of grey ``object_albedo`` (0: black, it blocks and reflects nothing).
     """
     d: dict = {"type": "scene", "integrator": {"type": "path", "max_depth": int(max_depth), "rr_depth": 50}}
     for i, p in enumerate(scene.planes):
@@ -137,7 +144,7 @@ def to_mitsuba(
             "filename": tmp,
             "face_normals": True,
             "to_world": mi.ScalarTransform4f(np.asarray(T_world_obj, float).tolist()),
-            "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}},
+            "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [float(object_albedo)] * 3}},
         }
     try:
         return mi.load_dict(d)
@@ -241,12 +248,19 @@ def run_crosscheck(
     variant: str = "scalar_rgb",
     one_bounce: bool = True,
     progress=None,
+    object_albedo: float | None = None,
 ) -> dict:
     """Per scene: in-house vs Mitsuba irradiance at ``vertices`` vertices of ``obj`` (see module doc).
 
     Returns a report dict: per scene the mean relative errors (luminance) with and without the
     in-house indirect term, for all and for down-facing vertices, and the indirect term's error.
+    ``object_albedo`` (default: the renderer's 0.8) is the object's grey albedo in both transports,
+    so the light it reflects onto itself is compared too (0: a black object). The one-bounce
+    comparison is of the room's transport and keeps the object black in both.
     """
+    from illuminet.runtime.render.mesh import DEFAULT_ALBEDO
+
+    rho = DEFAULT_ALBEDO if object_albedo is None else float(object_albedo)
     from illuminet.hw.synthetic.scene import DEFAULT_BOUNCES
     from illuminet.runtime.assets.objects import load_object
 
@@ -262,6 +276,7 @@ def run_crosscheck(
         "spp": spp,
         "bounces": n_bounces,
         "variant": mi.variant(),
+        "object_albedo": rho,
         "scenes": {},
     }
     for si, name in enumerate(names):
@@ -270,13 +285,13 @@ def run_crosscheck(
         T_co = sc.default_anchor(0)
         T_wo = sc.poses[0] @ T_co
         direct = sc.true_object_shading(mesh, T_co, points=pts, normals=nrm, indirect=False) @ LUMA
-        ours = sc.true_object_shading(mesh, T_co, points=pts, normals=nrm) @ LUMA
+        ours = sc.true_object_shading(mesh, T_co, points=pts, normals=nrm, object_albedo=rho) @ LUMA
         t_ours = time.time() - t0
         pw = pts @ T_wo[:3, :3].T + T_wo[:3, 3]
         nw = nrm @ T_wo[:3, :3].T
         t1 = time.time()
         # two independent halves: their mean is the estimate, their difference its noise
-        scene_all = to_mitsuba(mi, sc, mesh, T_wo, -1)
+        scene_all = to_mitsuba(mi, sc, mesh, T_wo, -1, object_albedo=rho)
         halves = [mitsuba_indirect(mi, scene_all, pw, nw, max(spp // 2, 1), seed=2 * si + h) @ LUMA for h in (0, 1)]
         m_all = (halves[0] + halves[1]) / 2
         t_mi = time.time() - t1
@@ -321,7 +336,8 @@ def markdown(report: dict) -> str:
         f"# Cross-check of the ground truth against Mitsuba 3 ({report['variant']})",
         "",
         f"Object `{report['object']}`, {report['vertices']} vertices, {report['spp']} rays per vertex in "
-        f"Mitsuba (all bounces); in-house: {report['bounces']} bounce(s). Error: mean over vertices of "
+        f"Mitsuba (all bounces); in-house: {report['bounces']} bounce(s); the object's albedo "
+        f"{report.get('object_albedo', 0.0):g} in both (its light onto itself counts). Error: mean over vertices of "
         "|ours - Mitsuba| / Mitsuba of the total irradiance (luminance; denominators at least 5 % of the "
         "mean, so contact points do not dominate); 'down': vertices facing down (normal y < -0.3). "
         "Indirect ratios: sum over vertices, ours / Mitsuba (1.00 = the same light); one bounce: the "

@@ -172,3 +172,32 @@ def test_cluttered_scene_has_boxes_that_shadow_the_floor_and_never_hide_the_obje
     assert (sc.occlusion(pts, key) == 0).mean() > 0.005
     with pytest.raises(SyntheticError, match="boxes"):
         open_url("synthetic://indoor?boxes=13")
+
+
+def test_the_object_lights_itself_when_it_has_an_albedo():
+    from illuminet.hw.synthetic import bounce as B
+
+    src = open_url("synthetic://lamp?seed=2&size=160x100&frames=1")
+    sc = src.scene
+    mesh = load_object("builtin:bowl", "proxy")
+    T = sc.default_anchor(0)
+    black = sc.true_object_shading(mesh, T)
+    assert np.array_equal(sc.true_object_shading(mesh, T, object_albedo=0.0), black)
+    grey = sc.true_object_shading(mesh, T, object_albedo=0.4)
+    white = sc.true_object_shading(mesh, T, object_albedo=0.8)
+    G = B.object_gather(mesh, np.asarray(mesh.vertices), np.asarray(mesh.vertex_normals))
+    blocked = np.asarray(G.sum(1)).ravel()  # share of a vertex's cosine-weighted rays meeting the object
+    free = blocked == 0
+    assert free.any() and (~free).sum() > 20
+    # a vertex that sees none of the object gets nothing from it
+    np.testing.assert_allclose(white[free], black[free])
+    # light is only added, more with a lighter object
+    assert np.all(grey >= black - 1e-9) and np.all(white >= grey - 1e-9)
+    assert (white - black)[~free].sum() > 0
+    # no more than a surface of albedo rho lit by the brightest converged irradiance can send
+    added = (white - black) @ L._LUMA
+    assert np.all(added <= 0.8 * blocked * float((white @ L._LUMA).max()) + 1e-9)
+    # converged: the sum satisfies E = E_room + rho G E at the bowl's own vertices
+    np.testing.assert_allclose(white, black + 0.8 * (G @ white), rtol=2e-3, atol=1e-6 * float(white.max()))
+    with pytest.raises(ValueError, match="object_albedo"):
+        sc.true_object_shading(mesh, T, object_albedo=1.0)

@@ -94,9 +94,41 @@ def test_an_oracle_is_never_worse_than_its_fitted_baseline(ci_run):
         # and on the reported sRGB error too
         assert res["oracle_sh"]["mae"] <= res["sh_rgbd"]["mae"], suite
         assert res["oracle_prt"]["mae"] <= res["sh_rgbd_prt"]["mae"], suite
+        # the zonal oracle is the PRT oracle on a subspace: never better on its criterion
+        assert res["oracle_prt"]["rmse_lin"] <= res["oracle_prt_zonal"]["rmse_lin"] + 1e-12, suite
+
+
+def test_the_zonal_basis_is_symmetric_about_up():
+    from illuminet.models.camera_eval import ZONAL_BASIS
+    from illuminet.runtime.sh import sh9
+
+    rng = np.random.default_rng(0)
+    w = rng.normal(size=(500, 3))
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
+    # rotating every direction about y leaves each zonal function unchanged
+    a = 0.7
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    f, g = sh9(w) @ ZONAL_BASIS, sh9(w @ R.T) @ ZONAL_BASIS
+    np.testing.assert_allclose(f, g, atol=1e-9)
+    np.testing.assert_allclose(ZONAL_BASIS.T @ ZONAL_BASIS, np.eye(3), atol=1e-12)
+    # and it holds the band-2 part: a light from straight above is not zonal in band 1 alone
+    assert np.ptp(f[:, 2]) > 0.5
 
 
 def test_a_variant_with_an_unknown_key_fails_before_any_scene(capsys):
     rc = main(["eval", "--cases", "0", "--camera-scenes", "1", "--variant", "x:model.no_such_key=false"])
     assert rc == 2
     assert "[model] unknown key 'no_such_key'" in capsys.readouterr().err
+
+
+def test_the_truth_lights_the_object_by_itself_at_the_drawn_albedo(ci_run):
+    report, md = ci_run
+    assert report["camera"]["object_albedo"] == pytest.approx(0.8)
+    assert "the object's light onto itself (albedo 0.8)" in md
+
+
+def test_a_bad_object_albedo_is_one_line(capsys):
+    rc = main(["eval", "--cases", "0", "--camera-scenes", "1", "--object-albedo", "1.5"])
+    assert rc == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--object-albedo: expected a number in [0, 1), got 1.5" in err[0]

@@ -21,7 +21,9 @@ by the mesh in :class:`~illuminet.runtime.groundtruth.hemisphere.HemisphereVisib
 meets a plane it reads that plane's radiance from the fine direct grid plus bounces ``1..N-1`` (so
 the vertex receives bounces ``1..N``), less the object's own shadow on the plane it stands on
 (:func:`support_shadow`: the floor under a bowl is darker, so it lifts the bowl's underside less).
-The object itself is black here: light it would reflect onto itself is not part of the ground truth.
+The object itself is black here unless an ``object_albedo`` is given
+(:meth:`~illuminet.hw.synthetic.scene.SyntheticScene.true_object_shading`): then the light it
+reflects onto itself (:func:`object_gather`, converged over :data:`OBJECT_PASSES` passes) is added.
 """
 
 from __future__ import annotations
@@ -360,3 +362,70 @@ def object_radiance(
                 e += ind if open_share is None else ind * open_share[:, None]
             out[s + sel] = e * (p.albedo_mean / np.pi)
     return out.reshape(V, n, 3)
+
+
+_OBJECT_GATHERS: dict = {}
+
+
+def object_gather(mesh, pts: np.ndarray, nrm: np.ndarray):
+    """The object's light onto itself at ``pts``: a sparse (P, V_mesh) operator ``G`` such that, for
+    irradiance ``E`` (V_mesh, 3) on the mesh's vertices, ``albedo * G @ E`` is the irradiance that
+    the object (grey Lambertian, ``albedo``) reflects onto the points.
+
+    Each of a point's cosine-distributed rays (the same :func:`~illuminet.hw.synthetic.scene.object_hemisphere`
+    rays that gather the room's light) that the mesh blocks reads the hit point's radiance
+    ``albedo / pi * E(hit)``, ``E`` interpolated barycentrically in the hit triangle; the cosine-weighted
+    mean times pi makes ``G[p, v] = (1 / n) * sum of v's barycentric weights over p's front-face hits``.
+    A ray that meets a back face (an open mesh seen from inside out) gets nothing. Cached per geometry.
+    """
+    import trimesh
+
+    from illuminet.hw.synthetic.scene import object_hemisphere
+    from illuminet.runtime.groundtruth.visibility import first_hits
+
+    verts = np.asarray(mesh.vertices, np.float64)
+    faces = np.asarray(mesh.faces, np.int64)
+    parts = [pts, nrm, verts, faces]
+    key = hash(tuple(np.ascontiguousarray(a).tobytes() for a in parts))
+    G = _OBJECT_GATHERS.get(key)
+    if G is not None:
+        return G
+    from scipy.sparse import csr_matrix
+
+    hv = object_hemisphere(mesh, pts, nrm)
+    P, n = hv.visible.shape
+    pi_, ki = np.nonzero(~hv.visible)
+    d = hv.directions[pi_, ki].astype(np.float64)
+    tri, loc = first_hits(mesh, hv.origins()[pi_], d)
+    ok = tri >= 0
+    ok[ok] = np.einsum("px,px->p", np.asarray(mesh.face_normals, np.float64)[tri[ok]], d[ok]) < 0.0
+    corner = faces[tri[ok]]
+    bary = trimesh.triangles.points_to_barycentric(verts[corner], loc[ok])
+    bary = np.clip(bary, 0.0, 1.0)
+    bary /= np.maximum(bary.sum(1, keepdims=True), 1e-12)
+    G = csr_matrix(((bary / n).ravel(), (np.repeat(pi_[ok], 3), corner.ravel())), shape=(P, len(verts)))
+    if len(_OBJECT_GATHERS) >= 4:
+        _OBJECT_GATHERS.pop(next(iter(_OBJECT_GATHERS)))
+    _OBJECT_GATHERS[key] = G
+    return G
+
+
+#: interreflection passes of the object onto itself (albedo 0.8: the 6th pass adds < 1e-4 of the total)
+OBJECT_PASSES = 8
+
+
+def object_light(mesh, pts: np.ndarray, nrm: np.ndarray, source: np.ndarray, albedo: float, on_mesh: bool = False):
+    """What the object (grey ``albedo``) reflects onto ``pts``, every bounce: (P, k).
+
+    ``source`` (V_mesh, k) is the light the room gives the mesh's own vertices (vertex normals): an
+    irradiance, or any quantity linear in the light such as a PRT transfer. ``on_mesh``: ``pts`` are
+    the mesh's vertices with its vertex normals (the gather is then shared)."""
+    if not 0.0 < albedo < 1.0:
+        raise ValueError(f"object_albedo must be in (0, 1), got {albedo}")
+    verts = np.asarray(mesh.vertices, np.float64)
+    G = object_gather(mesh, verts, np.asarray(mesh.vertex_normals, np.float64))
+    x = np.asarray(source, np.float64)
+    for _ in range(OBJECT_PASSES):
+        x = source + albedo * (G @ x)
+    Gp = G if on_mesh else object_gather(mesh, pts, nrm)
+    return albedo * (Gp @ x)

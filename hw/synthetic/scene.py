@@ -379,6 +379,7 @@ class SyntheticScene:
         points: np.ndarray | None = None,
         normals: np.ndarray | None = None,
         indirect: bool = True,
+        object_albedo: float = 0.0,
     ) -> np.ndarray:
         """Ground-truth irradiance (V, 3) on the mesh's vertices, scene-referred linear RGB.
 
@@ -394,13 +395,31 @@ class SyntheticScene:
         indirect : add the light the planes inter-reflect (``bounces`` of them, baked with the scene;
             with ``visibility`` the object hides planes from itself and its shadow darkens the plane
             it stands on); False = direct light only
+        object_albedo : grey albedo of the object itself (0 = black: it only blocks light). With
+            ``visibility`` and a mesh, the light the object reflects onto itself is added, every
+            bounce of it (:func:`~illuminet.hw.synthetic.bounce.object_gather`): a white vase's
+            inside and the underside of its lip are lit by the vase too
         """
         pts, nrm, lights, vis = self._object_terms(mesh, T_cam_obj, visibility, frame, points, normals)
         e = L.irradiance(pts, nrm, lights, vis)
         if indirect and self.bounces > 0:
             hv, rad = self._object_indirect(mesh, T_cam_obj, visibility, frame, pts, nrm)
             e = e + hv.irradiance(rad)
+        if object_albedo > 0 and visibility and mesh is not None:
+            e = e + self._object_interreflection(
+                mesh, T_cam_obj, frame, pts, nrm, e, points is None, object_albedo, indirect
+            )
         return e
+
+    def _object_interreflection(self, mesh, T_cam_obj, frame, pts, nrm, e, on_mesh, albedo, indirect):
+        """Irradiance (P, 3) the object (grey ``albedo``) reflects onto ``pts``, all bounces."""
+        from illuminet.hw.synthetic import bounce as B
+
+        if not 0.0 < albedo < 1.0:
+            raise ValueError(f"object_albedo must be in [0, 1), got {albedo}")
+        # the room's light on every mesh vertex: the source the bounces start from
+        e_mesh = e if on_mesh else self.true_object_shading(mesh, T_cam_obj, frame=frame, indirect=indirect)
+        return B.object_light(mesh, pts, nrm, e_mesh, albedo, on_mesh=on_mesh)
 
     def _object_terms(self, mesh, T_cam_obj, visibility, frame, points, normals):
         from illuminet.runtime.groundtruth.visibility import exact_visibility

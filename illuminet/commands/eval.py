@@ -99,6 +99,14 @@ def register(sub) -> None:
         help="camera suites: evaluate this many render vertices, evenly spread (0 = all)",
     )
     p.add_argument(
+        "--object-albedo",
+        type=float,
+        default=None,
+        metavar="A",
+        help="camera suites and --crosscheck: grey albedo of the object in the ground truth, so the light it "
+        "reflects onto itself counts (default: the renderer's 0.8; 0 = a black object that only blocks light)",
+    )
+    p.add_argument(
         "--crosscheck",
         action="store_true",
         help="compare the synthetic ground truth with Mitsuba 3 instead (needs illuminet[groundtruth])",
@@ -192,6 +200,7 @@ def _crosscheck(args, hdr: str) -> int:
             hdr_dir=hdr or None,
             variant=args.mitsuba_variant,
             progress=Progress("crosscheck", len(names)),
+            object_albedo=args.object_albedo,
         )
     except CrosscheckUnavailable as e:
         print(f"illuminet eval: {e}", file=sys.stderr)
@@ -238,7 +247,13 @@ def run(args: argparse.Namespace, cfg) -> int:
             from illuminet.pipeline import build_stages
 
             cam = CameraEval(
-                cfg, build_stages, spec, [parse_variant(v) for v in args.variant], hdr or None, args.vertices or None
+                cfg,
+                build_stages,
+                spec,
+                [parse_variant(v) for v in args.variant],
+                hdr or None,
+                args.vertices or None,
+                args.object_albedo,
             )
             cam.check(suites, args.camera_frames)
         if args.ray is None:
@@ -381,7 +396,16 @@ def suite_shard(
 
 
 def camera_shard(
-    cfg, spec: str, variants: tuple, hdr: str | None, vertices: int | None, suite: str, i: int, seed: int, frames: int
+    cfg,
+    spec: str,
+    variants: tuple,
+    hdr: str | None,
+    vertices: int | None,
+    suite: str,
+    i: int,
+    seed: int,
+    frames: int,
+    object_albedo: float | None = None,
 ) -> dict[str, bytes]:
     """A Ray task: one scene of a camera suite through every variant (:meth:`CameraEval.scene_case`)."""
 
@@ -389,9 +413,9 @@ def camera_shard(
         from illuminet.models.camera_eval import CameraEval, parse_variant
         from illuminet.pipeline import build_stages
 
-        return CameraEval(cfg, build_stages, spec, [parse_variant(v) for v in variants], hdr, vertices)
+        return CameraEval(cfg, build_stages, spec, [parse_variant(v) for v in variants], hdr, vertices, object_albedo)
 
-    cam = _cached(("camera", _config_digest(cfg), spec, variants, hdr, vertices), make)
+    cam = _cached(("camera", _config_digest(cfg), spec, variants, hdr, vertices, object_albedo), make)
     return {"case.json": json.dumps(cam.scene_case(suite, i, seed, frames)).encode()}
 
 
@@ -420,6 +444,7 @@ def _sharded(args, cfg, spec, bundle, suites, hdr, cam, out: Path):
             "camera_suites": suites,
             "variants": list(args.variant),
             "vertices": args.vertices,
+            "object_albedo": args.object_albedo,
             "config_sha256": _config_digest(cfg),
         }
     )
@@ -438,7 +463,7 @@ def _sharded(args, cfg, spec, bundle, suites, hdr, cam, out: Path):
                 f"camera-{s}-{i:04d}",
                 camera_shard,
                 (cfg, str(spec), tuple(args.variant), hdr_dir, args.vertices or None, s, i, args.seed)
-                + (args.camera_frames,),
+                + (args.camera_frames, args.object_albedo),
             )
             for s in suites
             for i in range(args.camera_scenes)
