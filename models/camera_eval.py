@@ -24,7 +24,8 @@ reflects onto itself at the truth's ``object_albedo``), and the PRT oracle restr
 symmetric about the up axis (no azimuth: what an estimate can reach with no cue to the light's side).
 
 Metrics per method (ground truth: ``scene.true_object_shading`` on the render mesh, with indirect
-light, the object's own included at ``object_albedo``, 0.8 by default; intensities as a camera records a white Lambertian object at the frame's own exposure ``k``):
+light, the object's own included at ``object_albedo``, 0.8 by default; intensities as a camera
+records a white Lambertian object at the frame's own exposure ``k``):
 
 ``mae``, ``rmse``
     per-vertex error of sRGB intensities ``srgb(clip(a * E * k / pi))`` after the best single gain
