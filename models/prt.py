@@ -43,6 +43,8 @@ from illuminet.runtime.sh import sh9
 DEFAULT_TRANSFER_RAYS = 4096
 #: directions of the primary light's visibility table (~6.3 degrees apart)
 DEFAULT_TABLE_DIRECTIONS = 1024
+#: interreflection bounces summed into ``bounce`` (albedo 0.8: the vase's 8th adds < 0.1 % of its light)
+DEFAULT_BOUNCES = 8
 
 
 @dataclass
@@ -55,10 +57,12 @@ class PrtResult:
     transfer: np.ndarray  # (V, 9) float32
     vis_directions: np.ndarray  # (K, 3) float32
     visibility: np.ndarray  # (V, K) bool
-    bounce: np.ndarray | None  # (V, 9) float32, albedo included
+    bounce: np.ndarray | None  # (V, 9) float32, albedo included: all ``bounces`` interreflections
     albedo: float
     timings_s: dict = field(default_factory=dict)
     bounce_operator: Callable[[np.ndarray], np.ndarray] | None = None
+    bounces: int = 1
+    bounce_primary: np.ndarray | None = None  # (V, 9) float32: the single bounce, for the primary light
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The arrays of ``prt.npz`` (:data:`illuminet.runtime.prt.PRT_KEYS`, + ``bounce``)."""
@@ -69,6 +73,8 @@ class PrtResult:
         }
         if self.bounce is not None:
             out["bounce"] = self.bounce.astype(np.float32)
+        if self.bounce_primary is not None:
+            out["bounce_primary"] = self.bounce_primary.astype(np.float32)
         return out
 
     def tables(self) -> PrtTables:
@@ -95,6 +101,7 @@ def compute_prt(
     eps: float = DEFAULT_EPS,
     progress: Callable[[str, int, int], None] | None = None,
     floor_shadow: bool = True,
+    bounces: int = DEFAULT_BOUNCES,
 ) -> PrtResult:
     """PRT tables of ``points`` on ``mesh`` (see the module docstring).
 
@@ -110,13 +117,16 @@ def compute_prt(
     transfer_rays, table_directions : int
         Fibonacci direction counts of the transfer quadrature and the visibility table.
     albedo : float
-        Grey albedo of the object for the interreflection bounce; 0 = no bounce.
+        Grey albedo of the object for the interreflection bounces; 0 = no bounce.
     eps : float
         Ray start offset along the normal, metres.
     progress : callable ``(step, done, total)``, optional
     floor_shadow : bool
         Darken the floor a downward ray meets by the object's shadow on it (:func:`floor_occlusion`);
         False gives the object's self-visibility alone (an object floating in the light).
+    bounces : int
+        Interreflections summed into ``bounce`` (>= 1): the light the object reflects onto itself
+        once, twice, ... (:func:`interreflection`).
 
     Returns
     -------
@@ -129,6 +139,8 @@ def compute_prt(
         raise ValueError(f"points {P.shape} and normals {N.shape} must both be (V, 3)")
     if not 0.0 <= albedo < 1.0:
         raise ValueError(f"albedo must be in [0, 1), got {albedo}")
+    if int(bounces) < 1:
+        raise ValueError(f"bounces must be >= 1, got {bounces}")
     timings = {}
 
     def cast(step, vi, D):
@@ -170,7 +182,7 @@ def compute_prt(
 
     # one interreflection bounce from the blocked transfer rays' hit points
     op = None
-    bounce = None
+    bounce = bounce_primary = None
     t0 = time.perf_counter()
     faces = np.asarray(mesh.faces, np.int64)
     fn = np.asarray(mesh.face_normals, np.float64)
@@ -195,7 +207,13 @@ def compute_prt(
             return gather @ np.asarray(carry(t_points) if carry is not None else t_points, np.float64)
 
         if albedo > 0:
-            bounce = (albedo * op(T)).astype(np.float32)
+            term, acc = T, np.zeros_like(T)
+            for k in range(bounces):
+                term = albedo * op(term)
+                acc += term
+                if k == 0 and bounces > 1:
+                    bounce_primary = term.astype(np.float32)
+            bounce = acc.astype(np.float32)
     elif albedo > 0:
         bounce = np.zeros_like(T, dtype=np.float32)
     timings["bounce_s"] = time.perf_counter() - t0
@@ -207,6 +225,8 @@ def compute_prt(
         albedo=float(albedo),
         timings_s=timings,
         bounce_operator=op,
+        bounces=int(bounces),
+        bounce_primary=bounce_primary,
     )
 
 
@@ -292,7 +312,7 @@ def _carry_fn(carry_index: np.ndarray, carry_weight: np.ndarray) -> Callable[[np
 
 
 def render_transfer_arrays(
-    mesh, normals: np.ndarray, transfer_rays: int, albedo: float, progress=None
+    mesh, normals: np.ndarray, transfer_rays: int, albedo: float, progress=None, bounces: int = DEFAULT_BOUNCES
 ) -> tuple[dict[str, np.ndarray], float]:
     """``render_transfer`` (and ``render_bounce`` when ``albedo`` > 0) at every vertex of ``mesh``
     (:mod:`illuminet.runtime.prt`), and the seconds it took. The primary light's visibility stays on
@@ -312,10 +332,13 @@ def render_transfer_arrays(
         table_directions=8,
         albedo=albedo,
         progress=prog,
+        bounces=bounces,
     )
     out = {"render_transfer": res.transfer.astype(np.float32)}
     if res.bounce is not None:
         out["render_bounce"] = res.bounce.astype(np.float32)
+    if res.bounce_primary is not None:
+        out["render_bounce_primary"] = res.bounce_primary.astype(np.float32)
     return out, time.perf_counter() - t0
 
 
@@ -334,6 +357,7 @@ def prt_meta(result: PrtResult, transfer_rays: int, table_directions: int, comma
         "table_directions": int(table_directions),
         "eps_m": DEFAULT_EPS,
         "bounce_albedo": result.albedo,
+        "bounces": result.bounces,
         "timings_s": {k: round(v, 3) for k, v in result.timings_s.items()},
         "convention": "E = transfer @ L_radiance (9 SH coefficients, no 1/pi; LightEstimate.radiance_sh9()), object "
         "frame +Y up; unoccluded: transfer = A_hat_l Y_lm(n)",
@@ -353,6 +377,7 @@ def add_prt(
     seed: int = 0,
     progress=None,
     render: bool = False,
+    bounces: int = DEFAULT_BOUNCES,
 ) -> tuple[Path, PrtResult]:
     """Compute PRT tables for an existing bundle's proxy vertices and add them (``prt.npz``).
 
@@ -377,6 +402,7 @@ def add_prt(
         table_directions=table_directions,
         albedo=albedo,
         progress=progress,
+        bounces=bounces,
     )
     extra = _with_render(res, mesh, b.normals, render, transfer_rays, albedo, progress)
     np.savez_compressed(b.path / PRT_FILE, **res.arrays(), **extra)
@@ -391,7 +417,7 @@ def _with_render(res: PrtResult, mesh, normals, render: bool, transfer_rays: int
     """The render-mesh arrays when asked for (their time joins ``res.timings_s``), else {}."""
     if not render:
         return {}
-    extra, secs = render_transfer_arrays(mesh, normals, transfer_rays, albedo, progress)
+    extra, secs = render_transfer_arrays(mesh, normals, transfer_rays, albedo, progress, res.bounces)
     res.timings_s["render_transfer_s"] = secs
     return extra
 
@@ -409,6 +435,7 @@ def new_bundle(
     progress=None,
     up: str = "y",
     render: bool = False,
+    bounces: int = DEFAULT_BOUNCES,
 ) -> tuple[Path, PrtResult]:
     """A PRT-only bundle (``mesh.npz`` + ``prt.npz`` + ``bundle.json``, no ONNX) of any mesh.
 
@@ -419,7 +446,7 @@ def new_bundle(
     height : scale the object to this height in metres (files default to 0.25 m; built-ins keep
         their designed size unless given)
     n_proxy, seed : lighting proxy size and the seed of its farthest-point selection
-    transfer_rays, table_directions, albedo : see :func:`compute_prt`
+    transfer_rays, table_directions, albedo, bounces : see :func:`compute_prt`
     up : the file's up axis, ``"y"`` or ``"z"``
     render : also the transfer of every render vertex (:func:`render_transfer_arrays`: finer
         self-occlusion, ~40 s more for the vase's 9026 vertices on 2 cores)
@@ -456,6 +483,7 @@ def new_bundle(
         table_directions=table_directions,
         albedo=albedo,
         progress=progress,
+        bounces=bounces,
     )
     res.timings_s = {"mesh_and_proxy_s": t_geom, **res.timings_s}
     out = Path(out)

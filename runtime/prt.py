@@ -18,16 +18,20 @@ this module only reads and evaluates them, in well under a millisecond per frame
   bit-packed (``vis_bits`` (K, ceil(V/8)) uint8, little bit order along the vertices). For direct
   light the floor does block the lower hemisphere: :func:`floor_factor` multiplies it in at run time,
   sharp at the horizon (in the table it would be blurred over the kernel, dimming a low sun).
-* ``bounce`` B_i (9,), optional: one interreflection of the object onto itself for its albedo,
-  ``E_i += B_i . (L + primary as SH)``.
-* ``render_transfer``, ``render_bounce`` (R, 9), optional (``illuminet bundle --render-transfer``): the
-  same two integrals at every vertex of the render mesh. The object's self-occlusion varies faster than
-  the lighting proxy's few hundred vertices sample it (the vase's grooves and lip); carried from the
-  proxy, the ambient shading is blurred across them (camera eval, vase, 11 scenes a suite: MAE 0.051 ->
-  0.048 indoor, 0.092 -> 0.085 lamp). With them, :func:`prt_irradiance_render` shades every render vertex:
-  ambient and bounce from its own transfer vectors, the primary light with its own cosine and distance
-  and the proxy's visibility carried (a shadow is smooth; keeping the (K, R) visibility table would take
-  ~37 MB and ~6 ms a frame for a near light).
+* ``bounce`` B_i (9,), optional: the object's light onto itself for its albedo (every bounce the
+  bundle summed, ``bundle.json`` ``prt.bounces``), ``E_i += B_i . L``; ``bounce_primary`` B1_i, optional:
+  the first bounce alone, for the primary light, ``E_i += B1_i . (primary as SH)`` (without it B_i
+  serves the primary too: bundles with one bounce). The primary light's SH2 lobe is ~90 degrees wide
+  and would light a cavity it cannot see into; more bounces would multiply that.
+* ``render_transfer``, ``render_bounce``, ``render_bounce_primary`` (R, 9), optional (``illuminet bundle
+  --render-transfer``): the same integrals at every vertex of the render mesh. The object's
+  self-occlusion varies faster than the lighting proxy's few hundred vertices sample it (the vase's
+  grooves and lip); carried from the proxy, the ambient shading is blurred across them (camera eval,
+  vase, 11 scenes a suite: MAE 0.051 -> 0.048 indoor, 0.092 -> 0.085 lamp). With them,
+  :func:`prt_irradiance_render` shades every render vertex: ambient and bounce from its own transfer
+  vectors, the primary light with its own cosine and distance and the proxy's visibility carried (a
+  shadow is smooth; keeping the (K, R) visibility table would take ~37 MB and ~6 ms a frame for a near
+  light).
 
 Primary light: ``E_i += rgb * max(0, n_i . d) * V_i(d)``; for a near light (``primary_pos`` known)
 d is the direction from each vertex to the light and ``rgb`` falls off as ``(|pos| / |pos - x_i|)^2``
@@ -81,6 +85,7 @@ class PrtTables:
     directions : (K, 3) float64 unit table directions
     visibility : (K, V) float32 0/1 (unpacked ``vis_bits``)
     bounce : (V, 9) float64 or None
+    bounce_primary : (V, 9) float64 or None (then ``bounce`` serves the primary light too)
 
     (float64 once at load: the per-frame products then convert nothing.)
     """
@@ -91,6 +96,8 @@ class PrtTables:
     bounce: np.ndarray | None = None
     render_transfer: np.ndarray | None = None  # (R, 9) float32, optional
     render_bounce: np.ndarray | None = None  # (R, 9) float32, optional
+    bounce_primary: np.ndarray | None = None  # (V, 9) float64, optional
+    render_bounce_primary: np.ndarray | None = None  # (R, 9) float32, optional
 
     @property
     def n_vertices(self) -> int:
@@ -132,10 +139,15 @@ class PrtTables:
             bounce = np.asarray(arrays["bounce"], np.float32)
             if bounce.shape != (V, 9):
                 raise ValueError(f"bounce must be ({V}, 9), got {bounce.shape}")
-        if not (np.isfinite(t).all() and (bounce is None or np.isfinite(bounce).all())):
+        bounce_primary = None
+        if "bounce_primary" in arrays:
+            bounce_primary = np.asarray(arrays["bounce_primary"], np.float32)
+            if bounce is None or bounce_primary.shape != (V, 9):
+                raise ValueError(f"bounce_primary must be ({V}, 9) and come with bounce, got {bounce_primary.shape}")
+        if not all(a is None or np.isfinite(a).all() for a in (t, bounce, bounce_primary)):
             raise ValueError("transfer/bounce hold non-finite values")
         render = {}
-        for key in ("render_transfer", "render_bounce"):
+        for key in ("render_transfer", "render_bounce", "render_bounce_primary"):
             if key not in arrays:
                 continue
             a = np.asarray(arrays[key], np.float32)
@@ -146,11 +158,14 @@ class PrtTables:
             render[key] = a  # float32: evaluated in float32 (runtime cost, R x 9)
         if ("render_bounce" in render) != (bounce is not None and "render_transfer" in render):
             raise ValueError("render_bounce must come with render_transfer and bounce (and only then)")
+        if ("render_bounce_primary" in render) != (bounce_primary is not None and "render_transfer" in render):
+            raise ValueError("render_bounce_primary must come with render_transfer and bounce_primary (and only then)")
         return cls(
             transfer=t.astype(np.float64),
             directions=d.astype(np.float64) / np.linalg.norm(d, axis=1, keepdims=True),
             visibility=unpack_visibility(bits, V),
             bounce=None if bounce is None else bounce.astype(np.float64),
+            bounce_primary=None if bounce_primary is None else bounce_primary.astype(np.float64),
             **render,
         )
 
@@ -196,10 +211,13 @@ def primary_radiance_sh9(direction: np.ndarray, rgb: np.ndarray) -> np.ndarray:
     return sh9(d)[0][:, None] * np.asarray(rgb, np.float64)[None, :]
 
 
-def _shade(transfer, bounce, points, normals, estimate, vis_distant, vis_near, dtype) -> np.ndarray:
+def _shade(
+    transfer, bounce, points, normals, estimate, vis_distant, vis_near, dtype, bounce_primary=None
+) -> np.ndarray:
     """Shading of some vertices (the proxy's or the render mesh's) from their transfer and bounce
     arrays; ``vis_distant(d)`` / ``vis_near(dirs)`` give those vertices' visibility of the primary light
-    (module docstring). Evaluated in ``dtype``; returns float32 clamped at 0."""
+    (module docstring); ``bounce_primary`` (else ``bounce``) carries the primary light's
+    interreflection. Evaluated in ``dtype``; returns float32 clamped at 0."""
     L = estimate.radiance_sh9()
     E = transfer @ L.astype(dtype)
     d = estimate.primary_dir
@@ -222,7 +240,11 @@ def _shade(transfer, bounce, points, normals, estimate, vis_distant, vis_near, d
             g = cos * (dtype(pos @ pos) / r2) * vis_near(dv)
         E += g.astype(dtype)[:, None] * rgb.astype(dtype)[None, :]
         if bounce is not None:
-            L = L + primary_radiance_sh9(d, rgb)
+            Lp = primary_radiance_sh9(d, rgb)
+            if bounce_primary is not None:
+                E += bounce_primary @ Lp.astype(dtype)
+            else:
+                L = L + Lp
     if bounce is not None:
         E += bounce @ L.astype(dtype)
     np.maximum(E, 0.0, out=E)
@@ -253,6 +275,7 @@ def prt_irradiance(tables: PrtTables, points: np.ndarray, normals: np.ndarray, e
         tables.primary_visibility,
         tables.primary_visibility_per_vertex,
         np.float64,
+        tables.bounce_primary,
     )
 
 
@@ -295,6 +318,7 @@ def prt_irradiance_render(
         lambda d: carried(tables.primary_visibility(d)),
         lambda dv: carried(tables.primary_visibility_per_vertex(dv[proxy_index].astype(np.float64))),
         np.float32,
+        tables.render_bounce_primary,
     )
 
 

@@ -3,6 +3,7 @@ the shading stage's "prt" mode, PRT-only bundles and `illuminet bundle`."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -167,16 +168,43 @@ def test_near_light_falls_off_with_distance(sphere):
     assert np.allclose(E[lit], want[lit], rtol=1e-4)
 
 
-def test_one_bounce_brings_the_bowl_towards_the_multi_bounce_solution(bowl):
+def test_the_bounces_converge_to_the_multi_bounce_solution(bowl):
     _, res = bowl
     L = np.zeros(9)
     L[0] = np.sqrt(4 * np.pi)  # a white furnace: uniform radiance 1
     e0 = res.transfer @ L
     e1 = interreflection(res, 0.5, 1) @ L
     ref = interreflection(res, 0.5, 40) @ L
-    assert np.allclose(e1, e0 + res.bounce @ L, atol=1e-4)  # the stored bounce is that one bounce
+    assert res.bounces == 8
+    # the stored bounce is the sum of the 8 bounces, and bounce_primary the first alone
+    assert np.allclose(e0 + res.bounce @ L, interreflection(res, 0.5, 8) @ L, atol=1e-4)
+    assert np.allclose(e1, e0 + res.bounce_primary @ L, atol=1e-4)
     assert (e1 >= e0 - 1e-6).all()
     assert np.abs(e1 - ref).mean() < 0.5 * np.abs(e0 - ref).mean()
+    # 8 bounces at albedo 0.5: within 0.1 % of converged everywhere
+    assert np.abs(e0 + res.bounce @ L - ref).max() < 1e-3 * ref.max()
+    # a single bounce is what --bounces 1 stores, with no separate primary array
+    mesh = builtin_object("bowl", "proxy")
+    one = compute_prt(mesh, mesh.vertices, mesh.vertex_normals, albedo=0.5, floor_shadow=False, bounces=1, **FAST)
+    assert one.bounce_primary is None and "bounce_primary" not in one.arrays()
+    assert np.allclose(one.bounce, res.bounce_primary, atol=1e-5)
+
+
+def test_the_primary_light_bounces_once_and_the_ambient_light_converged(bowl):
+    mesh, res = bowl
+    t = res.tables()
+    n = np.asarray(mesh.vertex_normals)
+    amb = LightEstimate(sh9=_ambient(1.0), primary_dir=None, primary_rgb=np.zeros(3))
+    prim = LightEstimate(sh9=np.zeros((9, 3)), primary_dir=_unit([0.3, 0.8, 0.2]), primary_rgb=np.ones(3))
+    Ea = prt_irradiance(t, mesh.vertices, n, amb)
+    Ep = prt_irradiance(t, mesh.vertices, n, prim)
+    from illuminet.runtime.prt import primary_radiance_sh9
+
+    L = amb.radiance_sh9()
+    np.testing.assert_allclose(Ea, np.maximum(t.transfer @ L + t.bounce @ L, 0), rtol=1e-5, atol=1e-6)
+    direct = prt_irradiance(dataclasses.replace(t, bounce=None, bounce_primary=None), mesh.vertices, n, prim)
+    want = np.maximum(direct + t.bounce_primary @ primary_radiance_sh9(prim.primary_dir, prim.primary_rgb), 0)
+    np.testing.assert_allclose(Ep, want, rtol=1e-5, atol=1e-6)
 
 
 # --------------------------------------------------------------------------- bundles and the stage
@@ -322,7 +350,8 @@ def test_shipped_bundles_have_prt_made_by_the_command(name):
     assert b.has_model and b.prt is not None and b.prt.bounce is not None
     p = b.meta["prt"]
     assert p["command"].startswith(f"illuminet bundle --object builtin:{name}") and p["seed"] == 0
-    # proxy tables (~50 KB) + the transfer and bounce of every render vertex (9026 x 9 x 2 float32)
+    # proxy tables (~50 KB) + the transfer and the two bounce arrays of every render vertex (9026 x 9 x 3
+    # float32)
     assert (b.path / "prt.npz").stat().st_size < 1024 * 1024
     # the inside of the object is darker in the transfer than outside on average
     ao = b.prt.transfer[:, 0] / unoccluded_transfer(b.proxy_normals)[:, 0]
@@ -352,6 +381,7 @@ def test_render_transfer_shades_every_render_vertex(render_bundle, prt_bundle):
     b = load_bundle(render_bundle)
     R = len(b.vertices)
     assert b.prt.render_transfer.shape == (R, 9) and b.prt.render_bounce.shape == (R, 9)
+    assert b.prt.render_bounce_primary.shape == (R, 9) and b.meta["prt"]["bounces"] == 8
     st = _stage(render_bundle, shading="prt", temporal_smoothing=0.0)
     for est in (
         _estimate(),

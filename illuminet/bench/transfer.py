@@ -108,7 +108,9 @@ def run(args, cfg) -> dict:
         proxy_only = ShadingStage(apply_overrides(cfg, [("model", "shading", "prt")]))
         proxy_only.open()
         proxy_only.bundle = copy.copy(proxy_only.bundle)
-        proxy_only.bundle.prt = dataclasses.replace(proxy_only.bundle.prt, render_transfer=None, render_bounce=None)
+        proxy_only.bundle.prt = dataclasses.replace(
+            proxy_only.bundle.prt, render_transfer=None, render_bounce=None, render_bounce_primary=None
+        )
 
         def drawn(stage, est):
             """The stage and what the renderer then needs: render-mesh values (carried when only the proxy's)."""

@@ -58,8 +58,15 @@ def register(sub) -> None:
         "--albedo",
         type=float,
         default=0.8,
-        help="grey albedo of the object for one interreflection bounce (default 0.8, the renderer's "
+        help="grey albedo of the object for its interreflection (default 0.8, the renderer's "
         "albedo of meshes without colour; 0 = no bounce)",
+    )
+    p.add_argument(
+        "--bounces",
+        type=int,
+        default=8,
+        help="interreflections of the object onto itself summed into the PRT (default 8: converged at "
+        "albedo 0.8; 1 = the single bounce of bundles made before 2026-11-28)",
     )
     # defaults: illuminet.models.prt (not imported here: --help stays fast)
     p.add_argument(
@@ -123,6 +130,8 @@ def run(args: argparse.Namespace, cfg) -> int:
         return fail(f"--height must be positive metres, got {args.height}")
     if not 0.0 <= args.albedo < 1.0:
         return fail(f"--albedo must be in [0, 1), got {args.albedo}")
+    if args.bounces < 1:
+        return fail(f"--bounces must be >= 1, got {args.bounces}")
     if args.n_proxy < 8 or args.transfer_rays < 64 or args.directions < 64:
         return fail("--n-proxy must be >= 8, --transfer-rays and --directions >= 64")
     bars: dict[str, Progress] = {}
@@ -156,6 +165,7 @@ def run(args: argparse.Namespace, cfg) -> int:
                 args.seed,
                 progress,
                 render=args.render_transfer,
+                bounces=args.bounces,
             )
         else:
             if out.exists() and (not out.is_dir() or any(out.iterdir())):
@@ -175,6 +185,7 @@ def run(args: argparse.Namespace, cfg) -> int:
                 progress,
                 up=args.up,
                 render=args.render_transfer,
+                bounces=args.bounces,
             )
     except (ObjectLoadError, BundleError, OSError) as e:
         return fail(str(e))
