@@ -248,7 +248,8 @@ class CameraEval:
         for v in self.variants:  # a wrong key fails here, before any scene is built
             v.cfg = apply_overrides(self.base, v.overrides)
         self.model_cfg = apply_overrides(self.base, [("model", "shading", "model")])
-        self.mesh = trimesh.Trimesh(b.vertices, b.faces, process=False)
+        # the bundle's own normals: the truth's evaluated points are then exactly the mesh's vertices
+        self.mesh = trimesh.Trimesh(b.vertices, b.faces, vertex_normals=b.normals, process=False)
         R = len(b.vertices)
         self.sel = np.arange(R) if not vertices or vertices >= R else np.linspace(0, R - 1, int(vertices)).astype(int)
         self.points, self.normals = np.asarray(b.vertices)[self.sel], np.asarray(b.normals)[self.sel]
@@ -269,9 +270,10 @@ class CameraEval:
 
             t = object_hemisphere(self.mesh, self.points, self.normals).transfer_sh9()
             if self.object_albedo > 0:
+                on_mesh = B.on_mesh_vertices(self.mesh, self.points, self.normals)
                 verts, vn = np.asarray(self.mesh.vertices), np.asarray(self.mesh.vertex_normals)
-                t_mesh = object_hemisphere(self.mesh, verts, vn).transfer_sh9()
-                t = t + B.object_light(self.mesh, self.points, self.normals, t_mesh, self.object_albedo)
+                t_mesh = t if on_mesh else object_hemisphere(self.mesh, verts, vn).transfer_sh9()
+                t = t + B.object_light(self.mesh, self.points, self.normals, t_mesh, self.object_albedo, on_mesh)
             self._transfer = t
         return self._transfer
 

@@ -258,11 +258,11 @@ def run_crosscheck(
     so the light it reflects onto itself is compared too (0: a black object). The one-bounce
     comparison is of the room's transport and keeps the object black in both.
     """
+    from illuminet.hw.synthetic.scene import DEFAULT_BOUNCES
+    from illuminet.runtime.assets.objects import load_object
     from illuminet.runtime.render.mesh import DEFAULT_ALBEDO
 
     rho = DEFAULT_ALBEDO if object_albedo is None else float(object_albedo)
-    from illuminet.hw.synthetic.scene import DEFAULT_BOUNCES
-    from illuminet.runtime.assets.objects import load_object
 
     mi = load_mitsuba(variant)
     n_bounces = DEFAULT_BOUNCES if bounces is None else int(bounces)

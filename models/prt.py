@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from illuminet.runtime.groundtruth.lighting import fibonacci_sphere
-from illuminet.runtime.groundtruth.visibility import DEFAULT_EPS, first_hits
+from illuminet.runtime.groundtruth.visibility import DEFAULT_EPS, first_hits, gather_hits
 from illuminet.runtime.prt import PrtTables, pack_visibility, unoccluded_transfer
 from illuminet.runtime.sh import sh9
 
@@ -180,27 +180,13 @@ def compute_prt(
     vis[vj, kj] = tri_k < 0
     timings["visibility_s"] = time.perf_counter() - t0
 
-    # one interreflection bounce from the blocked transfer rays' hit points
+    # the interreflection, from the blocked transfer rays' hit points
     op = None
     bounce = bounce_primary = None
     t0 = time.perf_counter()
-    faces = np.asarray(mesh.faces, np.int64)
-    fn = np.asarray(mesh.face_normals, np.float64)
-    front_hit = np.einsum("px,px->p", fn[tri[b]], D[ki[b]]) < 0.0
-    hb = b[front_hit]
-    if len(hb):
-        import trimesh
-        from scipy.sparse import csr_matrix
-
-        corner = faces[tri[hb]]
-        bary = trimesh.triangles.points_to_barycentric(np.asarray(mesh.vertices, np.float64)[corner], loc[hb])
-        bary = np.clip(bary, 0.0, 1.0)
-        bary /= np.maximum(bary.sum(1, keepdims=True), 1e-12)
-        # one sparse (V, R) matrix: point i gathers dw cos / pi x barycentric weight of each hit's corners
-        vals = (dw * cos[hb] / np.pi)[:, None] * bary
-        gather = csr_matrix(
-            (vals.ravel(), (np.repeat(vi[hb], 3), corner.ravel())), shape=(len(P), len(mesh.vertices))
-        )  # duplicates are summed
+    # one sparse (V, R) matrix: point i gathers dw cos / pi x barycentric weight of each hit's corners
+    gather = gather_hits(mesh, vi[b], D[ki[b]], tri[b], loc[b], dw * cos[b] / np.pi, len(P))
+    if gather.nnz:
 
         def op(t_points: np.ndarray) -> np.ndarray:
             """Transfer on the points -> the transfer of the light those points reflect onto them (albedo 1)."""

@@ -378,36 +378,31 @@ def object_gather(mesh, pts: np.ndarray, nrm: np.ndarray):
     mean times pi makes ``G[p, v] = (1 / n) * sum of v's barycentric weights over p's front-face hits``.
     A ray that meets a back face (an open mesh seen from inside out) gets nothing. Cached per geometry.
     """
-    import trimesh
-
     from illuminet.hw.synthetic.scene import object_hemisphere
-    from illuminet.runtime.groundtruth.visibility import first_hits
+    from illuminet.runtime.groundtruth.visibility import first_hits, gather_hits
 
-    verts = np.asarray(mesh.vertices, np.float64)
-    faces = np.asarray(mesh.faces, np.int64)
-    parts = [pts, nrm, verts, faces]
+    parts = [pts, nrm, np.asarray(mesh.vertices), np.asarray(mesh.faces)]
     key = hash(tuple(np.ascontiguousarray(a).tobytes() for a in parts))
     G = _OBJECT_GATHERS.get(key)
     if G is not None:
         return G
-    from scipy.sparse import csr_matrix
-
     hv = object_hemisphere(mesh, pts, nrm)
     P, n = hv.visible.shape
     pi_, ki = np.nonzero(~hv.visible)
     d = hv.directions[pi_, ki].astype(np.float64)
     tri, loc = first_hits(mesh, hv.origins()[pi_], d)
-    ok = tri >= 0
-    ok[ok] = np.einsum("px,px->p", np.asarray(mesh.face_normals, np.float64)[tri[ok]], d[ok]) < 0.0
-    corner = faces[tri[ok]]
-    bary = trimesh.triangles.points_to_barycentric(verts[corner], loc[ok])
-    bary = np.clip(bary, 0.0, 1.0)
-    bary /= np.maximum(bary.sum(1, keepdims=True), 1e-12)
-    G = csr_matrix(((bary / n).ravel(), (np.repeat(pi_[ok], 3), corner.ravel())), shape=(P, len(verts)))
+    G = gather_hits(mesh, pi_, d, tri, loc, np.full(len(pi_), 1.0 / n), P)
     if len(_OBJECT_GATHERS) >= 4:
         _OBJECT_GATHERS.pop(next(iter(_OBJECT_GATHERS)))
     _OBJECT_GATHERS[key] = G
     return G
+
+
+def on_mesh_vertices(mesh, pts: np.ndarray, nrm: np.ndarray) -> bool:
+    """Whether ``pts`` / ``nrm`` are exactly the mesh's own vertices and vertex normals (then the light
+    the room gives them is already the source :func:`object_light` needs, and its gather is shared)."""
+    v = np.asarray(mesh.vertices)
+    return np.shape(pts) == v.shape and np.array_equal(pts, v) and np.array_equal(nrm, np.asarray(mesh.vertex_normals))
 
 
 #: interreflection passes of the object onto itself (albedo 0.8: the 6th pass adds < 1e-4 of the total)

@@ -406,20 +406,13 @@ class SyntheticScene:
             hv, rad = self._object_indirect(mesh, T_cam_obj, visibility, frame, pts, nrm)
             e = e + hv.irradiance(rad)
         if object_albedo > 0 and visibility and mesh is not None:
-            e = e + self._object_interreflection(
-                mesh, T_cam_obj, frame, pts, nrm, e, points is None, object_albedo, indirect
-            )
+            from illuminet.hw.synthetic import bounce as B
+
+            # the room's light on every mesh vertex is the source the bounces start from
+            on_mesh = B.on_mesh_vertices(mesh, pts, nrm)
+            e_mesh = e if on_mesh else self.true_object_shading(mesh, T_cam_obj, frame=frame, indirect=indirect)
+            e = e + B.object_light(mesh, pts, nrm, e_mesh, object_albedo, on_mesh=on_mesh)
         return e
-
-    def _object_interreflection(self, mesh, T_cam_obj, frame, pts, nrm, e, on_mesh, albedo, indirect):
-        """Irradiance (P, 3) the object (grey ``albedo``) reflects onto ``pts``, all bounces."""
-        from illuminet.hw.synthetic import bounce as B
-
-        if not 0.0 < albedo < 1.0:
-            raise ValueError(f"object_albedo must be in [0, 1), got {albedo}")
-        # the room's light on every mesh vertex: the source the bounces start from
-        e_mesh = e if on_mesh else self.true_object_shading(mesh, T_cam_obj, frame=frame, indirect=indirect)
-        return B.object_light(mesh, pts, nrm, e_mesh, albedo, on_mesh=on_mesh)
 
     def _object_terms(self, mesh, T_cam_obj, visibility, frame, points, normals):
         from illuminet.runtime.groundtruth.visibility import exact_visibility

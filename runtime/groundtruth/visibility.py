@@ -76,6 +76,31 @@ def first_hits(
     return tri, loc
 
 
+def gather_hits(mesh: trimesh.Trimesh, rows, directions, tri, loc, weights, n_rows: int):
+    """Sparse (n_rows, V_mesh) matrix that reads values on the mesh's vertices at rays' hit points.
+
+    Ray i (of row ``rows[i]``, along ``directions[i]``, first hit ``tri[i]`` at ``loc[i]`` as
+    :func:`first_hits` gives them) adds ``weights[i]`` times the barycentric weights of its hit to the
+    hit triangle's three corners; rays that escape (``tri < 0``) or meet a back face (an open mesh
+    seen from inside) add nothing; entries of one row and corner are summed. ``M @ values`` is then,
+    per row, the weighted sum of the values interpolated at its rays' hit points. Needs scipy.
+    """
+    from scipy.sparse import csr_matrix
+
+    tri = np.asarray(tri)
+    d = np.asarray(directions, np.float64)
+    ok = tri >= 0
+    ok[ok] = np.einsum("px,px->p", np.asarray(mesh.face_normals, np.float64)[tri[ok]], d[ok]) < 0.0
+    corner = np.asarray(mesh.faces, np.int64)[tri[ok]]
+    bary = trimesh.triangles.points_to_barycentric(np.asarray(mesh.vertices, np.float64)[corner], loc[ok])
+    bary = np.clip(bary, 0.0, 1.0)
+    bary /= np.maximum(bary.sum(1, keepdims=True), 1e-12)
+    vals = np.asarray(weights, np.float64)[ok][:, None] * bary
+    return csr_matrix(
+        (vals.ravel(), (np.repeat(np.asarray(rows)[ok], 3), corner.ravel())), shape=(n_rows, len(mesh.vertices))
+    )
+
+
 def _origins(points: np.ndarray, normals: np.ndarray | None, directions: np.ndarray, eps: float) -> np.ndarray:
     """Ray origins pushed off the surface: along the normal when known, else along the ray."""
     if normals is None:
