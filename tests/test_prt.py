@@ -17,7 +17,7 @@ from illuminet.runtime.assets.objects import builtin_object
 from illuminet.runtime.config import apply_overrides, defaults
 from illuminet.runtime.frame import Frame, Intrinsics
 from illuminet.runtime.groundtruth.visibility import exact_visibility
-from illuminet.runtime.prt import prt_irradiance, unoccluded_transfer
+from illuminet.runtime.prt import KERNEL_RADIUS, floor_factor, prt_geometry, prt_irradiance, unoccluded_transfer
 from illuminet.runtime.scene import LIGHT, PLANE_LIGHT, SHADING, LightEstimate
 from illuminet.runtime.sh import SH_A_HAT, sh9
 from illuminet.runtime.stages.shading import ShadingStage
@@ -139,6 +139,37 @@ def test_near_light_visibility_per_vertex_matches_distant_when_far(bowl):
     d = _unit([0.3, 0.9, 0.2])
     far = tab.primary_visibility_per_vertex(np.tile(d, (len(mesh.vertices), 1)))
     assert np.allclose(far, tab.primary_visibility(d), atol=1e-6)
+
+
+def test_near_light_visibility_per_vertex_is_the_kernel_average(bowl):
+    """A lamp close to the object spreads the vertices' directions over many table directions: each
+    vertex's value is still the kernel-weighted mean of its own neighbours (the dense sum)."""
+    mesh, res = bowl
+    tab = res.tables()
+    pos = np.array([0.08, 0.12, 0.03])  # a few centimetres from the bowl: directions ~90 degrees apart
+    v = np.asarray(mesh.vertices)
+    d = (pos - v) / np.linalg.norm(pos - v, axis=1, keepdims=True)
+    cos = d @ tab.directions.T
+    r2 = (2.0 * np.sin(KERNEL_RADIUS * np.sqrt(4.0 * np.pi / len(tab.directions)) / 2.0)) ** 2
+    w = np.maximum(1.0 - (2.0 - 2.0 * cos) / r2, 0.0) ** 2
+    dense = (w * tab.visibility.T).sum(1) / w.sum(1) * floor_factor(d[:, 1])
+    got = tab.primary_visibility_per_vertex(d)
+    assert np.allclose(got, dense, atol=1e-6)
+    assert 0.05 < got.mean() < 0.95  # partly shadowed: the test compares something
+
+
+def test_precomputed_geometry_shades_the_same(sphere):
+    mesh, res = sphere
+    v, n = np.asarray(mesh.vertices), np.asarray(mesh.vertex_normals)
+    geom = prt_geometry(v, n)
+    for pos in (None, np.array([0.5, 0.4, -0.2]), np.array([0.05, 0.3, 0.0])):
+        d = _unit([0.5, 0.4, -0.2] if pos is None else pos)
+        est = LightEstimate(sh9=_ambient(0.3), primary_dir=d, primary_rgb=np.array([3.0, 2.8, 2.5]), primary_pos=pos)
+        a = prt_irradiance(res.tables(), v, n, est)
+        b = prt_irradiance(res.tables(), v, n, est, geom)
+        assert np.allclose(a, b, rtol=1e-12, atol=0)
+    with pytest.raises(ValueError, match="same shape"):
+        prt_geometry(v, n[:-1])
 
 
 def test_primary_light_from_plus_x_lights_plus_x_and_leaves_minus_x_ambient(sphere):

@@ -18,7 +18,7 @@ import logging
 
 import numpy as np
 
-from illuminet.runtime.prt import PRT_FILE, prt_irradiance, prt_irradiance_render
+from illuminet.runtime.prt import PRT_FILE, prt_geometry, prt_irradiance, prt_irradiance_render
 from illuminet.runtime.scene import LIGHT, PLANE_LIGHT, SHADING, ObjectShading
 from illuminet.runtime.sh import sh_eval, sh_fit
 from illuminet.runtime.stage import FrameError, Stage
@@ -244,25 +244,21 @@ class ShadingStage(Stage):
             if light is None:
                 raise FrameError("shading mode prt needs a light estimate (results['light']) on this frame")
             if self._proxy is None:  # the proxy's points (at the drawn scale) and normals, once
-                self._proxy = (
-                    np.asarray(b.proxy_vertices, np.float64) * self.object_scale,
-                    np.asarray(b.proxy_normals, np.float64),
-                )
+                pts, nrm = np.asarray(b.proxy_vertices, np.float64) * self.object_scale, b.proxy_normals
+                self._proxy = (pts, np.asarray(nrm, np.float64), prt_geometry(pts, nrm))
             render = None
             if b.prt.render_transfer is not None:
                 # every render vertex from its own transfer (the self-occlusion in the grooves is finer
                 # than the proxy); the proxy's values are the same at its vertices
                 if self._render_mesh is None:
-                    self._render_mesh = (
-                        np.asarray(b.vertices, np.float32) * np.float32(self.object_scale),
-                        np.asarray(b.normals, np.float32),
-                    )
-                render = prt_irradiance_render(
-                    b.prt, self._render_mesh[0], self._render_mesh[1], b.proxy_index, b.carry, light
-                )
+                    pts = np.asarray(b.vertices, np.float32) * np.float32(self.object_scale)
+                    nrm = np.asarray(b.normals, np.float32)
+                    self._render_mesh = (pts, nrm, prt_geometry(pts, nrm))
+                pts, nrm, geom = self._render_mesh
+                render = prt_irradiance_render(b.prt, pts, nrm, b.proxy_index, b.carry, light, geom)
                 irr = render[b.proxy_index]
             else:
-                irr = prt_irradiance(b.prt, self._proxy[0], self._proxy[1], light)
+                irr = prt_irradiance(b.prt, self._proxy[0], self._proxy[1], light, self._proxy[2])
             d = None if light.primary_dir is None else np.asarray(light.primary_dir, np.float32)
             return ObjectShading(
                 irradiance=irr,
