@@ -38,6 +38,15 @@ records a white Lambertian object at the frame's own exposure ``k``):
 ``angle``
     degrees between the method's dominant-light direction and the true one (the luminance-weighted
     vector irradiance of the direct lights at the object's centre, scene occlusion included).
+``angle_primary``
+    ``angle``'s median over only the scenes whose primary light carries at least
+    :data:`PRIMARY_SHARE_MIN` of the object's light (issue 11's target: where a dominant light exists
+    there is a direction to get right; elsewhere the "dominant" direction is the small asymmetry of
+    diffuse light). The primary light is the strongest light at the object's centre (scene occlusion
+    included) together with every light within :data:`PRIMARY_CONE_DEG` of it (an HDR map's sun and
+    an area lamp are several point lights); its share is its direct irradiance, ``max(0, n . d)``
+    averaged over the evaluated vertices (without the object's self-shadowing), over their mean true
+    irradiance (luminance). The per-scene share is ``primary_share`` in each case.
 ``chroma``
     degrees between the mean RGB of the predicted and of the true shading (the light's colour).
 ``flicker``
@@ -73,6 +82,10 @@ SUITES = ("indoor", "outdoor", "lamp", "spatial", "cluttered")
 SH_LAMBDAS = (0.0, 1e-2, 0.1)
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 SEED_BASE = 1_000_003 % 100_000  # scene seeds apart from the training data's
+#: ``angle_primary`` counts the scenes whose primary light carries at least this share (issue 11: 40 %)
+PRIMARY_SHARE_MIN = 0.4
+#: lights this close (degrees, seen from the object) to the strongest one belong to the primary light
+PRIMARY_CONE_DEG = 15.0
 
 LABELS = {
     "model": "IllumiNet transfer ([model] shading = model)",
@@ -104,6 +117,8 @@ def _zonal_basis() -> np.ndarray:
 
 ZONAL_BASIS = _zonal_basis()
 METRICS = ("mae", "rmse", "mae_abs", "rmse_lin", "angle", "chroma", "flicker")
+#: metrics aggregated by their median over scenes (the others: the mean)
+MEDIAN_METRICS = ("angle", "angle_primary", "chroma")
 
 
 @dataclass
@@ -192,6 +207,37 @@ def true_dominant(scene, T_cam_obj: np.ndarray, frame: int, centre: np.ndarray) 
     s = v.sum(0)
     n = np.linalg.norm(s)
     return None if n < 1e-12 else s / n
+
+
+def primary_share(scene, mesh, T_cam_obj: np.ndarray, frame: int, centre: np.ndarray, points, normals, true_e):
+    """Share of the object's true irradiance (luminance, summed over the evaluated vertices) that its
+    primary light gives directly (module docstring, ``angle_primary``): the strongest light at the
+    centre and those within :data:`PRIMARY_CONE_DEG` of it, with the object's self-shadowing and the
+    scene's occluders. None when the scene has no light or the object no irradiance."""
+    from illuminet.runtime.groundtruth import lighting as GL
+    from illuminet.runtime.groundtruth.visibility import exact_visibility
+
+    lights = scene.object_lights(T_cam_obj, frame)
+    total = float((np.asarray(true_e) @ LUMA).sum())
+    if len(lights.positions) == 0 or total <= 0:
+        return None
+    T_wo = scene.poses[frame % len(scene.poses)] @ np.asarray(T_cam_obj, float)
+    cw = T_wo[:3, :3] @ centre + T_wo[:3, 3]
+    vis = scene.occlusion(cw[None])[0]
+    d = lights.positions - centre
+    r2 = np.maximum((d * d).sum(1), 1e-12)
+    u = d / np.sqrt(r2)[:, None]
+    e = (lights.intensities @ LUMA) * vis / r2  # each light's irradiance at normal incidence
+    k = int(np.argmax(e))
+    if e[k] <= 0:
+        return 0.0
+    group = np.flatnonzero((u @ u[k]) >= np.cos(np.radians(PRIMARY_CONE_DEG)))
+    sub = GL.PointLights(lights.positions[group], lights.intensities[group])
+    world = GL.PointLights(scene.lights.positions[group], scene.lights.intensities[group])
+    pts, nrm = np.asarray(points, float), np.asarray(normals, float)
+    pw = pts @ T_wo[:3, :3].T + T_wo[:3, 3]
+    v = exact_visibility(mesh, pts, sub.positions, normals=nrm).astype(float) * scene.occlusion(pw, world)
+    return float((GL.irradiance(pts, nrm, sub, v) @ LUMA).sum()) / total
 
 
 # ------------------------------------------------------------------------------------ the runner
@@ -383,6 +429,7 @@ class CameraEval:
             self.mesh, T, frame=fi, points=self.points, normals=self.normals, indirect=False
         )
         res["indirect_share"] = float(1 - (direct @ LUMA).sum() / max((true_e @ LUMA).sum(), 1e-12))
+        res["primary_share"] = primary_share(sc, self.mesh, T, fi, self.centre, self.points, self.normals, true_e)
         settle = frames // 2
         for m, seq in list(per_frame.items()) + [(m, [p]) for m, p in oracles.items()]:
             if seq[-1] is None:
@@ -480,16 +527,23 @@ class CameraEval:
         res: dict = {
             "_scenes": {"evaluated": len(cases), "no_plane": n - len(cases)},
             "_indirect_share": float(np.mean([c["indirect_share"] for c in cases])) if cases else None,
+            "_primary_scenes": sum(1 for c in cases if (c.get("primary_share") or 0.0) >= PRIMARY_SHARE_MIN),
         }
         methods = sorted({m for c in cases for m in c["methods"]})
         for m in methods:
             rows = [c["methods"][m] for c in cases if m in c["methods"]]
             agg = {"n": len(rows)}
-            for key in METRICS:
-                vals = [r[key] for r in rows if r.get(key) is not None]
+            strong = [
+                c["methods"][m].get("angle")
+                for c in cases
+                if m in c["methods"] and (c.get("primary_share") or 0.0) >= PRIMARY_SHARE_MIN
+            ]
+            for key in METRICS + ("angle_primary",):
+                vals = [r[key] for r in rows if r.get(key) is not None] if key != "angle_primary" else strong
+                vals = [x for x in vals if x is not None]
                 if not vals:
                     agg[key] = None
-                elif key in ("angle", "chroma"):
+                elif key in MEDIAN_METRICS:
                     agg[key] = float(np.median(vals))
                 else:
                     agg[key] = float(np.mean(vals))
@@ -518,8 +572,9 @@ def method_order(report: dict) -> list[str]:
 def table(report: dict) -> str:
     """One markdown table: a row per (suite, method), the metrics as columns."""
     lines = [
-        "| suite | method | MAE | RMSE | MAE (no gain) | angle (deg) | chroma (deg) | flicker |",
-        "|---|---|---|---|---|---|---|---|",
+        "| suite | method | MAE | RMSE | MAE (no gain) | angle (deg) | angle, primary >= 40 % (deg) | chroma (deg) "
+        "| flicker |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for suite, res in report["suites"].items():
         for m in method_order(report):
@@ -531,7 +586,8 @@ def table(report: dict) -> str:
                 label += f" (lambda {r['lam']:g})"
             lines.append(
                 f"| {suite} | {label} | {_fmt(r['mae'])} | {_fmt(r['rmse'])} | {_fmt(r['mae_abs'])} | "
-                f"{_fmt(r['angle'], 1)} | {_fmt(r['chroma'], 1)} | {_fmt(r['flicker'], 4)} |"
+                f"{_fmt(r['angle'], 1)} | {_fmt(r.get('angle_primary'), 1)} | {_fmt(r['chroma'], 1)} | "
+                f"{_fmt(r['flicker'], 4)} |"
             )
     return "\n".join(lines)
 
@@ -570,5 +626,9 @@ def markdown(report: dict) -> str:
             f"{s} {r['_scenes']['evaluated']} ({r['_scenes']['no_plane']}), {_fmt(r['_indirect_share'], 2)}"
             for s, r in report["suites"].items()
         ),
+        "",
+        f"Scenes whose primary light carries >= {100 * PRIMARY_SHARE_MIN:.0f} % of the object's light (the "
+        "`angle, primary` column's scenes): "
+        + ", ".join(f"{s} {r.get('_primary_scenes', 0)}" for s, r in report["suites"].items()),
     ]
     return "\n".join(head) + "\n\n" + table(report) + "\n" + "\n".join(foot) + "\n"

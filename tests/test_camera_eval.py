@@ -132,3 +132,39 @@ def test_a_bad_object_albedo_is_one_line(capsys):
     assert rc == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--object-albedo: expected a number in [0, 1), got 1.5" in err[0]
+
+
+def test_primary_angle_counts_only_scenes_a_primary_light_dominates(ci_run):
+    report, md = ci_run
+    assert "| angle, primary >= 40 % (deg) |" in md and "primary light carries >= 40 %" in md
+    for suite, res in report["camera"]["suites"].items():
+        n = res["_primary_scenes"]
+        assert n in (0, 1), suite
+        for m in ("ours", "oracle_prt", "model"):
+            # one scene per suite: the column is that scene's angle when its primary light dominates
+            assert res[m]["angle_primary"] == (res[m]["angle"] if n else None), (suite, m)
+    # a lamp 0.3-0.7 m from the object gives most of its light; 32 room lights never do
+    assert report["camera"]["suites"]["lamp"]["_primary_scenes"] == 1
+    assert report["camera"]["suites"]["indoor"]["_primary_scenes"] == 0
+
+
+def test_primary_share_is_the_direct_share_of_the_strongest_light():
+    """The lamp of a `lamp` scene: a share of the direct light, counted with the object's own shadowing."""
+    import trimesh
+
+    from illuminet.hw.synthetic.scene import build_scene
+    from illuminet.models.camera_eval import primary_share
+
+    sc = build_scene("lamp", seed=1, frames=2, bounce=0)
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    mesh.apply_translation([0, 0.1, 0])
+    T = sc.default_anchor(0)
+    pts, nrm = np.asarray(mesh.vertices), np.asarray(mesh.vertex_normals)
+    e = sc.true_object_shading(mesh, T, frame=0, points=pts, normals=nrm)
+    share = primary_share(sc, mesh, T, 0, np.array([0, 0.1, 0]), pts, nrm, e)
+    direct = sc.true_object_shading(mesh, T, frame=0, points=pts, normals=nrm, indirect=False)
+    luma = np.array([0.2126, 0.7152, 0.0722])
+    direct_share = float((direct @ luma).sum() / (e @ luma).sum())
+    # the lamp dominates a dim set of room lights: most, not all, of the direct light is the lamp's
+    assert len(sc.object_lights(T, 0).positions) > 1
+    assert 0.4 < share < direct_share <= 1.0 + 1e-9
