@@ -254,24 +254,34 @@ class EnvMap:
 
 
 def _near_basis(pos: np.ndarray, x: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """cos / r^2 of point lights at ``pos`` (C, 3) seen from points ``x`` (K, 3) with normals ``n``: (C, K)."""
-    d = pos[:, None, :] - x[None, :, :]
-    r2 = np.maximum((d * d).sum(-1), 1e-4)
-    cos = np.maximum((d * n[None]).sum(-1), 0.0) / np.sqrt(r2)
-    return cos / r2
+    """cos / r^2 of point lights at ``pos`` (C, 3) seen from points ``x`` (K, 3) with normals ``n``: (C, K).
+
+    ``|p - x|^2 = |p|^2 - 2 p.x + |x|^2`` and ``n.(p - x) = p.n - x.n``: two (C, 3) x (3, K) products
+    instead of (C, K, 3) differences (the coarse near-light search scores ~100 positions a frame)."""
+    pos = np.asarray(pos)
+    xx = np.einsum("kx,kx->k", x, x)
+    xn = np.einsum("kx,kx->k", x, n)
+    r2 = (pos * pos).sum(1)[:, None] - 2.0 * (pos @ x.T)
+    r2 += xx[None, :]
+    np.maximum(r2, 1e-4, out=r2)
+    cos = pos @ n.T
+    cos -= xn[None, :]
+    np.maximum(cos, 0.0, out=cos)
+    cos /= r2 * np.sqrt(r2)
+    return cos
 
 
 def _centred(v: np.ndarray, groups: np.ndarray, w: np.ndarray, G: int) -> np.ndarray:
     """Subtract each group's weighted mean along the last axis."""
-    sw = np.bincount(groups, w, minlength=G)
+    sw = np.maximum(np.bincount(groups, w, minlength=G), 1e-12)
     if v.ndim == 1:
-        m = np.bincount(groups, v * w, minlength=G) / np.maximum(sw, 1e-12)
+        m = np.bincount(groups, v * w, minlength=G) / sw
         return v - m[groups]
-    out = np.empty_like(v)
-    for c in range(v.shape[0]):
-        m = np.bincount(groups, v[c] * w, minlength=G) / np.maximum(sw, 1e-12)
-        out[c] = v[c] - m[groups]
-    return out
+    # all rows at once: the weighted group sums are one product with the (K, G) weighted one-hot matrix
+    onehot = np.zeros((len(groups), G), v.dtype)
+    onehot[np.arange(len(groups)), groups] = w
+    m = (v @ onehot) / sw.astype(v.dtype)
+    return v - m[:, groups]
 
 
 @dataclass
