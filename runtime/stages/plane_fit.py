@@ -185,20 +185,31 @@ class Cloud:
         gathering of points).
         """
         if self._moments is None:
+            # built column by column in a (19, N) array (each column contiguous, written in place), used
+            # as its (N, 19) transpose: 4x faster to build than writing strided columns of an (N, 19)
+            # array, and the masked sums (one matrix-vector product each) are faster too
             h, w = self.shape
-            F = np.empty((h * w, 19), np.float32)
-            F[:, :6] = _ray_moments(self.rays())
-            q = np.zeros(h * w, np.float32)
+            F = np.empty((19, h * w), np.float32)
+            F[:6] = _ray_moments(self.rays()).T
             Z = self.points[..., 2].reshape(-1)
+            q = F[6]
+            q[:] = 0.0
             np.divide(1.0, Z, out=q, where=Z > 0)
-            x, y = F[:, 1], F[:, 2]
-            F[:, 6], F[:, 7], F[:, 8] = q, x * q, y * q
-            X, Y = x * Z, y * Z
-            F[:, 9], F[:, 10], F[:, 11] = X, Y, Z
-            F[:, 12], F[:, 13], F[:, 14] = X * X, X * Y, X * Z
-            F[:, 15], F[:, 16], F[:, 17] = Y * Y, Y * Z, Z * Z
-            F[:, 18] = q * q
-            self._moments = F
+            x, y = F[1], F[2]
+            np.multiply(x, q, out=F[7])
+            np.multiply(y, q, out=F[8])
+            X, Y = F[9], F[10]
+            np.multiply(x, Z, out=X)
+            np.multiply(y, Z, out=Y)
+            F[11] = Z
+            np.multiply(X, X, out=F[12])
+            np.multiply(X, Y, out=F[13])
+            np.multiply(X, Z, out=F[14])
+            np.multiply(Y, Y, out=F[15])
+            np.multiply(Y, Z, out=F[16])
+            np.multiply(Z, Z, out=F[17])
+            np.multiply(q, q, out=F[18])
+            self._moments = F.T
         return self._moments
 
     def threshold(self, at_1m: float) -> np.ndarray:
