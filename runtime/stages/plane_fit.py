@@ -488,10 +488,11 @@ def refine(
     """
     normal_cos = float(np.cos(np.radians(NORMAL_TOL_DEG))) if use_normals else None
     F = cloud.moments()
-    mask = None
+    mask = mf = None
     for _ in range(iterations):
         mask = _inliers(cloud, n, d, thr_1m, allowed, normal_cos, despeckle)
-        S = (mask.reshape(-1).view(np.uint8).astype(np.float32) @ F).astype(np.float64)
+        mf = mask.reshape(-1).view(np.uint8).astype(np.float32)
+        S = (mf @ F).astype(np.float64)
         if S[0] < MIN_FIT_POINTS:
             return None
         nd = _fit_moments(S)
@@ -500,7 +501,8 @@ def refine(
         n, d = nd
     if final_inliers:
         mask = _inliers(cloud, n, d, thr_1m, allowed, normal_cos, despeckle)
-        S = (mask.reshape(-1).view(np.uint8).astype(np.float32) @ F).astype(np.float64)
+        mf = mask.reshape(-1).view(np.uint8).astype(np.float32)
+        S = (mf @ F).astype(np.float64)
     cnt = int(round(S[0]))
     if cnt < MIN_FIT_POINTS:
         return None
@@ -511,11 +513,11 @@ def refine(
     # d^2 / |n . r|^3 dx dy with r = (x/z, y/z, 1) (exact for a pinhole camera).
     intr = cloud.intrinsics
     pix = (cloud.stride / intr.fx) * (cloud.stride / intr.fy)
-    mf = mask.reshape(-1)
     ndotr = np.abs(cloud.rays().reshape(-1, 3) @ n.astype(np.float32))
-    ndotr = np.maximum(ndotr, np.float32(1e-3))
+    np.maximum(ndotr, np.float32(1e-3), out=ndotr)
     view_cos = float(np.dot(mf, ndotr * cloud.inv_ray_norm())) / cnt
-    area = float(np.dot(mf, ndotr**-3)) * d * d * pix
+    inv = np.divide(np.float32(1.0), ndotr, out=ndotr)
+    area = float(np.dot(mf, inv * inv * inv)) * d * d * pix
     # Extent along the in-plane principal axes (a uniform rectangle has variance L^2 / 12).
     ext = np.sqrt(12.0 * np.maximum(evals[1:], 0.0))
     # Standard error of the offset (for the tracker's motion gate): residual spread of the
