@@ -316,3 +316,59 @@ def test_bench_drift_figures(orbit):
     camera = anchor_drift(orbit, apply_overrides(defaults(), [("anchor", "lock", "camera")]))
     assert world["max_drift_m"] <= 0.02 and world["max_yaw_deg"] <= 2.0 and world["lost_frames"] == 0
     assert camera["max_drift_m"] > 0.05 and world["stage"]["median_ms"] > 0
+
+
+# ------------------------------------------------------------------------------------ a still camera
+
+
+def _shifted(frame, dx: float):
+    """The frame as if the camera had turned by ``dx`` pixels (colour bilinear, depth nearest)."""
+    import cv2
+
+    h, w = frame.depth.shape
+    M = np.float32([[1, 0, dx], [0, 1, 0]])
+    color = cv2.warpAffine(np.ascontiguousarray(frame.color), M, (w, h), borderMode=cv2.BORDER_REFLECT)
+    depth = cv2.warpAffine(frame.depth, M, (w, h), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_REFLECT)
+    return frame.replace(color=color, depth=depth)
+
+
+def test_a_still_camera_is_held_without_tracking(static):
+    od = Odometry()
+    for f in static:
+        r = od.update(f)
+        assert r.state == "ok"
+    # the first frame starts tracking, the second is tracked; the rest show the same picture
+    assert od.still_frames >= len(static) - 3
+    assert np.linalg.norm(od.T_cam_world[:3, 3]) < 0.002
+    assert od.stats()["still_frames"] == od.still_frames
+    # switched off, every frame is tracked
+    off = Odometry(still_px=0.0)
+    for f in static:
+        off.update(f)
+    assert off.still_frames == 0
+
+
+def test_a_moving_camera_is_never_held(orbit):
+    od, ref = Odometry(), Odometry(still_px=0.0)
+    for f in orbit:
+        a, b = od.update(f), ref.update(f)
+        # while the camera moves, the poses are those of tracking every frame
+        assert np.array_equal(a.T_cam_world, b.T_cam_world)
+    assert od.still_frames == 0
+
+
+def test_a_slow_creep_adds_up_and_is_tracked(static):
+    """0.1 px a frame is below the hold threshold, but the comparison is with the last tracked frame:
+    the pose follows the creep as tracking every frame does, a few frames at a time."""
+    base = static[0]
+    frames = [_shifted(base, 0.1 * k) for k in range(24)]
+    od, ref = Odometry(), Odometry(still_px=0.0)
+    for f in frames:
+        od.update(f)
+        ref.update(f)
+    assert 0 < od.still_frames < len(frames) - 4  # some frames held, the creep tracked every few
+    # 2.3 px of image motion: the camera turned; both end at the same pose (within the tracking noise)
+    turned = np.degrees(np.arccos(np.clip(ref.T_cam_world[0, 0], -1, 1)))
+    assert turned > 0.1
+    diff = np.degrees(np.arccos(np.clip((np.trace(od.T_cam_world[:3, :3].T @ ref.T_cam_world[:3, :3]) - 1) / 2, -1, 1)))
+    assert diff < 0.05, f"held pose lags by {diff:.3f} deg of a {turned:.3f} deg turn"

@@ -216,7 +216,7 @@ class AnchorStage(Stage):
         if lock not in LOCKS:
             raise ValueError(f"[anchor] lock: expected one of {', '.join(LOCKS)}, got {lock!r}")
         self.lock = lock
-        self.odometry: Odometry | None = Odometry() if lock == "world" else None
+        self.odometry: Odometry | None = Odometry(still_px=float(a.still_px)) if lock == "world" else None
         self.provides = (ANCHOR, ODOMETRY) if self.odometry is not None else (ANCHOR,)
         self._T_world_obj: np.ndarray | None = None  # world lock: the placed object
         self._plane_world: tuple[np.ndarray, float] | None = None  # world lock: its plane, world frame
