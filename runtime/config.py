@@ -147,6 +147,15 @@ SCHEMA: dict[str, dict[str, Field]] = {
             max=1,
         ),
         "smoothing": _f(float, 0.8, "temporal smoothing of plane parameters, 0 = none, <1", min=0, max=0.999),
+        "still_px": _f(
+            float,
+            0.3,
+            "keep the planes while the picture moved less than this many pixels since they were last fitted "
+            "(a still camera); 0 = fit every frame",
+            min=0.01,
+            max=100,
+            zero_ok=True,
+        ),
     },
     "anchor": {
         "mode": _f(str, "auto", "where the object stands", choices=("auto", "pixel", "point")),

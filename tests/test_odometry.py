@@ -338,14 +338,14 @@ def test_a_still_camera_is_held_without_tracking(static):
         r = od.update(f)
         assert r.state == "ok"
     # the first frame starts tracking, the second is tracked; the rest show the same picture
-    assert od.still_frames >= len(static) - 3
+    assert od.still.still_frames >= len(static) - 3
     assert np.linalg.norm(od.T_cam_world[:3, 3]) < 0.002
-    assert od.stats()["still_frames"] == od.still_frames
+    assert od.stats()["still_frames"] == od.still.still_frames
     # switched off, every frame is tracked
     off = Odometry(still_px=0.0)
     for f in static:
         off.update(f)
-    assert off.still_frames == 0
+    assert off.still.still_frames == 0
 
 
 def test_a_moving_camera_is_never_held(orbit):
@@ -354,7 +354,7 @@ def test_a_moving_camera_is_never_held(orbit):
         a, b = od.update(f), ref.update(f)
         # while the camera moves, the poses are those of tracking every frame
         assert np.array_equal(a.T_cam_world, b.T_cam_world)
-    assert od.still_frames == 0
+    assert od.still.still_frames == 0
 
 
 def test_a_slow_creep_adds_up_and_is_tracked(static):
@@ -366,7 +366,7 @@ def test_a_slow_creep_adds_up_and_is_tracked(static):
     for f in frames:
         od.update(f)
         ref.update(f)
-    assert 0 < od.still_frames < len(frames) - 4  # some frames held, the creep tracked every few
+    assert 0 < od.still.still_frames < len(frames) - 4  # some frames held, the creep tracked every few
     # 2.3 px of image motion: the camera turned; both end at the same pose (within the tracking noise)
     turned = np.degrees(np.arccos(np.clip(ref.T_cam_world[0, 0], -1, 1)))
     assert turned > 0.1

@@ -133,7 +133,7 @@ def test_estimate_up_fallbacks():
 
 
 def test_tracking_keeps_ids_and_detects_only_every_n_frames(scene):
-    stage = PlaneStage(_cfg(redetect_every=5))
+    stage = PlaneStage(_cfg(redetect_every=5, still_px=0.0))  # the tracker itself: fit every frame
     ids = []
     for k in range(11):
         out = stage.process(scene.frame(k))
@@ -147,7 +147,7 @@ def test_smoothing_reduces_frame_to_frame_jitter():
     sc = AnalyticScene(seed=5, depth_noise=0.01, table=False, wall=False)  # noisy, floor only
     jitter = {}
     for s in (0.0, 0.8):
-        stage = PlaneStage(_cfg(smoothing=s, redetect_every=100))
+        stage = PlaneStage(_cfg(smoothing=s, redetect_every=100, still_px=0.0))
         offs = [stage.process(sc.frame(k)).results["planes"][0].offset for k in range(12)]
         jitter[s] = np.std(np.diff(offs[2:]))
     assert jitter[0.8] < 0.6 * jitter[0.0], jitter
@@ -165,6 +165,25 @@ def test_tracking_follows_a_turning_camera_without_redetecting():
         floor = plane_errors(planes, sc.true_planes())[0]
         assert floor is not None and floor[1] < 0.5 and floor[2] < 0.005, (k, floor)
     assert stage.stats()["tracks_lost"] <= 3, stage.stats()
+    assert stage.stats()["still_frames"] == 0  # a moving camera is fitted every frame
+
+
+def test_a_still_camera_keeps_its_planes_without_refitting(scene):
+    from illuminet.runtime.stages.planes import HOLD_AFTER_FITS
+
+    stage = PlaneStage(_cfg())
+    outs = [stage.process(scene.frame(k)).results["planes"] for k in range(24)]
+    st = stage.stats()
+    # fitted until the temporal filter has settled, then held (the same planes object, not refitted)
+    assert all(outs[k] is not outs[k - 1] for k in range(1, HOLD_AFTER_FITS)), st
+    assert st["still_frames"] >= 24 - HOLD_AFTER_FITS - 3, st
+    assert outs[-1] is outs[-2]
+    floor = plane_errors(outs[-1], scene.true_planes())[0]
+    assert floor is not None and floor[1] < 0.5 and floor[2] < 0.01
+    off = PlaneStage(_cfg(still_px=0.0))
+    for k in range(8):
+        off.process(scene.frame(k))
+    assert off.stats()["still_frames"] == 0 and off.stats()["tracked_updates"] + off.stats()["detections"] == 8
 
 
 def test_lost_track_triggers_redetection():

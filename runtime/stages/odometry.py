@@ -35,13 +35,9 @@ What this module owns
          new corners are detected away from the tracked ones.
 
     * **A still camera** (a tripod, a board on a desk) costs almost nothing: before tracking, the
-      frame's grey image at 1/8 of the colour size is compared with the last tracked one's. Per image
-      quadrant, one Lucas-Kanade step of a pure translation (``(sum g g^T)^-1 sum g dI``, g the
-      keyframe's gradient) says how far the picture moved; when every textured quadrant moved less
-      than ``still_px`` colour pixels (and the picture did not change beyond noise), the pose is held
-      and nothing else runs. The comparison is always with the last *tracked* frame, so a slow creep
-      adds up until it is tracked; at least every ``STILL_MAX_FRAMES`` frames is tracked anyway. A
-      uniform brightness change (auto exposure) is not counted as motion.
+      frame is compared with the last tracked one (:class:`~illuminet.runtime.stages.still.StillTest`,
+      on the tracking image downscaled 4x more); when it moved less than ``still_px`` colour pixels
+      the pose is held and nothing else runs.
     * Tracking state: ``"ok"``, or ``"lost"`` when the frame is unusable (no colour or depth, a
       (nearly) black or flat image, almost no valid depth) or too few inliers support a pose.
       While lost the last pose is held (the camera is assumed still) and the last good image and
@@ -65,22 +61,14 @@ import numpy as np
 
 from illuminet.runtime.frame import Frame
 from illuminet.runtime.stage import LogOnce
+from illuminet.runtime.stages.still import STILL_PX, THUMB, StillTest, coarse_sample, thumbnail
 
 log = logging.getLogger(__name__)
 
 #: Grey image is downscaled by this factor before tracking (640x400 -> 320x200).
 DOWNSCALE = 2
-#: the still-camera test works on the grey image downscaled this much more (640x400 -> 80x50)
-STILL_THUMB = 4
-#: default hold threshold: the largest quadrant translation (colour-image pixels) still counted as still
-STILL_PX = 0.3
-#: ... and the largest mean |change| of the thumbnail (grey levels) after its mean: beyond it the
-#: linearised shift says nothing (a big motion, a person walking in): track
-STILL_CHANGE = 2.0
-#: a quadrant counts when its gradient matrix's smaller eigenvalue per sample exceeds this (grey^2)
-STILL_TEXTURE = 1.0
-#: track at least every this many frames even while the picture stays still
-STILL_MAX_FRAMES = 30
+#: the still test's thumbnail from the tracking image: 1/8 of the colour size in all (still.THUMB)
+STILL_FACTOR = THUMB // DOWNSCALE
 #: Landmarks kept at most, and the count under which new corners are detected.
 MAX_FEATURES = 160
 MIN_FEATURES = 90
@@ -306,10 +294,7 @@ class Odometry:
 
     def __init__(self, seed: int = 0, still_px: float = STILL_PX):
         self._rng = np.random.default_rng(seed)
-        self.still_px = float(still_px)
-        self.still_frames = 0  # frames held as still
-        self._still_run = 0
-        self._key_thumb: tuple[np.ndarray, np.ndarray] | None = None  # (thumbnail, its gradients)
+        self.still = StillTest(still_px)
         self._warn = LogOnce(log, "odometry")
         self.T_cam_world = np.eye(4)
         self._grey: np.ndarray | None = None  # last good downscaled grey image
@@ -334,7 +319,7 @@ class Odometry:
         if not keep_pose:
             self.T_cam_world = np.eye(4)
         self._velocity = None
-        self._key_thumb = None
+        self.still.reset()
         self.state = "init"
 
     def update(
@@ -368,14 +353,12 @@ class Odometry:
             intr = intr.scaled(W, H)
         if self._grey is None or len(self._pts) < 3:
             self._start(grey, depth, intr)
-            self._key_thumb = self._thumb(grey)
+            self.still.reset()
             return self._result("ok", 0, 0, False)
-        thumb = None
-        if self.still_px > 0 and self.state == "ok" and self.last is not None:
-            thumb = self._thumb(grey)
-            if self._still_run < STILL_MAX_FRAMES and self._is_still(thumb[0], W):
-                self._still_run += 1
-                self.still_frames += 1
+        if self.still.enabled:
+            coarse = coarse_sample(grey, 16 // DOWNSCALE)
+            ok = self.state == "ok" and self.last is not None
+            if self.still.check(coarse, lambda: thumbnail(grey, STILL_FACTOR), W, allowed=ok):
                 self._velocity = None  # no motion to predict from
                 last = self.last
                 return self._result("ok", last.inliers, last.tracked, last.plane_constrained)
@@ -401,53 +384,16 @@ class Odometry:
         T[:3, :3], T[:3, 3] = R, t
         # velocity for the next frame's LK guess (only between consecutive good frames, not across a
         # hold: that motion took several frames)
-        held = self._still_run > 0
-        self._still_run = 0
+        held = self.still.run > 0
         self._velocity = T @ invert(self.T_cam_world) if self.state == "ok" and not held else None
         self.T_cam_world = T
         # 3. keep tracked landmarks (inliers refined, outliers dropped; untracked-but-good-2D kept)
         self._keep_landmarks(p1, X, good, np.nonzero(use)[0], inl, R, t)
         self._grey = grey
-        if self.still_px > 0:
-            self._key_thumb = thumb if thumb is not None else self._thumb(grey)
+        self.still.processed()
         if len(self._pts) < MIN_FEATURES:
             self._detect(grey, depth, intr)
         return self._result("ok", int(inl.sum()), n_track, constrained)
-
-    @staticmethod
-    def _thumb(grey: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The still test's thumbnail (float32) and its central-difference gradients (2, h, w)."""
-        h, w = grey.shape
-        t = cv2.resize(grey, (max(w // STILL_THUMB, 8), max(h // STILL_THUMB, 8)), interpolation=cv2.INTER_AREA)
-        t = t.astype(np.float32)
-        g = np.zeros((2,) + t.shape, np.float32)
-        g[0, :, 1:-1] = 0.5 * (t[:, 2:] - t[:, :-2])
-        g[1, 1:-1, :] = 0.5 * (t[2:, :] - t[:-2, :])
-        return t, g
-
-    def _is_still(self, thumb: np.ndarray, width: int) -> bool:
-        """Whether the picture moved less than ``still_px`` since the last tracked frame (module docstring)."""
-        if self._key_thumb is None or self._key_thumb[0].shape != thumb.shape:
-            return False
-        key, g = self._key_thumb
-        d = thumb - key
-        d -= d.mean()  # an exposure change is not a motion
-        if float(np.abs(d).mean()) > STILL_CHANGE:
-            return False
-        to_px = width / thumb.shape[1]  # thumbnail -> colour-image pixels
-        h, w = thumb.shape
-        textured = 0
-        for ys in (slice(0, h // 2), slice(h // 2, h)):
-            for xs in (slice(0, w // 2), slice(w // 2, w)):
-                gx, gy, dq = g[0, ys, xs].ravel(), g[1, ys, xs].ravel(), d[ys, xs].ravel()
-                a = np.array([[gx @ gx, gx @ gy], [gx @ gy, gy @ gy]], np.float64)
-                if np.linalg.eigvalsh(a)[0] < STILL_TEXTURE * gx.size:
-                    continue  # too little texture in this quadrant to tell
-                textured += 1
-                shift = np.linalg.solve(a, np.array([gx @ dq, gy @ dq], np.float64))
-                if float(np.hypot(*shift)) * to_px >= self.still_px:
-                    return False
-        return textured >= 2
 
     def _track(self, grey: np.ndarray, intr) -> tuple[np.ndarray, np.ndarray]:
         """Step 1: the landmarks' pixels in ``grey`` (downscaled, (N, 2)) and which were tracked well."""
@@ -552,7 +498,7 @@ class Odometry:
             "frames": self.frames,
             "lost_frames": self.lost_frames,
             "resets": self.resets,
-            "still_frames": self.still_frames,
+            "still_frames": self.still.still_frames,
             "inliers": last.inliers if last else 0,
             "landmarks": len(self._lm),
             "warnings": dict(self._warn.counts),

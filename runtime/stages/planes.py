@@ -42,6 +42,7 @@ from illuminet.runtime.stages.plane_fit import (
     make_cloud,
     refine,
 )
+from illuminet.runtime.stages.still import StillTest, coarse_sample, colour_thumbnail
 
 log = logging.getLogger(__name__)
 
@@ -251,11 +252,23 @@ class PlaneTracker:
 # The stage
 
 
+#: a still camera's planes are held only after each has been fitted this many times (with the default
+#: smoothing 0.8 the first fit then weighs 0.8^10 = 11 % in the filtered plane)
+HOLD_AFTER_FITS = 10
+
+
 class PlaneStage(Stage):
     """Detects and tracks planes; writes ``results["planes"]`` (tuple of :class:`Plane`, largest first).
 
     Bad depth (see :func:`check_depth`) is logged once per kind and counted in :meth:`stats`; the
     frame goes on with the previous frame's planes (an empty tuple before the first good frame).
+
+    A still camera (``[planes] still_px``, :class:`~illuminet.runtime.stages.still.StillTest`): once
+    every plane has been fitted :data:`HOLD_AFTER_FITS` times (the temporal filter has averaged the
+    depth noise down to its steady state), while the picture moved less than that since the planes
+    were last fitted, the frame gets those planes again without tracking; at least every 30th frame
+    is fitted, and any motion beyond the threshold is tracked at once. (Holding the first detection
+    instead cost the camera eval 0.001-0.002 MAE on its 8-frame static scenes.)
     """
 
     name = "planes"
@@ -273,10 +286,17 @@ class PlaneStage(Stage):
         self.bad_frames = 0
         self.up_source = ""
         self.cloud: Cloud | None = None  # the last frame's cloud (anchor and tests read it)
+        self.still = StillTest(float(p.still_px))
 
     def process(self, frame: Frame) -> Frame:
         self.frames += 1
         depth = frame.depth
+        color = frame.color
+        if self.still.enabled and depth is not None and color is not None and color.ndim == 3 and color.shape[2] == 3:
+            settled = self.tracker.tracks and min(t.age for t in self.tracker.tracks) >= HOLD_AFTER_FITS
+            thumb = lambda: colour_thumbnail(color)  # noqa: E731
+            if self.still.check(coarse_sample(color), thumb, color.shape[1], allowed=bool(settled and self._last)):
+                return frame.with_result(PLANES, self._last)  # nothing moved: the planes fitted last
         cloud = None
         if depth is None or depth.shape[0] < MIN_FRAME[1] or depth.shape[1] < MIN_FRAME[0]:
             problem = check_depth(depth)
@@ -293,6 +313,7 @@ class PlaneStage(Stage):
             kind, msg = problem
             self.bad_frames += 1
             self._warn(kind, f"frame {frame.seq}: {msg}; keeping the previous planes")
+            self.still.reset()  # the next good frame is fitted
             return frame.with_result(PLANES, self._last)
         self.cloud = cloud
         tracks = self.tracker.update(cloud)
@@ -318,6 +339,7 @@ class PlaneStage(Stage):
                 )
             )
         self._last = tuple(planes)
+        self.still.processed()
         return frame.with_result(PLANES, self._last)
 
     def stats(self) -> dict[str, Any]:
@@ -329,5 +351,6 @@ class PlaneStage(Stage):
             "tracked_updates": self.tracker.n_tracked,
             "tracks_lost": self.tracker.n_lost,
             "planes": len(self._last),
+            "still_frames": self.still.still_frames,
             "up_from": self.up_source,
         }
