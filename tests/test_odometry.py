@@ -332,15 +332,19 @@ def _shifted(frame, dx: float):
     return frame.replace(color=color, depth=depth)
 
 
-def test_a_still_camera_is_held_without_tracking(static):
+def test_a_still_camera_is_held_without_tracking():
+    from illuminet.runtime.stages.odometry import HOLD_AFTER_TRACKS
+
+    frames = _frames("synthetic://indoor?seed=0&frames=24&path=static")
     od = Odometry()
-    for f in static:
+    for f in frames:
         r = od.update(f)
         assert r.state == "ok"
-    # the first frame starts tracking, the second is tracked; the rest show the same picture
-    assert od.still.still_frames >= len(static) - 3
+    # tracked until the landmarks are averaged, then held: the picture does not move
+    assert od.still.still_frames >= len(frames) - HOLD_AFTER_TRACKS - 3
     assert np.linalg.norm(od.T_cam_world[:3, 3]) < 0.002
     assert od.stats()["still_frames"] == od.still.still_frames
+    static = frames
     # switched off, every frame is tracked
     off = Odometry(still_px=0.0)
     for f in static:

@@ -37,7 +37,8 @@ What this module owns
     * **A still camera** (a tripod, a board on a desk) costs almost nothing: before tracking, the
       frame is compared with the last tracked one (:class:`~illuminet.runtime.stages.still.StillTest`,
       on the tracking image downscaled 4x more); when it moved less than ``still_px`` colour pixels
-      the pose is held and nothing else runs.
+      the pose is held and nothing else runs (once :data:`HOLD_AFTER_TRACKS` frames have been tracked
+      since tracking started: the landmarks' positions have then been averaged).
     * Tracking state: ``"ok"``, or ``"lost"`` when the frame is unusable (no colour or depth, a
       (nearly) black or flat image, almost no valid depth) or too few inliers support a pose.
       While lost the last pose is held (the camera is assumed still) and the last good image and
@@ -69,6 +70,10 @@ log = logging.getLogger(__name__)
 DOWNSCALE = 2
 #: the still test's thumbnail from the tracking image: 1/8 of the colour size in all (still.THUMB)
 STILL_FACTOR = THUMB // DOWNSCALE
+#: a still camera's pose is held only after this many frames were tracked since tracking (re)started:
+#: the landmarks' world positions are running means of their observations, and holding the pose of
+#: the first tracked frame froze their first, noisiest estimate (a lamp test's direction moved 3 deg)
+HOLD_AFTER_TRACKS = 10
 #: Landmarks kept at most, and the count under which new corners are detected.
 MAX_FEATURES = 160
 MIN_FEATURES = 90
@@ -307,6 +312,7 @@ class Odometry:
         self.resets = 0
         self._bad_run = 0
         self._velocity: np.ndarray | None = None  # T_cam_world(k) @ inv(T_cam_world(k-1))
+        self._tracked = 0
         self.last: OdometryResult | None = None
 
     # -- public
@@ -357,7 +363,7 @@ class Odometry:
             return self._result("ok", 0, 0, False)
         if self.still.enabled:
             coarse = coarse_sample(grey, 16 // DOWNSCALE)
-            ok = self.state == "ok" and self.last is not None
+            ok = self.state == "ok" and self.last is not None and self._tracked >= HOLD_AFTER_TRACKS
             if self.still.check(coarse, lambda: thumbnail(grey, STILL_FACTOR), W, allowed=ok):
                 self._velocity = None  # no motion to predict from
                 last = self.last
@@ -385,6 +391,7 @@ class Odometry:
         # velocity for the next frame's LK guess (only between consecutive good frames, not across a
         # hold: that motion took several frames)
         held = self.still.run > 0
+        self._tracked += 1
         self._velocity = T @ invert(self.T_cam_world) if self.state == "ok" and not held else None
         self.T_cam_world = T
         # 3. keep tracked landmarks (inliers refined, outliers dropped; untracked-but-good-2D kept)
@@ -577,6 +584,7 @@ class Odometry:
         self._grey = grey
         self._bad_run = 0
         self._velocity = None
+        self._tracked = 0  # frames tracked since this start (the still hold waits for HOLD_AFTER_TRACKS)
         self._detect(grey, depth, intr)
 
     def _detect(self, grey: np.ndarray, depth: np.ndarray, intr) -> None:
