@@ -44,9 +44,9 @@ records a white Lambertian object at the frame's own exposure ``k``):
     there is a direction to get right; elsewhere the "dominant" direction is the small asymmetry of
     diffuse light). The primary light is the strongest light at the object's centre (scene occlusion
     included) together with every light within :data:`PRIMARY_CONE_DEG` of it (an HDR map's sun and
-    an area lamp are several point lights); its share is its direct irradiance, ``max(0, n . d)``
-    averaged over the evaluated vertices (without the object's self-shadowing), over their mean true
-    irradiance (luminance). The per-scene share is ``primary_share`` in each case.
+    an area lamp are several point lights); its share is the direct irradiance it gives the evaluated
+    vertices (the object's self-shadowing and the scene's occluders included) over their true
+    irradiance (luminance, summed). The per-scene share is ``primary_share`` in each case.
 ``chroma``
     degrees between the mean RGB of the predicted and of the true shading (the light's colour).
 ``flicker``
@@ -194,17 +194,23 @@ def sh_direction(coef: np.ndarray) -> np.ndarray | None:
     return None if n < 1e-12 else d / n
 
 
-def true_dominant(scene, T_cam_obj: np.ndarray, frame: int, centre: np.ndarray) -> np.ndarray | None:
-    """The true dominant-light direction (object frame): vector irradiance of the direct lights at
-    the object's centre, luminance-weighted, with the scene's occlusion."""
+def _lights_at(scene, T_cam_obj: np.ndarray, frame: int, centre: np.ndarray):
+    """The scene's lights in the object frame, the unit directions (N, 3) from ``centre`` to them and
+    the irradiance (N,) each gives there at normal incidence (luminance, scene occlusion included)."""
     lights = scene.object_lights(T_cam_obj, frame)
-    T_wo = scene.poses[frame % len(scene.poses)] @ T_cam_obj
+    T_wo = scene.poses[frame % len(scene.poses)] @ np.asarray(T_cam_obj, float)
     cw = T_wo[:3, :3] @ centre + T_wo[:3, 3]
     vis = scene.occlusion(cw[None])[0]
     d = lights.positions - centre
     r2 = np.maximum((d * d).sum(1), 1e-12)
-    v = ((lights.intensities @ LUMA) * vis / r2)[:, None] * d / np.sqrt(r2)[:, None]
-    s = v.sum(0)
+    return lights, d / np.sqrt(r2)[:, None], (lights.intensities @ LUMA) * vis / r2
+
+
+def true_dominant(scene, T_cam_obj: np.ndarray, frame: int, centre: np.ndarray) -> np.ndarray | None:
+    """The true dominant-light direction (object frame): vector irradiance of the direct lights at
+    the object's centre, luminance-weighted, with the scene's occlusion."""
+    _, u, e = _lights_at(scene, T_cam_obj, frame, centre)
+    s = (e[:, None] * u).sum(0)
     n = np.linalg.norm(s)
     return None if n < 1e-12 else s / n
 
@@ -217,23 +223,17 @@ def primary_share(scene, mesh, T_cam_obj: np.ndarray, frame: int, centre: np.nda
     from illuminet.runtime.groundtruth import lighting as GL
     from illuminet.runtime.groundtruth.visibility import exact_visibility
 
-    lights = scene.object_lights(T_cam_obj, frame)
+    lights, u, e = _lights_at(scene, T_cam_obj, frame, centre)
     total = float((np.asarray(true_e) @ LUMA).sum())
     if len(lights.positions) == 0 or total <= 0:
         return None
-    T_wo = scene.poses[frame % len(scene.poses)] @ np.asarray(T_cam_obj, float)
-    cw = T_wo[:3, :3] @ centre + T_wo[:3, 3]
-    vis = scene.occlusion(cw[None])[0]
-    d = lights.positions - centre
-    r2 = np.maximum((d * d).sum(1), 1e-12)
-    u = d / np.sqrt(r2)[:, None]
-    e = (lights.intensities @ LUMA) * vis / r2  # each light's irradiance at normal incidence
     k = int(np.argmax(e))
     if e[k] <= 0:
         return 0.0
     group = np.flatnonzero((u @ u[k]) >= np.cos(np.radians(PRIMARY_CONE_DEG)))
     sub = GL.PointLights(lights.positions[group], lights.intensities[group])
     world = GL.PointLights(scene.lights.positions[group], scene.lights.intensities[group])
+    T_wo = scene.poses[frame % len(scene.poses)] @ np.asarray(T_cam_obj, float)
     pts, nrm = np.asarray(points, float), np.asarray(normals, float)
     pw = pts @ T_wo[:3, :3].T + T_wo[:3, 3]
     v = exact_visibility(mesh, pts, sub.positions, normals=nrm).astype(float) * scene.occlusion(pw, world)

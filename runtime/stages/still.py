@@ -68,7 +68,8 @@ def coarse_sample(image: np.ndarray, step: int = 16) -> np.ndarray:
 
 
 def coarse_change(a: np.ndarray | None, b: np.ndarray) -> float:
-    """Mean |change| (grey levels, after its mean) between two :func:`coarse_sample` (inf without ``a``)."""
+    """Mean |change| (grey levels, after its mean) between two samples of one size: two
+    :func:`coarse_sample` or two thumbnails (inf without ``a``)."""
     if a is None or a.shape != b.shape:
         return float("inf")
     d = b - a
@@ -145,10 +146,10 @@ class StillTest:
         if self._key is None or self._key[0].shape != thumb.shape:
             return False
         key, g = self._key
-        d = thumb - key
-        d -= d.mean()  # a uniform brightness change is not a motion
-        if float(np.abs(d).mean()) > MAX_CHANGE:
+        if coarse_change(key, thumb) > MAX_CHANGE:  # (after its mean: a brightness change is not a motion)
             return False
+        d = thumb - key
+        d -= d.mean()
         to_px = width / thumb.shape[1]  # thumbnail -> colour-image pixels
         h, w = thumb.shape
         textured = 0
