@@ -104,3 +104,13 @@ def test_demo_rejects_bad_arguments(tmp_path, capsys):
     rc = main(["demo", "--frames", "1", "--source", "nope://x", "--no-video", "--still", ""])
     assert rc == 1
     assert "nope" in capsys.readouterr().err
+
+
+def test_demo_missing_session_is_one_line(tmp_path, capsys):
+    """A replay of a folder that is not a session fails with one line naming it, not a report of 0 frames."""
+    missing = tmp_path / "no_such_session"
+    rc = main(["demo", "--source", f"replay://{missing}", "--no-video", "--still", ""])
+    assert rc == 1
+    cap = capsys.readouterr()
+    assert f"{missing}: not a session folder" in cap.err
+    assert "0 frames" not in cap.out and "step " not in cap.out

@@ -433,7 +433,8 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
         rc = 1
     finally:
         status.close()
-        _print_report(stats, stages, probe, cfg, rc)
+        if rc == 0 or stats.frames:  # a source that failed to open leaves its one line, not a report of nothing
+            _print_report(stats, stages, probe, cfg, rc)
     if stats.end_reason.startswith("source error"):
         rc = 1
     return rc
