@@ -226,6 +226,12 @@ SCHEMA: dict[str, dict[str, Field]] = {
             max=3600,
         ),
         "search_every": _f(int, 10, "frames between full near-light searches (local refinement in between)", min=1),
+        "near_gradient": _f(
+            bool,
+            True,
+            "find a lamp from the differences between the anchor grid's neighbouring cells, robust to the floor's "
+            "texture (false: from the cells' values)",
+        ),
         "smoothness": _f(
             float, 0.02, "Laplacian penalty on the ambient SH bands (keeps unseen directions smooth)", min=0, max=1e6
         ),

@@ -100,6 +100,9 @@ class PlaneLight:
     exposure_source : str
         ``"metadata"`` (absolute, from :class:`~illuminet.runtime.frame.Exposure`) or ``"plane"``
         (relative, from the plane's own statistics).
+    irradiance_raw : (P, 3) or None
+        ``irradiance`` before the grid's smoothing (``[plane_light] smoothing_cells``): each cell's own
+        fused value, texture edges and all.
     """
 
     vertices: np.ndarray
@@ -113,6 +116,7 @@ class PlaneLight:
     labels: tuple[str, ...] = ()
     observed: np.ndarray | None = None
     exposure_source: str = "metadata"
+    irradiance_raw: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

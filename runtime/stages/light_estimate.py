@@ -113,6 +113,16 @@ LOCAL_R2_MIN = 0.5
 LOCAL_VARIATION = 0.1
 #: plane samples the near-light fit uses per frame (a random subset, fixed per frame number)
 NEAR_ROWS = 300
+#: the near-light search on the anchor grid's neighbour differences (:func:`fit_near_light_gradient`):
+#: residuals beyond this many robust sigmas (MAD) weigh less (Huber): the edges of the floor's texture
+GRAD_HUBER = 1.5
+#: neighbour pairs the coarse search scores per frame (a random subset; the refinement uses all)
+GRAD_PAIRS = 600
+#: fewer observed neighbour pairs than this on the grid: the value-domain search (:func:`fit_near_light`)
+MIN_GRAD_PAIRS = 60
+#: a lamp found in the gradient domain must explain at least this robust share of the grid's
+#: differences (lamp scenes 0.39-0.60, rooms without a lamp near the object 0.02-0.04: eval suites)
+GRAD_MIN_SHARE = 0.2
 
 
 def _subsample(n: int, k: int, seed: int) -> np.ndarray:
@@ -373,6 +383,77 @@ def fit_near_light(
     return NearFit(position=p, r2=r2, slope=slope, intercepts=inter)
 
 
+def grid_pairs(mask: np.ndarray, grid: int) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (a, b) of the 4-neighbour cell pairs of a ``grid x grid`` row-major grid both observed."""
+    idx = np.arange(grid * grid).reshape(grid, grid)
+    a = np.concatenate([idx[:, :-1].ravel(), idx[:-1, :].ravel()])
+    b = np.concatenate([idx[:, 1:].ravel(), idx[1:, :].ravel()])
+    ok = mask[a] & mask[b]
+    return a[ok], b[ok]
+
+
+def _gradient_shares(
+    cands: np.ndarray, x: np.ndarray, n: np.ndarray, dl: np.ndarray, pa: np.ndarray, pb: np.ndarray, iters: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Robust share (C,) of the neighbour differences ``dl`` (luminance at ``pb`` minus at ``pa``) that
+    point lights at ``cands`` (C, 3) explain, each with its own slope (C,); 0 for a negative slope.
+    ``iters`` Huber reweightings (:data:`GRAD_HUBER` robust sigmas)."""
+    g = _near_basis(cands, x, n)
+    dg = g[:, pb] - g[:, pa]
+    w = np.ones_like(dg)
+    for it in range(iters + 1):
+        wdg = w * dg
+        s = (wdg @ dl) / np.maximum((wdg * dg).sum(1), 1e-12)
+        r = dl[None, :] - s[:, None] * dg
+        if it < iters:
+            k = GRAD_HUBER * 1.4826 * np.median(np.abs(r), axis=1, keepdims=True)
+            w = np.minimum(1.0, k / np.maximum(np.abs(r), 1e-12))
+    share = 1.0 - (w * r * r).sum(1) / np.maximum((w * dl[None, :] ** 2).sum(1), 1e-12)
+    return np.where(s > 0, np.maximum(share, 0.0), 0.0), s
+
+
+def fit_near_light_gradient(
+    x: np.ndarray, n: np.ndarray, e: np.ndarray, pa: np.ndarray, pb: np.ndarray, seeds: np.ndarray, seed: int = 0
+) -> NearFit | None:
+    """Point light explaining the anchor grid's *differences* between neighbouring cells.
+
+    The floor's albedo texture multiplies the light: fitted through the cells' values, a lamp's
+    falloff comes out too flat and the lamp too high (eval lamp suite: 0.2 m at the median, up to
+    0.8 m; docs/eval.md). In differences the ambient (a constant) drops out, the texture's edges (planks,
+    tiles, a rug's border) are a few large differences, which the Huber weights set aside, and the
+    lamp's smooth falloff is what remains (Retinex's split of edges and shading, with the falloff's
+    shape as the shading). ``x, n`` (P, 3) are the grid's cells, ``e`` (P, 3) their RGB irradiance,
+    ``pa, pb`` the observed neighbour pairs (:func:`grid_pairs`). The coarse search scores ``seeds`` on
+    :data:`GRAD_PAIRS` pairs with one reweighting; the best two are refined locally (3x3x3 steps,
+    halved twice) on every pair with two. ``r2`` is the robust share explained.
+    """
+    if len(pa) < MIN_GRAD_PAIRS or len(seeds) == 0:
+        return None
+    x32, n32 = x.astype(np.float32), n.astype(np.float32)
+    lum = (e @ LUMA).astype(np.float32)
+    dl = lum[pb] - lum[pa]
+    if float(np.abs(dl).max()) <= 1e-12:
+        return None
+    sub = _subsample(len(pa), GRAD_PAIRS, seed)
+    r2, _ = _gradient_shares(seeds.astype(np.float32), x32, n32, dl[sub], pa[sub], pb[sub], 1)
+    best = seeds[np.argsort(r2)[-2:]]
+    step = np.array([0.1, 0.1, 0.1])
+    offs = np.stack(np.meshgrid(*([np.array([-1.0, 0.0, 1.0])] * 3), indexing="ij"), -1).reshape(-1, 3)
+    for _ in range(2):
+        cands = (best[:, None, :] + (offs * step)[None]).reshape(-1, 3)
+        cands[:, 1] = np.maximum(cands[:, 1], 0.05)
+        r2, _ = _gradient_shares(cands.astype(np.float32), x32, n32, dl, pa, pb, 2)
+        best = cands[np.argsort(r2)[-1:]]
+        step = step / 2
+    p = best[-1].astype(np.float64)
+    r2, _ = _gradient_shares(best[-1:].astype(np.float32), x32, n32, dl, pa, pb, 2)
+    # the slope and the ambient (the intercept) per colour channel, from the cells' values at p
+    g = _near_basis(p[None], x.astype(np.float64), n.astype(np.float64))[0]
+    X = np.c_[g, np.ones(len(g))]
+    coef, *_ = np.linalg.lstsq(X, e.astype(np.float64), rcond=None)
+    return NearFit(position=p, r2=float(r2[0]), slope=coef[0], intercepts=coef[1:2])
+
+
 #: directions where the ambient radiance must not be negative (the lat-long bin centres)
 _NONNEG_Y = sh9(BIN_DIRS)
 #: passes of the non-negativity active set (each adds the directions still negative)
@@ -448,6 +529,7 @@ class LightEstimateStage(Stage):
         self.use_emitters, self.use_shadows = bool(c.emitters), bool(c.shadows)
         self.tau = float(c.time_constant_s)
         self.search_every = max(1, int(c.search_every))
+        self.near_gradient = bool(c.near_gradient)
         self.lam = float(c.smoothness)
         self.albedo = float(cfg.plane_light.assumed_albedo)
         if not 0 < self.albedo <= 1:
@@ -548,17 +630,28 @@ class LightEstimateStage(Stage):
             self._first_search = False
             if self._near is not None:
                 seeds = np.concatenate([seeds, self._near.position[None]])
-            sub = _subsample(len(xs), NEAR_ROWS, self.frames)
-            near = fit_near_light(xs[sub], ns[sub], es[sub], ws[sub], gs[sub], seeds)
-            if self._near is not None and near is not None and near.r2 < self._near.r2 - 0.2:
-                near = fit_near_light(xs[sub], ns[sub], es[sub], ws[sub], gs[sub], self._near.position[None])
-            self._near = near if (near is not None and near.r2 >= 0.3) else None
-        if (
-            near is not None
-            and self._plausible(near, es, gs)
-            and explained_share(near.position, xs[~beyond], ns[~beyond], es[~beyond], ws[~beyond], gs[~beyond])
-            >= LOCAL_R2_MIN
-        ):
+            grid = self._grid_cells(pl) if self.near_gradient else None
+            if grid is not None:
+                near = fit_near_light_gradient(*grid, seeds, self.frames)
+                if self._near is not None and near is not None and near.r2 < self._near.r2 - 0.2:
+                    near = fit_near_light_gradient(*grid, self._near.position[None], self.frames)
+                min_r2 = GRAD_MIN_SHARE
+            else:
+                sub = _subsample(len(xs), NEAR_ROWS, self.frames)
+                near = fit_near_light(xs[sub], ns[sub], es[sub], ws[sub], gs[sub], seeds)
+                if self._near is not None and near is not None and near.r2 < self._near.r2 - 0.2:
+                    near = fit_near_light(xs[sub], ns[sub], es[sub], ws[sub], gs[sub], self._near.position[None])
+                min_r2 = 0.5
+            self._near = near if (near is not None and near.r2 >= min(0.3, min_r2)) else None
+        # how much of the planes' spatial variation near the object the lamp explains (its values, the far
+        # floor left out): the acceptance test, and the confidence in its position
+        local_share = 0.0
+        if near is not None and self._plausible(near, es, gs, min_r2):
+            near_obj = ~beyond
+            local_share = explained_share(
+                near.position, xs[near_obj], ns[near_obj], es[near_obj], ws[near_obj], gs[near_obj]
+            )
+        if local_share >= LOCAL_R2_MIN:
             primary_pos = near.position
             v = near.position - CENTRE
             primary_dir = v / np.linalg.norm(v)
@@ -598,7 +691,7 @@ class LightEstimateStage(Stage):
                 conf_dir = 0.5 * directional
         else:
             conf_dir = {
-                "near_light": min(1.0, near.r2) if near else 0.0,
+                "near_light": min(1.0, local_share),
                 "shadow": shadow[1] if shadow else 0.0,
                 "emitter": 0.6,
             }.get(cues[0], 0.5)
@@ -625,7 +718,7 @@ class LightEstimateStage(Stage):
                 "direction": float(conf_dir),
                 "intensity": float(0.7 * conf_dir),
                 "colour": float(np.clip(0.4 + 0.6 * self.env.coverage() * 2, 0, 1)),
-                "position": float(near.r2) if (near is not None and primary_pos is not None) else 0.0,
+                "position": float(local_share) if primary_pos is not None else 0.0,
             },
             observed=obs,
             exposure_scale=scale,
@@ -641,14 +734,15 @@ class LightEstimateStage(Stage):
     # ------------------------------------------------------------------ pieces
 
     @staticmethod
-    def _plausible(near: NearFit, es: np.ndarray, gs: np.ndarray) -> bool:
-        """A lamp, not texture or vignetting: most of the variation explained, a falloff worth
-        measuring (>= 8 % of the mean), the lamp above the object's horizon and within 3 m."""
+    def _plausible(near: NearFit, es: np.ndarray, gs: np.ndarray, min_r2: float = 0.5) -> bool:
+        """A lamp, not texture or vignetting: most of the variation explained (``min_r2``: 0.5 of the
+        values, :data:`GRAD_MIN_SHARE` of the differences), a falloff worth measuring (>= 8 % of the
+        mean), the lamp above the object's horizon and within 3 m."""
         v = near.position - CENTRE
         r = float(np.linalg.norm(v))
         lum = es @ LUMA
         spread = float(np.std(lum) / max(float(np.mean(lum)), 1e-12))
-        return near.r2 >= 0.5 and spread >= 0.08 and r < 3.0 and v[1] / max(r, 1e-12) > 0.17
+        return near.r2 >= min_r2 and spread >= 0.08 and r < 3.0 and v[1] / max(r, 1e-12) > 0.17
 
     def _moved(self, anchor: Anchor) -> bool:
         """The anchor jumped (re-placed) since the last estimate: do not reuse it."""
@@ -784,6 +878,29 @@ class LightEstimateStage(Stage):
             labels,
             np.concatenate(bs),
         )
+
+    @staticmethod
+    def _grid_cells(pl: PlaneLight) -> tuple | None:
+        """The anchor grid's observed cells and their neighbour pairs for :func:`fit_near_light_gradient`:
+        positions, normals, RGB irradiance (P, 3; before the grid's smoothing, which would blur the
+        texture's edges into gradients) each and the pairs (a, b) into them; None when the grid has
+        fewer than :data:`MIN_GRAD_PAIRS` pairs."""
+        sl = pl.plane_slices[0] if pl.plane_slices else slice(0, len(pl.irradiance))
+        G = int(pl.grid)
+        m = np.asarray(pl.mask[sl], bool)
+        if G < 2 or len(m) != G * G:
+            return None
+        a, b = grid_pairs(m, G)
+        if len(a) < MIN_GRAD_PAIRS:
+            return None
+        keep = np.flatnonzero(m)
+        remap = np.full(G * G, -1)
+        remap[keep] = np.arange(len(keep))
+        x = np.asarray(pl.vertices[sl], np.float64)[keep]
+        n = np.asarray(pl.normals[sl], np.float64)[keep]
+        src = pl.irradiance_raw if pl.irradiance_raw is not None else pl.irradiance
+        e = np.asarray(src[sl], np.float64)[keep]
+        return x, n, e, remap[a], remap[b]
 
     @staticmethod
     def _distant_weight(xs: np.ndarray, es: np.ndarray, ws: np.ndarray, gs: np.ndarray) -> np.ndarray:

@@ -13,8 +13,10 @@ What this module owns
       means occluded, e.g. a person; farther means the plane is not there), and is not saturated.
       A cell is observed when at least half its samples count; its value is the mean of their
       linear colour (area averaging suppresses albedo texture and noise). Texture coarser than a
-      cell is further reduced by a masked Gaussian over the grid (:func:`smooth_cells`,
-      ``[plane_light] smoothing_cells``).
+      cell is further reduced by a masked Gaussian over the fused grid (:func:`smooth_cells`,
+      ``[plane_light] smoothing_cells``); ``PlaneLight.irradiance_raw`` keeps the cells' own values
+      (the near-light fit of the light estimate works on their differences: the texture's edges stay
+      sharp there, and a robust fit sets them aside).
     * Units: linear (``physics.linearize`` with the camera's response LUT when given), divided by
       the exposure scale (from ``Frame.exposure`` when known; otherwise estimated from the plane
       itself, see :class:`PlaneLightStage`), converted to irradiance ``E = pi * radiance / albedo``
@@ -361,21 +363,22 @@ class PlaneLightStage(Stage):
                 self._T_ref_world = T_world
                 self._T_ref = anchor.T_cam_obj.copy()
             lin, observed, coverage = measure_cells(frame, anchor.T_cam_obj, self.grid, self.extent, self.thr, self.lut)
-            lin = smooth_cells(lin, observed, self.grid, self.sigma)
         self.observed_cells = int(observed.sum())
         scale, source = self._exposure(frame, lin, observed)
         E = (np.pi / self.albedo) * lin / np.float32(scale)
         self.fusion.update(E.astype(np.float32), observed, coverage)
         has = self.fusion.has_value
+        raw = np.where(has[:, None], self.fusion.est, 0.0).astype(np.float32)
         parts = [
             (
                 self.vertices,
                 self.normals,
-                np.where(has[:, None], self.fusion.est, 0.0),
+                smooth_cells(raw, has, self.grid, self.sigma),
                 has.copy(),
                 np.where(has, self.fusion.conf, 0.0),
                 observed,
                 label,
+                raw,
             )
         ]
         if self.n_extra and not anchor.synthetic:
@@ -394,6 +397,7 @@ class PlaneLightStage(Stage):
             labels=tuple(p[6] for p in parts),
             observed=np.concatenate([p[5] for p in parts]),
             exposure_source=source,
+            irradiance_raw=np.concatenate([p[7] for p in parts]).astype(np.float32),
         )
         return frame.with_result(PLANE_LIGHT, self._last)
 
@@ -425,11 +429,11 @@ class PlaneLightStage(Stage):
                 fusion.reset()
                 T_ref = T
             lin, obs, cov = measure_cells(frame, T, self.grid, self.extent, self.thr, self.lut)
-            lin = smooth_cells(lin, obs, self.grid, self.sigma)
             fusion.update(((np.pi / self.albedo) * lin / np.float32(scale)).astype(np.float32), obs, cov)
             self._extra_state[p.id] = (fusion, T_ref)
             keep.add(p.id)
             has = fusion.has_value
+            raw = np.where(has[:, None], fusion.est, 0.0).astype(np.float32)
             v_cam = self.vertices @ T[:3, :3].T + T[:3, 3]
             v_obj = (v_cam - t_a) @ R_a
             n_obj = np.tile(R_a.T @ n, (P, 1))
@@ -437,11 +441,12 @@ class PlaneLightStage(Stage):
                 (
                     v_obj,
                     n_obj,
-                    np.where(has[:, None], fusion.est, 0.0),
+                    smooth_cells(raw, has, self.grid, self.sigma),
                     has.copy(),
                     np.where(has, fusion.conf, 0.0),
                     obs,
                     p.label,
+                    raw,
                 )
             )
         for pid in list(self._extra_state):
