@@ -541,6 +541,7 @@ class LightEstimateStage(Stage):
         self.last_shadow = None
         self._warn = LogOnce(log, "light")
         self._near: NearFit | None = None
+        self._near_grad = False  # whether _near came from the grid's differences (its r2 is theirs)
         self._shadow_prior: np.ndarray | None = None
         self._state: dict[str, Any] | None = None
         self._t_prev: int | None = None
@@ -630,19 +631,29 @@ class LightEstimateStage(Stage):
             self._first_search = False
             if self._near is not None:
                 seeds = np.concatenate([seeds, self._near.position[None]])
+            # a lamp near the object first, from the grid's differences (robust to the floor's texture);
+            # when none explains them, a light farther away (a room's ceiling light 1.5-2 m off, whose
+            # falloff the 1 m grid barely shows) from the values of the grid, the floor out to 1.5 m and
+            # the walls
             grid = self._grid_cells(pl) if self.near_gradient else None
+            last_grad = self._near if self._near_grad else None
+            last_vals = None if self._near_grad else self._near
+            grad = False
             if grid is not None:
                 near = fit_near_light_gradient(*grid, seeds, self.frames)
-                if self._near is not None and near is not None and near.r2 < self._near.r2 - 0.2:
-                    near = fit_near_light_gradient(*grid, self._near.position[None], self.frames)
-                min_r2 = GRAD_MIN_SHARE
-            else:
+                if last_grad is not None and near is not None and near.r2 < last_grad.r2 - 0.2:
+                    near = fit_near_light_gradient(*grid, last_grad.position[None], self.frames)
+                grad = near is not None and near.r2 >= GRAD_MIN_SHARE
+                if not grad:
+                    near = None
+            if near is None:
                 sub = _subsample(len(xs), NEAR_ROWS, self.frames)
                 near = fit_near_light(xs[sub], ns[sub], es[sub], ws[sub], gs[sub], seeds)
-                if self._near is not None and near is not None and near.r2 < self._near.r2 - 0.2:
-                    near = fit_near_light(xs[sub], ns[sub], es[sub], ws[sub], gs[sub], self._near.position[None])
-                min_r2 = 0.5
+                if last_vals is not None and near is not None and near.r2 < last_vals.r2 - 0.2:
+                    near = fit_near_light(xs[sub], ns[sub], es[sub], ws[sub], gs[sub], last_vals.position[None])
+            min_r2 = GRAD_MIN_SHARE if grad else 0.5
             self._near = near if (near is not None and near.r2 >= min(0.3, min_r2)) else None
+            self._near_grad = grad
         # how much of the planes' spatial variation near the object the lamp explains (its values, the far
         # floor left out): the acceptance test, and the confidence in its position
         local_share = 0.0
