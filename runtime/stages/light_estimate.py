@@ -22,10 +22,13 @@ Observations (each switchable in ``[light]`` for the ablation in ``illuminet eva
   the scene's illuminant colour (grey world over all surfaces) so that a beige floor does not make a
   beige light.
 * **near light** -- a lamp near the object makes the irradiance on the planes fall off as
-  ``cos / r^2``: a grid search over light positions, scored by how much of the planes' spatial
-  variation ``max(0, n.(p-x)) / |p-x|^3`` explains (with a per-plane intercept for the ambient part,
-  so albedo and distant light do not matter), refined locally every frame. This gives direction,
-  distance and (from the fit's slope against the intercepts) the primary/ambient split and colour.
+  ``cos / r^2``: a grid search over light positions, refined locally every frame, scored by how much
+  of the anchor grid's differences between neighbouring cells ``max(0, n.(p-x)) / |p-x|^3`` explains
+  with Huber weights (:func:`fit_near_light_gradient`: the ambient drops out of differences, and the
+  floor texture's edges are outliers); when no lamp explains them, by how much of the planes' spatial
+  variation in values it explains (:func:`fit_near_light`, a per-plane intercept for the ambient part:
+  a room's ceiling lights 1.5-2 m off). This gives direction, distance and the primary/ambient split
+  and colour (the solve below).
 * **emitters** -- bins far brighter than the rest of the map (a lamp shade, a window, the sky's sun
   region) give a direction.
 * **shadows** -- real cast shadows scored against the caster geometry from depth
