@@ -424,7 +424,14 @@ def _gradient_shares(
 
 
 def fit_near_light_gradient(
-    x: np.ndarray, n: np.ndarray, e: np.ndarray, pa: np.ndarray, pb: np.ndarray, seeds: np.ndarray, seed: int = 0
+    x: np.ndarray,
+    n: np.ndarray,
+    e: np.ndarray,
+    pa: np.ndarray,
+    pb: np.ndarray,
+    seeds: np.ndarray,
+    seed: int = 0,
+    keep: NearFit | None = None,
 ) -> NearFit | None:
     """Point light explaining the anchor grid's *differences* between neighbouring cells.
 
@@ -438,6 +445,10 @@ def fit_near_light_gradient(
     :data:`GRAD_PAIRS` pairs with one reweighting; the best is refined locally (3x3x3 steps, halved
     twice) on twice as many pairs with two. ``r2`` is the robust share explained, over every pair.
     (About 4 ms an estimate on this machine; the whole grid of seeds, after a placement, ~22 ms.)
+
+    ``keep``: the lamp found before; it is returned (with its share now) unless the new place explains
+    at least :data:`GRAD_KEEP` more. Each estimate's search moves a lamp by a step or two, which turned
+    the shadow by a degree and redrew its map (~9 ms on llvmpipe) 6x as often.
     """
     if len(pa) < MIN_GRAD_PAIRS or len(seeds) == 0:
         return None
@@ -449,7 +460,7 @@ def fit_near_light_gradient(
     sub = _subsample(len(pa), GRAD_PAIRS, seed)
     r2, _ = _gradient_shares(seeds.astype(np.float32), x32, n32, dl[sub], pa[sub], pb[sub], 1)
     best = seeds[np.argsort(r2)[-1:]]
-    if float(r2.max()) < 0.5 * GRAD_MIN_SHARE:
+    if keep is None and float(r2.max()) < 0.5 * GRAD_MIN_SHARE:
         # nothing near a lamp among these seeds (a room lit from afar): not worth refining (~3 ms)
         return NearFit(
             position=best[-1].astype(np.float64), r2=float(r2.max()), slope=np.zeros(3), intercepts=np.zeros((1, 3))
@@ -465,6 +476,10 @@ def fit_near_light_gradient(
         step = step / 2
     p = best[-1].astype(np.float64)
     r2, _ = _gradient_shares(best[-1:].astype(np.float32), x32, n32, dl, pa, pb, 2)
+    if keep is not None:
+        kept = float(_gradient_shares(keep.position[None].astype(np.float32), x32, n32, dl, pa, pb, 2)[0][0])
+        if float(r2[0]) < kept + GRAD_KEEP:
+            return dataclasses.replace(keep, r2=kept)
     # the slope and the ambient (the intercept) per colour channel, from the cells' values at p
     g = _near_basis(p[None], x.astype(np.float64), n.astype(np.float64))[0]
     X = np.c_[g, np.ones(len(g))]
@@ -658,21 +673,9 @@ class LightEstimateStage(Stage):
             last_vals = None if self._near_grad else self._near
             grad = False
             if grid is not None:
-                near = fit_near_light_gradient(*grid, seeds, self.frames)
+                near = fit_near_light_gradient(*grid, seeds, self.frames, keep=last_grad)
                 if last_grad is not None and near is not None and near.r2 < last_grad.r2 - 0.2:
-                    near = fit_near_light_gradient(*grid, last_grad.position[None], self.frames)
-                if last_grad is not None and near is not None:
-                    # the lamp stays where it was unless the new place explains clearly more: each
-                    # estimate's search moves it by a step or two, which turned the shadow a degree
-                    # and redrew it (~9 ms) 6x as often
-                    x, n, e, pa, pb = grid
-                    dl = ((e[pb] - e[pa]) @ LUMA).astype(np.float32)
-                    p_last = last_grad.position[None].astype(np.float32)
-                    kept = float(
-                        _gradient_shares(p_last, x.astype(np.float32), n.astype(np.float32), dl, pa, pb, 2)[0][0]
-                    )
-                    if near.r2 < kept + GRAD_KEEP:
-                        near = dataclasses.replace(last_grad, r2=kept)
+                    near = fit_near_light_gradient(*grid, last_grad.position[None], self.frames, keep=last_grad)
                 grad = near is not None and near.r2 >= GRAD_MIN_SHARE
                 if not grad:
                     near = None

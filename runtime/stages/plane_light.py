@@ -397,7 +397,7 @@ class PlaneLightStage(Stage):
             labels=tuple(p[6] for p in parts),
             observed=np.concatenate([p[5] for p in parts]),
             exposure_source=source,
-            irradiance_raw=np.concatenate([p[7] for p in parts]).astype(np.float32),
+            irradiance_raw=np.concatenate([p[7] for p in parts]),
         )
         return frame.with_result(PLANE_LIGHT, self._last)
 
