@@ -19,7 +19,12 @@ Per lighting-proxy vertex (the layout and the run-time side are in :mod:`illumin
   transfer vector (interpolated: proxy -> render vertices by the bundle's carry weights, then
   barycentric in the hit triangle) applied to the same lighting. Back-face hits (open meshes) add
   nothing. :func:`interreflection` iterates the same operator to convergence, which is how the
-  bundle command measures what the single bounce leaves out.
+  bundle command measures what the single bounce leaves out;
+* the primary light's interreflection as a (V, V) matrix, ``bounce_matrix``
+  (:func:`primary_bounce_matrix`): the same operator applied to each vertex's unit direct light,
+  every bounce summed. At run time it bounces the primary light's own direct light (its cosine,
+  falloff and visibility), so a lamp shining into a cavity lights its inside and one beside it does
+  not, which the primary's SH2 lobe cannot tell apart.
 
 Rays are cast with Embree through :func:`illuminet.runtime.groundtruth.visibility.first_hits`,
 starting ``eps`` off the surface along the normal; only directions in front of the vertex are cast.
@@ -45,6 +50,9 @@ DEFAULT_TRANSFER_RAYS = 4096
 DEFAULT_TABLE_DIRECTIONS = 1024
 #: interreflection bounces summed into ``bounce`` (albedo 0.8: the vase's 8th adds < 0.1 % of its light)
 DEFAULT_BOUNCES = 8
+#: proxies with more vertices than this get no ``bounce_matrix`` (V x V: 2000 -> 8 MB in the file, 16 MB
+#: loaded, ~1 ms a frame); their primary light bounces through ``bounce_primary`` as before
+MAX_BOUNCE_MATRIX = 2000
 
 
 @dataclass
@@ -63,6 +71,8 @@ class PrtResult:
     bounce_operator: Callable[[np.ndarray], np.ndarray] | None = None
     bounces: int = 1
     bounce_primary: np.ndarray | None = None  # (V, 9) float32: the single bounce, for the primary light
+    #: (V, V) float32: every bounce onto point i of a unit direct irradiance at point j (the primary's)
+    bounce_matrix: np.ndarray | None = None
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The arrays of ``prt.npz`` (:data:`illuminet.runtime.prt.PRT_KEYS`, + ``bounce``)."""
@@ -75,6 +85,8 @@ class PrtResult:
             out["bounce"] = self.bounce.astype(np.float32)
         if self.bounce_primary is not None:
             out["bounce_primary"] = self.bounce_primary.astype(np.float32)
+        if self.bounce_matrix is not None:
+            out["bounce_matrix"] = self.bounce_matrix.astype(np.float16)
         return out
 
     def tables(self) -> PrtTables:
@@ -102,6 +114,7 @@ def compute_prt(
     progress: Callable[[str, int, int], None] | None = None,
     floor_shadow: bool = True,
     bounces: int = DEFAULT_BOUNCES,
+    with_bounce_matrix: bool = True,
 ) -> PrtResult:
     """PRT tables of ``points`` on ``mesh`` (see the module docstring).
 
@@ -127,6 +140,9 @@ def compute_prt(
     bounces : int
         Interreflections summed into ``bounce`` (>= 1): the light the object reflects onto itself
         once, twice, ... (:func:`interreflection`).
+    with_bounce_matrix : bool
+        Also the (V, V) ``bounce_matrix`` for the primary light (:func:`primary_bounce_matrix`; off
+        for the render mesh's thousands of vertices, and above :data:`MAX_BOUNCE_MATRIX` vertices).
 
     Returns
     -------
@@ -182,7 +198,7 @@ def compute_prt(
 
     # the interreflection, from the blocked transfer rays' hit points
     op = None
-    bounce = bounce_primary = None
+    bounce = bounce_primary = bounce_matrix = None
     t0 = time.perf_counter()
     # one sparse (V, R) matrix: point i gathers dw cos / pi x barycentric weight of each hit's corners
     gather = gather_hits(mesh, vi[b], D[ki[b]], tri[b], loc[b], dw * cos[b] / np.pi, len(P))
@@ -200,6 +216,8 @@ def compute_prt(
                 if k == 0 and bounces > 1:
                     bounce_primary = term.astype(np.float32)
             bounce = acc.astype(np.float32)
+            if with_bounce_matrix and len(P) <= MAX_BOUNCE_MATRIX:
+                bounce_matrix = primary_bounce_matrix(op, len(P), albedo, bounces)
     elif albedo > 0:
         bounce = np.zeros_like(T, dtype=np.float32)
     timings["bounce_s"] = time.perf_counter() - t0
@@ -213,7 +231,24 @@ def compute_prt(
         bounce_operator=op,
         bounces=int(bounces),
         bounce_primary=bounce_primary,
+        bounce_matrix=bounce_matrix,
     )
+
+
+def primary_bounce_matrix(op: Callable[[np.ndarray], np.ndarray], n: int, albedo: float, bounces: int) -> np.ndarray:
+    """(V, V) float32 ``M``: ``M @ e`` is the light the object reflects onto its points (every one of
+    ``bounces`` interreflections, ``albedo`` included) when their direct irradiance is ``e`` (V,).
+
+    The primary light is a lamp or a sun: its interreflection depends on where its direct light
+    falls -- into a cavity or beside it -- which its SH2 lobe (~90 degrees wide) cannot say. With
+    ``M`` the run time bounces the primary's own direct light, near or distant, shadows included
+    (:mod:`illuminet.runtime.prt`). ``op`` is :func:`compute_prt`'s gather (albedo 1)."""
+    term = np.eye(n)
+    acc = np.zeros((n, n))
+    for _ in range(bounces):
+        term = albedo * op(term)
+        acc += term
+    return acc.astype(np.float32)
 
 
 def floor_occlusion(
@@ -319,6 +354,7 @@ def render_transfer_arrays(
         albedo=albedo,
         progress=prog,
         bounces=bounces,
+        with_bounce_matrix=False,
     )
     out = {"render_transfer": res.transfer.astype(np.float32)}
     if res.bounce is not None:
@@ -344,6 +380,7 @@ def prt_meta(result: PrtResult, transfer_rays: int, table_directions: int, comma
         "eps_m": DEFAULT_EPS,
         "bounce_albedo": result.albedo,
         "bounces": result.bounces,
+        "bounce_matrix": result.bounce_matrix is not None,
         "timings_s": {k: round(v, 3) for k, v in result.timings_s.items()},
         "convention": "E = transfer @ L_radiance (9 SH coefficients, no 1/pi; LightEstimate.radiance_sh9()), object "
         "frame +Y up; unoccluded: transfer = A_hat_l Y_lm(n)",

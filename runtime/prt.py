@@ -23,6 +23,12 @@ this module only reads and evaluates them, in well under a millisecond per frame
   the first bounce alone, for the primary light, ``E_i += B1_i . (primary as SH)`` (without it B_i
   serves the primary too: bundles with one bounce). The primary light's SH2 lobe is ~90 degrees wide
   and would light a cavity it cannot see into; more bounces would multiply that.
+* ``bounce_matrix`` M (V, V) float16, optional (bundles since 2026-11-29): every bounce onto vertex i
+  of a unit direct irradiance at vertex j, the object's albedo included. When present it replaces
+  ``bounce_primary``: the primary light's interreflection is ``M @ g`` with g its direct light on the
+  proxy (cosine, distance, visibility: below), so a lamp shining into the vase's mouth lights its
+  inside and one beside it does not, which the SH2 lobe could not tell apart. The render mesh gets
+  the proxy's values carried (an interreflection is smooth).
 * ``render_transfer``, ``render_bounce``, ``render_bounce_primary`` (R, 9), optional (``illuminet bundle
   --render-transfer``): the same integrals at every vertex of the render mesh. The object's
   self-occlusion varies faster than the lighting proxy's few hundred vertices sample it (the vase's
@@ -86,6 +92,8 @@ class PrtTables:
     visibility : (K, V) float32 0/1 (unpacked ``vis_bits``)
     bounce : (V, 9) float64 or None
     bounce_primary : (V, 9) float64 or None (then ``bounce`` serves the primary light too)
+    bounce_matrix : (V, V) float32 or None (when present, the primary light's interreflection instead
+        of ``bounce_primary``)
 
     (float64 once at load: the per-frame products then convert nothing.)
     """
@@ -98,6 +106,7 @@ class PrtTables:
     render_bounce: np.ndarray | None = None  # (R, 9) float32, optional
     bounce_primary: np.ndarray | None = None  # (V, 9) float64, optional
     render_bounce_primary: np.ndarray | None = None  # (R, 9) float32, optional
+    bounce_matrix: np.ndarray | None = None  # (V, V) float32, optional
 
     @property
     def n_vertices(self) -> int:
@@ -144,7 +153,12 @@ class PrtTables:
             bounce_primary = np.asarray(arrays["bounce_primary"], np.float32)
             if bounce is None or bounce_primary.shape != (V, 9):
                 raise ValueError(f"bounce_primary must be ({V}, 9) and come with bounce, got {bounce_primary.shape}")
-        if not all(a is None or np.isfinite(a).all() for a in (t, bounce, bounce_primary)):
+        bounce_matrix = None
+        if "bounce_matrix" in arrays:
+            bounce_matrix = np.asarray(arrays["bounce_matrix"], np.float32)
+            if bounce is None or bounce_matrix.shape != (V, V):
+                raise ValueError(f"bounce_matrix must be ({V}, {V}) and come with bounce, got {bounce_matrix.shape}")
+        if not all(a is None or np.isfinite(a).all() for a in (t, bounce, bounce_primary, bounce_matrix)):
             raise ValueError("transfer/bounce hold non-finite values")
         render = {}
         for key in ("render_transfer", "render_bounce", "render_bounce_primary"):
@@ -166,6 +180,7 @@ class PrtTables:
             visibility=unpack_visibility(bits, V),
             bounce=None if bounce is None else bounce.astype(np.float64),
             bounce_primary=None if bounce_primary is None else bounce_primary.astype(np.float64),
+            bounce_matrix=bounce_matrix,
             **render,
         )
 
@@ -246,12 +261,14 @@ def _directions_to(pos: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def _shade(
-    transfer, bounce, geom: PrtGeometry, estimate, vis_distant, vis_near, dtype, bounce_primary=None
+    transfer, bounce, geom: PrtGeometry, estimate, vis_distant, vis_near, dtype, bounce_primary=None, bounce_of=None
 ) -> np.ndarray:
     """Shading of some vertices (the proxy's or the render mesh's) from their transfer and bounce
     arrays; ``vis_distant(d)`` / ``vis_near(pos)`` give those vertices' visibility of a distant light in
     direction d / of a light at pos (module docstring); ``bounce_primary`` (else ``bounce``) carries the
-    primary light's interreflection. Evaluated in ``dtype``; returns float32 clamped at 0.
+    primary light's interreflection, unless ``bounce_of(g)`` gives it from the primary's direct light g
+    on these vertices (the tables' ``bounce_matrix``). Evaluated in ``dtype``; returns float32 clamped
+    at 0.
 
     ``E = (T + B) . L + B1 . Lp + g rgb`` (Lp: the primary light as SH): ``T . L + B . (L + Lp)`` when
     the tables have no ``bounce_primary`` (B1 = B), the transfer alone without a bounce."""
@@ -281,8 +298,10 @@ def _shade(
             g *= pp
             g /= r2 * np.sqrt(r2)  # cosine x (|pos| / |pos - x|)^2
             g *= vis_near(pos)
+        if bounce_of is not None:
+            g = g + bounce_of(g)
         E += g.astype(dtype)[:, None] * rgb.astype(dtype)[None, :]
-        if bounce is not None:
+        if bounce is not None and bounce_of is None:
             E += (bounce_primary if bounce_primary is not None else bounce) @ primary_radiance_sh9(d, rgb).astype(dtype)
     np.maximum(E, 0.0, out=E)
     return E.astype(np.float32, copy=False)
@@ -317,6 +336,7 @@ def prt_irradiance(
         lambda pos: tables.primary_visibility_per_vertex(_directions_to(pos, geom.points)),
         np.float64,
         tables.bounce_primary,
+        (lambda g: tables.bounce_matrix @ g) if tables.bounce_matrix is not None else None,
     )
 
 
@@ -362,6 +382,7 @@ def prt_irradiance_render(
         lambda pos: carried(tables.primary_visibility_per_vertex(_directions_to(pos, geom.points[proxy_index]))),
         np.float32,
         tables.render_bounce_primary,
+        (lambda g: carried(tables.bounce_matrix @ g[proxy_index])) if tables.bounce_matrix is not None else None,
     )
 
 

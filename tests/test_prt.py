@@ -221,7 +221,32 @@ def test_the_bounces_converge_to_the_multi_bounce_solution(bowl):
     assert np.allclose(one.bounce, res.bounce_primary, atol=1e-5)
 
 
-def test_the_primary_light_bounces_once_and_the_ambient_light_converged(bowl):
+def test_the_bounce_matrix_is_every_bounce_of_a_direct_light(bowl):
+    _, res = bowl
+    M = res.bounce_matrix
+    assert M is not None and M.shape == (len(res.transfer),) * 2 and (M >= -1e-6).all()
+    # the SH bounce is every bounce of the transfer's direct light: the matrix gives it from any direct light
+    rng = np.random.default_rng(3)
+    for _ in range(3):
+        L = rng.normal(size=9)
+        np.testing.assert_allclose(M @ (res.transfer @ L), res.bounce @ L, rtol=1e-4, atol=1e-5)
+    # the light on the bowl's outside never comes back to it; the inside reflects onto itself
+    inside = res.transfer[:, 0] < 0.9 * res.transfer[:, 0].max()  # occluded: the inside
+    assert inside.any() and (~inside).any()
+    assert M[:, ~inside].sum(0).mean() < 0.25 * M[:, inside].sum(0).mean()
+    # a proxy above MAX_BOUNCE_MATRIX vertices gets none (V x V would not fit a board's memory)
+    from illuminet.models import prt as P
+
+    mesh = builtin_object("bowl", "proxy")
+    old, P.MAX_BOUNCE_MATRIX = P.MAX_BOUNCE_MATRIX, 10
+    try:
+        small = compute_prt(mesh, mesh.vertices, mesh.vertex_normals, albedo=0.5, floor_shadow=False, **FAST)
+    finally:
+        P.MAX_BOUNCE_MATRIX = old
+    assert small.bounce_matrix is None and "bounce_matrix" not in small.arrays()
+
+
+def test_the_primary_light_bounces_its_own_direct_light_and_the_ambient_light_converged(bowl):
     mesh, res = bowl
     t = res.tables()
     n = np.asarray(mesh.vertex_normals)
@@ -233,9 +258,31 @@ def test_the_primary_light_bounces_once_and_the_ambient_light_converged(bowl):
 
     L = amb.radiance_sh9()
     np.testing.assert_allclose(Ea, np.maximum(t.transfer @ L + t.bounce @ L, 0), rtol=1e-5, atol=1e-6)
-    direct = prt_irradiance(dataclasses.replace(t, bounce=None, bounce_primary=None), mesh.vertices, n, prim)
+    direct = prt_irradiance(
+        dataclasses.replace(t, bounce=None, bounce_primary=None, bounce_matrix=None), mesh.vertices, n, prim
+    )
+    want = np.maximum(direct + t.bounce_matrix @ direct, 0)
+    np.testing.assert_allclose(Ep, want, rtol=1e-4, atol=1e-5)
+    # tables without the matrix (bundles before it): the first bounce of the primary's SH2 lobe
+    Eo = prt_irradiance(dataclasses.replace(t, bounce_matrix=None), mesh.vertices, n, prim)
     want = np.maximum(direct + t.bounce_primary @ primary_radiance_sh9(prim.primary_dir, prim.primary_rgb), 0)
-    np.testing.assert_allclose(Ep, want, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(Eo, want, rtol=1e-5, atol=1e-6)
+    # a lamp above the bowl's mouth lights its inside through the bounces more than one low at its side
+    up = dataclasses.replace(prim, primary_dir=_unit([0.0, 1.0, 0.0]), primary_pos=np.array([0.0, 0.5, 0.0]))
+    side = dataclasses.replace(prim, primary_dir=_unit([1.0, 0.05, 0.0]), primary_pos=np.array([0.5, 0.025, 0.0]))
+    bounce_up = prt_irradiance(t, mesh.vertices, n, up) - prt_irradiance(
+        dataclasses.replace(t, bounce=None, bounce_primary=None, bounce_matrix=None), mesh.vertices, n, up
+    )
+    bounce_side = prt_irradiance(t, mesh.vertices, n, side) - prt_irradiance(
+        dataclasses.replace(t, bounce=None, bounce_primary=None, bounce_matrix=None), mesh.vertices, n, side
+    )
+    assert bounce_up.mean() > 0 and bounce_side.mean() < 0.1 * bounce_up.mean()
+    # ... which the primary's SH2 lobe could not tell: it bounced light into the bowl from the low lamp too
+    lobe = dataclasses.replace(t, bounce_matrix=None)
+    lobe_side = prt_irradiance(lobe, mesh.vertices, n, side) - prt_irradiance(
+        dataclasses.replace(t, bounce=None, bounce_primary=None, bounce_matrix=None), mesh.vertices, n, side
+    )
+    assert lobe_side.mean() > 5.0 * max(float(bounce_side.mean()), 1e-9)
 
 
 # --------------------------------------------------------------------------- bundles and the stage
@@ -372,6 +419,16 @@ def test_damaged_prt_table_is_reported(tmp_path, prt_bundle):
     np.savez_compressed(d / "prt.npz", **arr)
     finalize_bundle(d, json.loads((d / "bundle.json").read_text()))
     with pytest.raises(BundleError, match=r"prt\.npz: transfer must be \(120, 9\)"):
+        load_bundle(d)
+    # the primary light's bounce matrix is checked the same way
+    arr = {k: v for k, v in arr.items()}
+    with np.load(prt_bundle / "prt.npz") as z:
+        arr["transfer"] = z["transfer"]
+        assert z["bounce_matrix"].shape == (120, 120)
+        arr["bounce_matrix"] = z["bounce_matrix"][:, :-1]
+    np.savez_compressed(d / "prt.npz", **arr)
+    finalize_bundle(d, json.loads((d / "bundle.json").read_text()))
+    with pytest.raises(BundleError, match=r"prt\.npz: bounce_matrix must be \(120, 120\)"):
         load_bundle(d)
 
 
