@@ -53,6 +53,8 @@ DEFAULT_BOUNCES = 8
 #: proxies with more vertices than this get no ``bounce_matrix`` (V x V: 2000 -> 8 MB in the file, 16 MB
 #: loaded, ~1 ms a frame); their primary light bounces through ``bounce_primary`` as before
 MAX_BOUNCE_MATRIX = 2000
+#: columns of the bounce matrix computed together (memory: the gather's rays x this many floats)
+BOUNCE_MATRIX_BLOCK = 64
 
 
 @dataclass
@@ -243,12 +245,17 @@ def primary_bounce_matrix(op: Callable[[np.ndarray], np.ndarray], n: int, albedo
     falls -- into a cavity or beside it -- which its SH2 lobe (~90 degrees wide) cannot say. With
     ``M`` the run time bounces the primary's own direct light, near or distant, shadows included
     (:mod:`illuminet.runtime.prt`). ``op`` is :func:`compute_prt`'s gather (albedo 1)."""
-    term = np.eye(n)
-    acc = np.zeros((n, n))
-    for _ in range(bounces):
-        term = albedo * op(term)
-        acc += term
-    return acc.astype(np.float32)
+    acc = np.zeros((n, n), np.float32)
+    # columns are independent: a block at a time keeps op's (rays, columns) intermediate small (all
+    # 1000 columns at once took ~0.9 GB for a 1000-vertex proxy)
+    for c0 in range(0, n, BOUNCE_MATRIX_BLOCK):
+        c1 = min(n, c0 + BOUNCE_MATRIX_BLOCK)
+        term = np.zeros((n, c1 - c0))
+        term[np.arange(c0, c1), np.arange(c1 - c0)] = 1.0
+        for _ in range(bounces):
+            term = albedo * op(term)
+            acc[:, c0:c1] += term
+    return acc
 
 
 def floor_occlusion(

@@ -336,7 +336,7 @@ def prt_irradiance(
         lambda pos: tables.primary_visibility_per_vertex(_directions_to(pos, geom.points)),
         np.float64,
         tables.bounce_primary,
-        (lambda g: tables.bounce_matrix @ g.astype(np.float32)) if tables.bounce_matrix is not None else None,
+        None if tables.bounce_matrix is None else (lambda g: tables.bounce_matrix @ g.astype(np.float32)),
     )
 
 
@@ -382,7 +382,9 @@ def prt_irradiance_render(
         lambda pos: carried(tables.primary_visibility_per_vertex(_directions_to(pos, geom.points[proxy_index]))),
         np.float32,
         tables.render_bounce_primary,
-        (lambda g: carried(tables.bounce_matrix @ g[proxy_index].astype(np.float32))) if tables.bounce_matrix is not None else None,
+        None
+        if tables.bounce_matrix is None
+        else (lambda g: carried(tables.bounce_matrix @ g[proxy_index].astype(np.float32))),
     )
 
 
