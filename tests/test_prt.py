@@ -432,6 +432,30 @@ def test_damaged_prt_table_is_reported(tmp_path, prt_bundle):
         load_bundle(d)
 
 
+def test_an_array_declaring_gigabytes_is_refused_before_it_is_read(tmp_path, prt_bundle):
+    """A zip bomb: a few bytes of npz whose header declares a 3.6 GB bounce matrix."""
+    import io
+    import shutil
+    import zipfile
+
+    from illuminet.models.export import finalize_bundle
+
+    d = tmp_path / "b"
+    shutil.copytree(prt_bundle, d)
+    with np.load(d / "prt.npz") as z:
+        arr = {k: z[k] for k in z.files if k != "bounce_matrix"}
+    np.savez_compressed(d / "prt.npz", **arr)
+    head = io.BytesIO()
+    np.lib.format.write_array_header_1_0(head, {"descr": "<f4", "fortran_order": False, "shape": (30000, 30000)})
+    with zipfile.ZipFile(d / "prt.npz", "a", zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr("bounce_matrix.npy", b"\x93NUMPY\x01\x00" + head.getvalue()[8:] + bytes(64))
+    finalize_bundle(d, json.loads((d / "bundle.json").read_text()))
+    with pytest.raises(
+        BundleError, match=r"prt\.npz: array 'bounce_matrix' of shape \(30000, 30000\) would take 3433 MB"
+    ):
+        load_bundle(d)
+
+
 @pytest.mark.parametrize("name", ["vase", "bowl"])
 def test_shipped_bundles_have_prt_made_by_the_command(name):
     b = load_bundle(f"builtin:{name}")
