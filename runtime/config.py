@@ -194,6 +194,23 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "extra_planes": _f(
             int, 0, "also measure up to N more planes (walls first) as further PlaneLight slices", min=0, max=16
         ),
+        "context_extent_m": _f(
+            float,
+            2.0,
+            "also measure the anchor plane over this wider square for the light estimate's lamp search "
+            "(PlaneLight.context_*; 0 = off)",
+            min=0.1,
+            max=100,
+            zero_ok=True,
+        ),
+        "context_grid": _f(int, 64, "the wider square's grid is N x N vertices", min=2, max=512),
+        "context_every": _f(
+            int,
+            3,
+            "measure the wider square every N frames (its fusion carries it between; ~2.6 ms each)",
+            min=1,
+            max=1000,
+        ),
     },
     "light": {
         "enabled": _f(

@@ -103,6 +103,13 @@ class PlaneLight:
     irradiance_raw : (P, 3) or None
         ``irradiance`` before the grid's smoothing (``[plane_light] smoothing_cells``): each cell's own
         fused value, texture edges and all.
+    context_grid : int
+        0, or C: the anchor plane also measured on a wider C x C grid (``[plane_light]
+        context_extent_m``), for the light estimate's lamp search: a lamp's pool of light often lies
+        half outside the grid above. Its fields, same layout and units as the grid's, unsmoothed:
+    context_vertices : (C*C, 3) or None
+    context_irradiance : (C*C, 3) or None
+    context_mask : (C*C,) bool or None
     """
 
     vertices: np.ndarray
@@ -117,6 +124,10 @@ class PlaneLight:
     observed: np.ndarray | None = None
     exposure_source: str = "metadata"
     irradiance_raw: np.ndarray | None = None
+    context_grid: int = 0
+    context_vertices: np.ndarray | None = None
+    context_irradiance: np.ndarray | None = None
+    context_mask: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

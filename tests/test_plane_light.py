@@ -357,3 +357,42 @@ def test_raw_cells_are_kept_beside_the_smoothed_grid(scene):
     raw0 = outs[0.0]
     assert np.array_equal(raw0.irradiance_raw, raw0.irradiance)
     assert np.allclose(raw0.irradiance_raw, pl.irradiance_raw)
+
+
+def test_context_grid_measures_the_same_light_over_a_wider_square(scene):
+    """``[plane_light] context_extent_m``: the anchor plane again over a 2 m square (64 x 64) for the
+    light estimate's lamp search, in the grid's units (where both measure, the same light), measured
+    every ``context_every`` frames and carried between; 0 turns it off."""
+    chain = Chain(defaults())
+    st = chain.light
+    measured = []
+    orig = st.ctx_fusion.update
+
+    def spy(*a, **k):
+        measured.append(st.frames)
+        return orig(*a, **k)
+
+    st.ctx_fusion.update = spy
+    for k in range(7):
+        out = chain(scene.frame(k))
+    pl = out.results["plane_light"]
+    assert measured == [1, 4, 7]  # the first frame, then every 3rd
+    C = pl.context_grid
+    assert C == 64 and pl.context_vertices.shape == (C * C, 3) and pl.context_irradiance.shape == (C * C, 3)
+    assert np.abs(pl.context_vertices[:, [0, 2]]).max() == pytest.approx(1.0)
+    m = pl.context_mask
+    assert m.sum() > 1.5 * pl.mask.sum()  # it sees more of the floor than the 1 m grid
+    # the cells of both grids within 0.4 m of the object: the same light on average (2 %)
+    inner = np.abs(pl.context_vertices[:, [0, 2]]).max(1) < 0.4
+    inner_g = np.abs(pl.vertices[:, [0, 2]]).max(1) < 0.4
+    lum = np.array([0.2126, 0.7152, 0.0722])
+    a = (pl.context_irradiance[inner & m] @ lum).mean()
+    b = (pl.irradiance_raw[inner_g & pl.mask] @ lum).mean()
+    assert a == pytest.approx(b, rel=0.02)
+    # the light estimate's lamp search takes the wider grid first, then the grid around the object
+    from illuminet.runtime.stages.light_estimate import LightEstimateStage
+
+    grids = LightEstimateStage._grid_cells(pl)
+    assert len(grids) == 2 and len(grids[0][0]) == m.sum() and len(grids[1][0]) == pl.mask.sum()
+    off = Chain(apply_overrides(defaults(), [("plane_light", "context_extent_m", 0.0)]))(scene.frame(0))
+    assert off.results["plane_light"].context_grid == 0 and off.results["plane_light"].context_irradiance is None

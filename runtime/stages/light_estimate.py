@@ -25,7 +25,10 @@ Observations (each switchable in ``[light]`` for the ablation in ``illuminet eva
   ``cos / r^2``: a grid search over light positions, refined locally every frame, scored by how much
   of the anchor grid's differences between neighbouring cells ``max(0, n.(p-x)) / |p-x|^3`` explains
   with Huber weights (:func:`fit_near_light_gradient`: the ambient drops out of differences, and the
-  floor texture's edges are outliers); when no lamp explains them, by how much of the planes' spatial
+  floor texture's edges are outliers). It searches the plane light's 2 m context grid first (a lamp's
+  whole pool of light, where the 1 m grid often holds only its tail), then the 1 m grid when the lamp
+  found there does not explain the light near the object (another lamp's pool farther off); when no
+  lamp explains the differences, by how much of the planes' spatial
   variation in values it explains (:func:`fit_near_light`, a per-plane intercept for the ambient part:
   a room's ceiling lights 1.5-2 m off). This gives direction, distance and the primary/ambient split
   and colour (the solve below).
@@ -401,7 +404,13 @@ def grid_pairs(mask: np.ndarray, grid: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _gradient_shares(
-    cands: np.ndarray, x: np.ndarray, n: np.ndarray, dl: np.ndarray, pa: np.ndarray, pb: np.ndarray, iters: int
+    cands: np.ndarray,
+    x: np.ndarray,
+    n: np.ndarray,
+    dl: np.ndarray,
+    pa: np.ndarray,
+    pb: np.ndarray,
+    iters: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Robust share (C,) of the neighbour differences ``dl`` (luminance at ``pb`` minus at ``pa``) that
     point lights at ``cands`` (C, 3) explain, each with its own slope (C,); 0 for a negative slope.
@@ -575,6 +584,7 @@ class LightEstimateStage(Stage):
         self._warn = LogOnce(log, "light")
         self._near: NearFit | None = None
         self._near_grad = False  # whether _near came from the grid's differences (its r2 is theirs)
+        self._near_src = -1  # which of _grid_cells' grids it came from
         self._shadow_prior: np.ndarray | None = None
         self._state: dict[str, Any] | None = None
         self._t_prev: int | None = None
@@ -668,17 +678,30 @@ class LightEstimateStage(Stage):
             # when none explains them, a light farther away (a room's ceiling light 1.5-2 m off, whose
             # falloff the 1 m grid barely shows) from the values of the grid, the floor out to 1.5 m and
             # the walls
-            grid = self._grid_cells(pl) if self.near_gradient else None
+            grids = self._grid_cells(pl) if self.near_gradient else []
             last_grad = self._near if self._near_grad else None
             last_vals = None if self._near_grad else self._near
             grad = False
-            if grid is not None:
-                near = fit_near_light_gradient(*grid, seeds, self.frames, keep=last_grad)
-                if last_grad is not None and near is not None and near.r2 < last_grad.r2 - 0.2:
-                    near = fit_near_light_gradient(*grid, last_grad.position[None], self.frames, keep=last_grad)
-                grad = near is not None and near.r2 >= GRAD_MIN_SHARE
-                if not grad:
-                    near = None
+            near_obj = ~beyond
+            for gi, (x_, n_, e_, pa_, pb_) in enumerate(grids):
+                # the wider context grid first (a lamp's whole pool); the grid around the object when
+                # the lamp found there does not explain the light near the object (another lamp's pool)
+                keep = last_grad if self._near_src == gi else None
+                cand = fit_near_light_gradient(x_, n_, e_, pa_, pb_, seeds, self.frames, keep=keep)
+                if keep is not None and cand is not None and cand.r2 < keep.r2 - 0.2:
+                    cand = fit_near_light_gradient(x_, n_, e_, pa_, pb_, keep.position[None], self.frames, keep=keep)
+                if cand is None or cand.r2 < GRAD_MIN_SHARE:
+                    continue
+                if gi + 1 < len(grids) and not (
+                    self._plausible(cand, es, gs, GRAD_MIN_SHARE)
+                    and explained_share(
+                        cand.position, xs[near_obj], ns[near_obj], es[near_obj], ws[near_obj], gs[near_obj]
+                    )
+                    >= LOCAL_R2_MIN
+                ):
+                    continue
+                near, grad, self._near_src = cand, True, gi
+                break
             if near is None:
                 sub = _subsample(len(xs), NEAR_ROWS, self.frames)
                 near = fit_near_light(xs[sub], ns[sub], es[sub], ws[sub], gs[sub], seeds)
@@ -924,27 +947,34 @@ class LightEstimateStage(Stage):
         )
 
     @staticmethod
-    def _grid_cells(pl: PlaneLight) -> tuple | None:
-        """The anchor grid's observed cells and their neighbour pairs for :func:`fit_near_light_gradient`:
-        positions, normals, RGB irradiance (P, 3; before the grid's smoothing, which would blur the
-        texture's edges into gradients) each and the pairs (a, b) into them; None when the grid has
-        fewer than :data:`MIN_GRAD_PAIRS` pairs."""
+    def _grid_cells(pl: PlaneLight) -> list[tuple]:
+        """The grids for :func:`fit_near_light_gradient`, the wider context grid first when the plane
+        light measured one (``[plane_light] context_extent_m``), then the anchor grid: each as observed
+        cells' positions, normals and RGB irradiance (P, 3; before any smoothing, which would blur
+        the texture's edges into gradients) and the neighbour pairs (a, b) into them; a grid with
+        fewer than :data:`MIN_GRAD_PAIRS` pairs is left out."""
+        out = []
         sl = pl.plane_slices[0] if pl.plane_slices else slice(0, len(pl.irradiance))
-        G = int(pl.grid)
-        m = np.asarray(pl.mask[sl], bool)
-        if G < 2 or len(m) != G * G:
-            return None
-        a, b = grid_pairs(m, G)
-        if len(a) < MIN_GRAD_PAIRS:
-            return None
-        keep = np.flatnonzero(m)
-        remap = np.full(G * G, -1)
-        remap[keep] = np.arange(len(keep))
-        x = np.asarray(pl.vertices[sl], np.float64)[keep]
-        n = np.asarray(pl.normals[sl], np.float64)[keep]
         src = pl.irradiance_raw if pl.irradiance_raw is not None else pl.irradiance
-        e = np.asarray(src[sl], np.float64)[keep]
-        return x, n, e, remap[a], remap[b]
+        grids = [(int(pl.grid), np.asarray(pl.mask[sl], bool), pl.vertices[sl], pl.normals[sl], src[sl])]
+        if pl.context_grid and pl.context_mask is not None:
+            C = int(pl.context_grid)
+            up = np.tile(np.array([0.0, 1.0, 0.0]), (C * C, 1))
+            grids.insert(0, (C, np.asarray(pl.context_mask, bool), pl.context_vertices, up, pl.context_irradiance))
+        for G, m, verts, norms, irr in grids:
+            if G < 2 or len(m) != G * G:
+                continue
+            a, b = grid_pairs(m, G)
+            if len(a) < MIN_GRAD_PAIRS:
+                continue
+            keep = np.flatnonzero(m)
+            remap = np.full(G * G, -1)
+            remap[keep] = np.arange(len(keep))
+            x = np.asarray(verts, np.float64)[keep]
+            n = np.asarray(norms, np.float64)[keep]
+            e = np.asarray(irr, np.float64)[keep]
+            out.append((x, n, e, remap[a], remap[b]))
+        return out
 
     @staticmethod
     def _distant_weight(xs: np.ndarray, es: np.ndarray, ws: np.ndarray, gs: np.ndarray) -> np.ndarray:

@@ -58,6 +58,9 @@ log = logging.getLogger(__name__)
 
 #: Samples per cell side (K x K samples per cell).
 SAMPLES_PER_CELL = 6
+#: ... on the wider context grid (``[plane_light] context_extent_m``): 64 x 64 cells of 3 x 3 samples
+#: cost about what the 32 x 32 grid of 6 x 6 does
+CONTEXT_SAMPLES_PER_CELL = 6
 #: Fraction of a cell's samples that must count for the cell to be observed.
 MIN_CELL_COVERAGE = 0.5
 #: uint8 value from which a channel is taken as saturated (clipped highlights carry no radiance).
@@ -317,6 +320,19 @@ class PlaneLightStage(Stage):
         self.vertices = grid_vertices(self.grid, self.extent)
         self.normals = np.tile(np.array([0.0, 1.0, 0.0]), (self.grid * self.grid, 1))
         self.fusion = CellFusion(self.grid * self.grid, float(pl.fusion))
+        # the wider context grid for the light estimate's lamp search (0 = off)
+        self.ctx_extent = float(pl.context_extent_m)
+        self.ctx_grid = int(pl.context_grid) if self.ctx_extent > 0 else 0
+        if self.ctx_extent < 0 or (self.ctx_extent > 0 and self.ctx_grid < 2):
+            raise ValueError(
+                f"[plane_light] context_extent_m / context_grid: expected a length >= 0 and an int >= 2, "
+                f"got {pl.context_extent_m!r} / {pl.context_grid!r}"
+            )
+        if self.ctx_grid:
+            self.ctx_vertices = grid_vertices(self.ctx_grid, self.ctx_extent)
+            self.ctx_fusion = CellFusion(self.ctx_grid * self.ctx_grid, float(pl.fusion))
+        self.ctx_every = int(pl.context_every)
+        self._ctx_age = 0  # frames since the context grid was last measured
         self._T_ref: np.ndarray | None = None  # anchor pose (camera frame) at the last restart of the fusion
         self._T_ref_world: np.ndarray | None = None  # the same in the odometry's world frame, when known
         self._scale_rel: float | None = None
@@ -344,6 +360,8 @@ class PlaneLightStage(Stage):
         P = self.grid * self.grid
         if anchor.synthetic:
             self.fusion.reset()
+            if self.ctx_grid:
+                self.ctx_fusion.reset()
             self._T_ref = None
             self._T_ref_world = None
             lin = np.zeros((P, 3), np.float32)
@@ -360,6 +378,8 @@ class PlaneLightStage(Stage):
                 if self._T_ref is not None:
                     self.anchor_resets += 1
                 self.fusion.reset()
+                if self.ctx_grid:
+                    self.ctx_fusion.reset()
                 self._T_ref_world = T_world
                 self._T_ref = anchor.T_cam_obj.copy()
             lin, observed, coverage = measure_cells(frame, anchor.T_cam_obj, self.grid, self.extent, self.thr, self.lut)
@@ -385,6 +405,34 @@ class PlaneLightStage(Stage):
             parts += self._extra(frame, anchor, scale)
         elif self._extra_state:
             self._extra_state.clear()
+        ctx = {}
+        if self.ctx_grid and not anchor.synthetic:
+            self._ctx_age += 1
+        if (
+            self.ctx_grid
+            and not anchor.synthetic
+            and (self._ctx_age >= self.ctx_every or not self.ctx_fusion.has_value.any())
+        ):
+            self._ctx_age = 0
+            # same exposure scale and albedo as the grid: the same units, over a wider square
+            lin_c, obs_c, cov_c = measure_cells(
+                frame,
+                anchor.T_cam_obj,
+                self.ctx_grid,
+                self.ctx_extent,
+                self.thr,
+                self.lut,
+                samples=CONTEXT_SAMPLES_PER_CELL,
+            )
+            self.ctx_fusion.update(((np.pi / self.albedo) * lin_c / np.float32(scale)).astype(np.float32), obs_c, cov_c)
+        if self.ctx_grid and not anchor.synthetic:
+            has_c = self.ctx_fusion.has_value
+            ctx = {
+                "context_grid": self.ctx_grid,
+                "context_vertices": self.ctx_vertices,
+                "context_irradiance": np.where(has_c[:, None], self.ctx_fusion.est, 0.0).astype(np.float32),
+                "context_mask": has_c.copy(),
+            }
         self._last = PlaneLight(
             vertices=np.concatenate([p[0] for p in parts]) if len(parts) > 1 else self.vertices,
             normals=np.concatenate([p[1] for p in parts]) if len(parts) > 1 else self.normals,
@@ -398,6 +446,7 @@ class PlaneLightStage(Stage):
             observed=np.concatenate([p[5] for p in parts]),
             exposure_source=source,
             irradiance_raw=np.concatenate([p[7] for p in parts]),
+            **ctx,
         )
         return frame.with_result(PLANE_LIGHT, self._last)
 
