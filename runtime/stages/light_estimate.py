@@ -415,8 +415,10 @@ def _gradient_shares(
     """Robust share (C,) of the neighbour differences ``dl`` (luminance at ``pb`` minus at ``pa``) that
     point lights at ``cands`` (C, 3) explain, each with its own slope (C,); 0 for a negative slope.
     ``iters`` Huber reweightings (:data:`GRAD_HUBER` robust sigmas)."""
-    g = _near_basis(cands, x, n)
-    dg = g[:, pb] - g[:, pa]
+    # the basis at the cells these pairs use only (a subsample's pairs touch a fraction of the grid)
+    used, inv = np.unique(np.concatenate([pa, pb]), return_inverse=True)
+    g = _near_basis(cands, x[used], n[used])
+    dg = g[:, inv[len(pa) :]] - g[:, inv[: len(pa)]]
     w = np.ones_like(dg)
     for it in range(iters + 1):
         wdg = w * dg
