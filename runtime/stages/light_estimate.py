@@ -666,6 +666,7 @@ class LightEstimateStage(Stage):
         cues: list[str] = []
         primary_dir = primary_pos = None
         near = None
+        local_share = None
         if self.use_near and len(xs):
             # the coarse search is spread over search_every frames (a lamp is fixed in the world), and
             # the last answer is refined every frame; at most NEAR_ROWS samples keep it cheap.
@@ -684,7 +685,6 @@ class LightEstimateStage(Stage):
             last_grad = self._near if self._near_grad else None
             last_vals = None if self._near_grad else self._near
             grad = False
-            near_obj = ~beyond
             for gi, (x_, n_, e_, pa_, pb_) in enumerate(grids):
                 # the wider context grid first (a lamp's whole pool); the grid around the object when
                 # the lamp found there does not explain the light near the object (another lamp's pool)
@@ -694,15 +694,12 @@ class LightEstimateStage(Stage):
                     cand = fit_near_light_gradient(x_, n_, e_, pa_, pb_, keep.position[None], self.frames, keep=keep)
                 if cand is None or cand.r2 < GRAD_MIN_SHARE:
                     continue
-                if gi + 1 < len(grids) and not (
-                    self._plausible(cand, es, gs, GRAD_MIN_SHARE)
-                    and explained_share(
-                        cand.position, xs[near_obj], ns[near_obj], es[near_obj], ws[near_obj], gs[near_obj]
-                    )
-                    >= LOCAL_R2_MIN
-                ):
-                    continue
-                near, grad, self._near_src = cand, True, gi
+                share = None
+                if gi + 1 < len(grids):
+                    share = self._local_share(cand, xs, ns, es, ws, gs, beyond, GRAD_MIN_SHARE)
+                    if share < LOCAL_R2_MIN:
+                        continue
+                near, grad, self._near_src, local_share = cand, True, gi, share
                 break
             if near is None:
                 sub = _subsample(len(xs), NEAR_ROWS, self.frames)
@@ -713,13 +710,12 @@ class LightEstimateStage(Stage):
             self._near = near if (near is not None and near.r2 >= min(0.3, min_r2)) else None
             self._near_grad = grad
         # how much of the planes' spatial variation near the object the lamp explains (its values, the far
-        # floor left out): the acceptance test, and the confidence in its position
-        local_share = 0.0
-        if near is not None and self._plausible(near, es, gs, min_r2):
-            near_obj = ~beyond
-            local_share = explained_share(
-                near.position, xs[near_obj], ns[near_obj], es[near_obj], ws[near_obj], gs[near_obj]
-            )
+        # floor left out): the acceptance test, and the confidence in its position (already known for a
+        # lamp from the context grid, which had to pass it)
+        if near is None:
+            local_share = 0.0
+        elif local_share is None:
+            local_share = self._local_share(near, xs, ns, es, ws, gs, beyond, min_r2)
         if local_share >= LOCAL_R2_MIN:
             primary_pos = near.position
             v = near.position - CENTRE
@@ -812,6 +808,15 @@ class LightEstimateStage(Stage):
         lum = es @ LUMA
         spread = float(np.std(lum) / max(float(np.mean(lum)), 1e-12))
         return near.r2 >= min_r2 and spread >= 0.08 and r < 3.0 and v[1] / max(r, 1e-12) > 0.17
+
+    @classmethod
+    def _local_share(cls, near, xs, ns, es, ws, gs, beyond, min_r2: float) -> float:
+        """The share of the planes' spatial variation near the object (``~beyond``) that the lamp
+        explains in values; 0 when it is not a plausible lamp (:meth:`_plausible`)."""
+        if not cls._plausible(near, es, gs, min_r2):
+            return 0.0
+        m = ~beyond
+        return explained_share(near.position, xs[m], ns[m], es[m], ws[m], gs[m])
 
     def _moved(self, anchor: Anchor) -> bool:
         """The anchor jumped (re-placed) since the last estimate: do not reuse it."""

@@ -333,6 +333,7 @@ class PlaneLightStage(Stage):
             self.ctx_fusion = CellFusion(self.ctx_grid * self.ctx_grid, float(pl.fusion))
         self.ctx_every = int(pl.context_every)
         self._ctx_age = 0  # frames since the context grid was last measured
+        self._ctx: dict[str, Any] = {}  # its PlaneLight fields since then ({} before the first)
         self._T_ref: np.ndarray | None = None  # anchor pose (camera frame) at the last restart of the fusion
         self._T_ref_world: np.ndarray | None = None  # the same in the odometry's world frame, when known
         self._scale_rel: float | None = None
@@ -362,6 +363,7 @@ class PlaneLightStage(Stage):
             self.fusion.reset()
             if self.ctx_grid:
                 self.ctx_fusion.reset()
+                self._ctx = {}
             self._T_ref = None
             self._T_ref_world = None
             lin = np.zeros((P, 3), np.float32)
@@ -380,6 +382,7 @@ class PlaneLightStage(Stage):
                 self.fusion.reset()
                 if self.ctx_grid:
                     self.ctx_fusion.reset()
+                    self._ctx = {}
                 self._T_ref_world = T_world
                 self._T_ref = anchor.T_cam_obj.copy()
             lin, observed, coverage = measure_cells(frame, anchor.T_cam_obj, self.grid, self.extent, self.thr, self.lut)
@@ -405,34 +408,31 @@ class PlaneLightStage(Stage):
             parts += self._extra(frame, anchor, scale)
         elif self._extra_state:
             self._extra_state.clear()
-        ctx = {}
         if self.ctx_grid and not anchor.synthetic:
             self._ctx_age += 1
-        if (
-            self.ctx_grid
-            and not anchor.synthetic
-            and (self._ctx_age >= self.ctx_every or not self.ctx_fusion.has_value.any())
-        ):
-            self._ctx_age = 0
-            # same exposure scale and albedo as the grid: the same units, over a wider square
-            lin_c, obs_c, cov_c = measure_cells(
-                frame,
-                anchor.T_cam_obj,
-                self.ctx_grid,
-                self.ctx_extent,
-                self.thr,
-                self.lut,
-                samples=CONTEXT_SAMPLES_PER_CELL,
-            )
-            self.ctx_fusion.update(((np.pi / self.albedo) * lin_c / np.float32(scale)).astype(np.float32), obs_c, cov_c)
-        if self.ctx_grid and not anchor.synthetic:
-            has_c = self.ctx_fusion.has_value
-            ctx = {
-                "context_grid": self.ctx_grid,
-                "context_vertices": self.ctx_vertices,
-                "context_irradiance": np.where(has_c[:, None], self.ctx_fusion.est, 0.0).astype(np.float32),
-                "context_mask": has_c.copy(),
-            }
+            if self._ctx_age >= self.ctx_every or not self.ctx_fusion.has_value.any():
+                self._ctx_age = 0
+                # same exposure scale and albedo as the grid: the same units, over a wider square
+                lin_c, obs_c, cov_c = measure_cells(
+                    frame,
+                    anchor.T_cam_obj,
+                    self.ctx_grid,
+                    self.ctx_extent,
+                    self.thr,
+                    self.lut,
+                    samples=CONTEXT_SAMPLES_PER_CELL,
+                )
+                E_c = (np.pi / self.albedo) * lin_c / np.float32(scale)
+                self.ctx_fusion.update(E_c.astype(np.float32), obs_c, cov_c)
+                has_c = self.ctx_fusion.has_value
+                # built when measured only; the frames between carry the same arrays
+                self._ctx = {
+                    "context_grid": self.ctx_grid,
+                    "context_vertices": self.ctx_vertices,
+                    "context_irradiance": np.where(has_c[:, None], self.ctx_fusion.est, 0.0).astype(np.float32),
+                    "context_mask": has_c.copy(),
+                }
+        ctx = self._ctx if not anchor.synthetic else {}
         self._last = PlaneLight(
             vertices=np.concatenate([p[0] for p in parts]) if len(parts) > 1 else self.vertices,
             normals=np.concatenate([p[1] for p in parts]) if len(parts) > 1 else self.normals,
