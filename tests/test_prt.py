@@ -366,6 +366,26 @@ def test_bundle_command_makes_a_prt_only_bundle_that_loads_and_shades(prt_bundle
     assert c.irradiance.shape == (120, 3) and (b.prior_shading <= 1.0 + 1e-4).all()
 
 
+def test_the_shading_is_computed_again_only_when_the_light_changes(prt_bundle):
+    st = _stage(prt_bundle, shading="prt", temporal_smoothing=0.0)
+    est = _estimate()
+    first = st.process(_frame(light=est)).results[SHADING.name]
+    # a frame between two estimates: the same light with another pose -> the same (read-only) arrays
+    moved = dataclasses.replace(est, T_cam_obj=np.eye(4))
+    again = st.process(_frame(light=moved)).results[SHADING.name]
+    assert again.irradiance is first.irradiance and not first.irradiance.flags.writeable
+    with pytest.raises(ValueError):
+        first.irradiance[0, 0] = 1.0
+    # a new estimate (brighter primary light, or the same light moved) is shaded anew
+    brighter = dataclasses.replace(est, primary_rgb=est.primary_rgb * 2)
+    b = st.process(_frame(light=brighter)).results[SHADING.name]
+    assert b.irradiance is not first.irradiance and b.irradiance.sum() > first.irradiance.sum()
+    near = dataclasses.replace(est, primary_pos=np.array([0.3, 0.6, 0.1]))
+    n = st.process(_frame(light=near)).results[SHADING.name]
+    assert not np.allclose(n.irradiance, b.irradiance)
+    assert np.allclose(st.process(_frame(light=est)).results[SHADING.name].irradiance, first.irradiance)
+
+
 def test_prt_only_bundle_refuses_model_mode_in_one_line(prt_bundle):
     with pytest.raises(BundleError, match="has no learned model") as e:
         _stage(prt_bundle, shading="model")

@@ -128,6 +128,28 @@ def plane_mean_shading(plane_irr: np.ndarray, mask: np.ndarray, n_vertices: int)
     return np.tile(mean[None, :], (n_vertices, 1)).astype(np.float32)
 
 
+def _light_key(light) -> tuple:
+    """What PRT shading reads of a light estimate (its pose does not matter: the light is in the object's
+    frame), as copies to compare with the next frame's."""
+
+    def a(x):
+        return None if x is None else np.array(x, np.float64)
+
+    return (a(light.sh9), a(light.primary_dir), a(light.primary_rgb), a(light.primary_pos))
+
+
+def _same_key(k1: tuple, k2: tuple) -> bool:
+    return all(
+        (x is None and y is None) or (x is not None and y is not None and np.array_equal(x, y)) for x, y in zip(k1, k2)
+    )
+
+
+def _frozen(x: np.ndarray) -> np.ndarray:
+    """``x`` made read-only: a cached shading is handed to every frame until the light changes."""
+    x.flags.writeable = False
+    return x
+
+
 class ShadingStage(Stage):
     """The object's shading per frame -> ``results["shading"]`` (:class:`ObjectShading` of the proxy mesh).
 
@@ -150,6 +172,10 @@ class ShadingStage(Stage):
 
     Contract: ``prt`` requires ``light`` only; every other mode requires ``plane_light``, and
     ``auto`` also reads ``light`` when present (set per instance from the configuration).
+
+    In ``prt`` the shading is computed again only when the estimate's light changes (``sh9``, the
+    primary light's direction, colour and position: at ``[light] rate_hz``); frames in between get
+    the same (read-only) arrays.
 
     Temporal smoothing: an exponential moving average of the predicted shading and OI with weight
     ``[model] temporal_smoothing`` on the previous value (0 = none), reset when the method changes.
@@ -178,6 +204,7 @@ class ShadingStage(Stage):
         self.fallback = None  # what "auto" uses on frames without a light estimate (set in open)
         self._proxy = None
         self._render_mesh = None
+        self._prt_cache: tuple | None = None  # (the light's values, the ObjectShading they gave)
         self._prev: tuple | None = None
         self.frames = 0
         self.methods: dict[str, int] = {}
@@ -243,6 +270,9 @@ class ShadingStage(Stage):
         if mode == "prt":
             if light is None:
                 raise FrameError("shading mode prt needs a light estimate (results['light']) on this frame")
+            key = _light_key(light)
+            if self._prt_cache is not None and _same_key(self._prt_cache[0], key):
+                return self._prt_cache[1]  # the estimate updates at [light] rate_hz; frames between reuse it
             if self._proxy is None:  # the proxy's points (at the drawn scale) and normals, once
                 pts, nrm = np.asarray(b.proxy_vertices, np.float64) * self.object_scale, b.proxy_normals
                 self._proxy = (pts, np.asarray(nrm, np.float64), prt_geometry(pts, nrm))
@@ -259,14 +289,16 @@ class ShadingStage(Stage):
                 irr = render[b.proxy_index]
             else:
                 irr = prt_irradiance(b.prt, self._proxy[0], self._proxy[1], light, self._proxy[2])
-            d = None if light.primary_dir is None else np.asarray(light.primary_dir, np.float32)
-            return ObjectShading(
-                irradiance=irr,
+            d = None if light.primary_dir is None else np.array(light.primary_dir, np.float32)
+            out = ObjectShading(
+                irradiance=_frozen(irr),
                 method="prt",
-                dominant_dir=d,
+                dominant_dir=None if d is None else _frozen(d),
                 dominant_share=light.primary_share() if d is not None else 0.0,
-                render_irradiance=render,
+                render_irradiance=None if render is None else _frozen(render),
             )
+            self._prt_cache = (key, out)
+            return out
         if pl is None:
             raise FrameError(f"shading mode {mode} needs the plane light (results['plane_light']) on this frame")
         irr, mask, conf = self._plane_input(pl)
