@@ -13,12 +13,15 @@ estimate (ambient SH + a primary light):
   transfer (``illuminet bundle --render-transfer``, the shipped bundles) the stage shades every render
   vertex, so it includes the carry to the render mesh the renderer otherwise does: ``*_drawn`` (stage
   + carry when needed) against ``*_drawn_proxy_only`` (the same tables without it), same run.
+  Each call gets a new light (the frames a new estimate arrives on, at ``[light] rate_hz``);
+  ``stage_prt_same_light`` is the frames between, when the stage reuses its shading.
 """
 
 from __future__ import annotations
 
 import copy
 import dataclasses
+import itertools
 
 import numpy as np
 
@@ -61,6 +64,13 @@ def _estimate(near: bool) -> LightEstimate:
     return LightEstimate(
         sh9=sh, primary_dir=d, primary_rgb=np.array([3.0, 2.8, 2.4]), primary_pos=d * 0.8 if near else None
     )
+
+
+def _changing(est: LightEstimate):
+    """A function giving ``est`` with a slightly different primary light at each call (no two alike:
+    the shading stage computes only when the light changes)."""
+    n = itertools.count(1)
+    return lambda: dataclasses.replace(est, primary_rgb=est.primary_rgb * (1.0 + 1e-6 * next(n)))
 
 
 def _report(out: dict, keys) -> None:
@@ -117,14 +127,19 @@ def run(args, cfg) -> dict:
             return stage._smooth(stage.predict(None, est)).on_render_mesh(stage.bundle.carry)
 
         for key, near in (("stage_prt", False), ("stage_prt_near", True)):
-            est = _estimate(near)
-            out[key] = measure(lambda est=est: st._smooth(st.predict(None, est)), repeat)
-            out[key + "_drawn"] = measure(lambda est=est: drawn(st, est), repeat)
-            out[key + "_drawn_proxy_only"] = measure(lambda est=est: drawn(proxy_only, est), repeat)
+            new = _changing(_estimate(near))  # a new light every call: the frames an estimate arrives on
+            out[key] = measure(lambda new=new: st._smooth(st.predict(None, new())), repeat)
+            out[key + "_drawn"] = measure(lambda new=new: drawn(st, new()), repeat)
+            out[key + "_drawn_proxy_only"] = measure(lambda new=new: drawn(proxy_only, new()), repeat)
+        # the frames between two estimates: the same light again (the stage reuses its shading)
+        est = _estimate(True)
+        out["stage_prt_same_light"] = measure(lambda: st._smooth(st.predict(None, est)), repeat)
         st.close()
         proxy_only.close()
         keys = ("stage_prt", "stage_prt_near")
-        _report(out, keys + tuple(k + s for k in keys for s in ("_drawn", "_drawn_proxy_only")))
+        _report(
+            out, keys + tuple(k + s for k in keys for s in ("_drawn", "_drawn_proxy_only")) + ("stage_prt_same_light",)
+        )
         if bundle.prt.render_transfer is not None:
             parts = []
             for k in keys:
