@@ -586,3 +586,14 @@ def test_low_sun_is_not_dimmed_by_the_floor_and_below_it_is_dark(sphere):
     below = np.array([np.cos(np.deg2rad(3.0)), -np.sin(np.deg2rad(3.0)), 0.0])
     assert np.allclose(tab.primary_visibility(below), 0.0)
     assert np.allclose(tab.primary_visibility_per_vertex(np.tile(below, (len(n), 1))), 0.0)
+
+
+def test_the_bundle_command_defaults_to_the_models_table_directions():
+    import argparse
+
+    from illuminet.commands import bundle as cmd
+    from illuminet.models.prt import DEFAULT_TABLE_DIRECTIONS
+
+    p = argparse.ArgumentParser()
+    cmd.register(p.add_subparsers())
+    assert p.parse_args(["bundle", "--object", "x", "--out", "y"]).directions == DEFAULT_TABLE_DIRECTIONS

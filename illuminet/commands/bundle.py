@@ -75,8 +75,8 @@ def register(sub) -> None:
     p.add_argument(
         "--directions",
         type=int,
-        default=1024,
-        help="directions of the primary light's visibility table (default 1024, ~6 degrees apart)",
+        default=4096,  # models.prt.DEFAULT_TABLE_DIRECTIONS (not imported here: the CLI starts light)
+        help="directions of the primary light's visibility table (default 4096, ~3 degrees apart)",
     )
     p.add_argument(
         "--render-transfer",
