@@ -415,10 +415,15 @@ def _gradient_shares(
     """Robust share (C,) of the neighbour differences ``dl`` (luminance at ``pb`` minus at ``pa``) that
     point lights at ``cands`` (C, 3) explain, each with its own slope (C,); 0 for a negative slope.
     ``iters`` Huber reweightings (:data:`GRAD_HUBER` robust sigmas)."""
-    # the basis at the cells these pairs use only (a subsample's pairs touch a fraction of the grid)
-    used, inv = np.unique(np.concatenate([pa, pb]), return_inverse=True)
+    # the basis at the cells these pairs use only (a subsample's pairs touch a fraction of the grid);
+    # the cells' new indices by a mark and a running count (np.unique sorted them: ~1 ms an estimate)
+    mark = np.zeros(len(x), bool)
+    mark[pa] = True
+    mark[pb] = True
+    used = np.flatnonzero(mark)
+    slot = np.cumsum(mark) - 1
     g = _near_basis(cands, x[used], n[used])
-    dg = g[:, inv[len(pa) :]] - g[:, inv[: len(pa)]]
+    dg = g[:, slot[pb]] - g[:, slot[pa]]
     w = np.ones_like(dg)
     for it in range(iters + 1):
         wdg = w * dg
