@@ -67,13 +67,68 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--log-level", choices=("debug", "info", "warning", "error"), help="overrides [logging] level")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
+    after = _WithGlobalOptions(sub, _global_options_after())
     for name in COMMAND_MODULES:
-        importlib.import_module(f"illuminet.commands.{name}").register(sub)
+        importlib.import_module(f"illuminet.commands.{name}").register(after)
     return parser
+
+
+def _global_options_after() -> argparse.ArgumentParser:
+    """The global options once more, for after the command (``illuminet demo --set a.b=1``: where
+    people type them): their own names in the namespace, merged by :func:`resolve_config` (the
+    options after the command win; every ``--set`` counts)."""
+    p = argparse.ArgumentParser(add_help=False)
+    g = p.add_argument_group("global options (also accepted before the command)")
+    g.add_argument(
+        "--config", "-c", dest="config_after", metavar="TOML", default=argparse.SUPPRESS, help="configuration file"
+    )
+    g.add_argument(
+        "--set",
+        dest="overrides_after",
+        action="append",
+        metavar="SECTION.KEY=VALUE",
+        default=argparse.SUPPRESS,
+        help="override one configuration key; repeatable",
+    )
+    g.add_argument(
+        "--log-level",
+        dest="log_level_after",
+        choices=("debug", "info", "warning", "error"),
+        default=argparse.SUPPRESS,
+        help="overrides [logging] level",
+    )
+    return p
+
+
+class _WithGlobalOptions:
+    """The subparsers action, giving every command's parser the global options as a parent."""
+
+    def __init__(self, sub, parent: argparse.ArgumentParser) -> None:
+        self._sub, self._parent = sub, parent
+
+    def add_parser(self, name, **kwargs):
+        kwargs["parents"] = [*kwargs.get("parents", []), self._parent]
+        return self._sub.add_parser(name, **kwargs)
+
+    def __getattr__(self, attr):
+        return getattr(self._sub, attr)
+
+
+def _merge_global_options(args: argparse.Namespace) -> argparse.Namespace:
+    """Fold the global options given after the command into the ones given before it (once: the
+    ``*_after`` names are removed)."""
+    after = {k: vars(args).pop(k) for k in ("config_after", "overrides_after", "log_level_after") if k in vars(args)}
+    if after.get("config_after") is not None:
+        args.config = after["config_after"]
+    args.overrides = list(args.overrides) + list(after.get("overrides_after") or [])
+    if after.get("log_level_after") is not None:
+        args.log_level = after["log_level_after"]
+    return args
 
 
 def resolve_config(args: argparse.Namespace) -> Config:
     """Config file (explicit, or ./config.toml when present) + --set overrides + flag overrides."""
+    args = _merge_global_options(args)
     path = args.config
     if path is None and os.path.isfile("config.toml"):
         path = "config.toml"
@@ -96,7 +151,7 @@ def report_error(e: IllumiNetError, *, debug: bool) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit status (0 done, 1 run-time failure, 2 usage/configuration)."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = _merge_global_options(parser.parse_args(argv))
     # --log-level debug shows tracebacks even when the configuration itself is the mistake
     debug = args.log_level == "debug"
     try:

@@ -249,3 +249,17 @@ def test_bench_command_lists_replay(capsys):
     with pytest.raises(SystemExit):
         main(["bench", "--help"])
     assert "replay" in capsys.readouterr().out
+
+
+def test_global_options_are_also_taken_after_the_command(tmp_path, capsys):
+    # where people type them: `illuminet demo --set a.b=1`; both places count, the later file wins
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[light]\nrate_hz = 7.0\n")
+    assert main(["--set", "light.rate_hz=4", "config", "--set", "light.time_constant_s=0.3"]) == 0
+    out = capsys.readouterr().out
+    assert "rate_hz = 4.0" in out and "time_constant_s = 0.3" in out
+    assert main(["config", "-c", str(cfg), "--set", "light.search_every=3"]) == 0
+    out = capsys.readouterr().out
+    assert "rate_hz = 7.0" in out and "search_every = 3" in out
+    assert main(["config", "--set", "light.rate_hz=abc"]) == 2
+    assert "[light] rate_hz" in capsys.readouterr().err
