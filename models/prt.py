@@ -57,6 +57,12 @@ DEFAULT_BOUNCES = 8
 MAX_BOUNCE_MATRIX = 2000
 #: columns of the bounce matrix computed together (memory: the gather's rays x this many floats)
 BOUNCE_MATRIX_BLOCK = 64
+#: directions of the primary light's floor-shadow table (``floor_shadow``: the object's shadow on the
+#: floor, summed over the floor its downward rays see, is smooth in the light's direction)
+FLOOR_SHADOW_DIRECTIONS = 512
+#: the floor-shadow grid reaches this many object heights beyond the footprint (a lamp 30 degrees up
+#: casts a shadow 1.7 heights long)
+FLOOR_SHADOW_REACH = 2.0
 
 
 @dataclass
@@ -77,6 +83,10 @@ class PrtResult:
     bounce_primary: np.ndarray | None = None  # (V, 9) float32: the single bounce, for the primary light
     #: (V, V) float32: every bounce onto point i of a unit direct irradiance at point j (the primary's)
     bounce_matrix: np.ndarray | None = None
+    #: (F, 3) directions and (V, F) table of the primary light's shadow on the floor as the points see
+    #: it (:func:`floor_shadow_table`)
+    floor_dirs: np.ndarray | None = None
+    floor_shadow: np.ndarray | None = None
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The arrays of ``prt.npz`` (:data:`illuminet.runtime.prt.PRT_KEYS`, + ``bounce``)."""
@@ -91,6 +101,9 @@ class PrtResult:
             out["bounce_primary"] = self.bounce_primary.astype(np.float32)
         if self.bounce_matrix is not None:
             out["bounce_matrix"] = self.bounce_matrix.astype(np.float16)
+        if self.floor_shadow is not None:
+            out["floor_dirs"] = self.floor_dirs.astype(np.float32)
+            out["floor_shadow"] = self.floor_shadow.astype(np.float16)
         return out
 
     def tables(self) -> PrtTables:
@@ -119,6 +132,7 @@ def compute_prt(
     floor_shadow: bool = True,
     bounces: int = DEFAULT_BOUNCES,
     with_bounce_matrix: bool = True,
+    with_floor_table: bool = True,
 ) -> PrtResult:
     """PRT tables of ``points`` on ``mesh`` (see the module docstring).
 
@@ -147,6 +161,9 @@ def compute_prt(
     with_bounce_matrix : bool
         Also the (V, V) ``bounce_matrix`` for the primary light (:func:`primary_bounce_matrix`; off
         for the render mesh's thousands of vertices, and above :data:`MAX_BOUNCE_MATRIX` vertices).
+    with_floor_table : bool
+        Also the primary light's ``floor_shadow`` table (:func:`floor_shadow_table`; with
+        ``floor_shadow``; off for the render mesh, which gets the proxy's carried).
 
     Returns
     -------
@@ -182,6 +199,7 @@ def compute_prt(
     # the floor a downward ray meets is the object's own shadow near the object: its radiance there is
     # the floor's ambient radiance times the floor's unoccluded share (cosine-weighted sky visibility)
     free_down = np.flatnonzero(~blocked & (D[ki, 1] < -1e-6))
+    floor_dirs = floor_table = None
     if floor_shadow and len(free_down):
         ao = floor_occlusion(mesh, eps=eps)
         p0, d = P[vi[free_down]], D[ki[free_down]]
@@ -189,6 +207,13 @@ def compute_prt(
         lost[vi[free_down], ki[free_down]] += dw * cos[free_down] * (1.0 - ao(hit[:, [0, 2]]))
     T = unoccluded_transfer(N) - lost @ Y
     timings["transfer_s"] = time.perf_counter() - t0
+    if floor_shadow and with_floor_table and len(free_down):
+        t0 = time.perf_counter()
+        floor_dirs = fibonacci_sphere(FLOOR_SHADOW_DIRECTIONS)
+        floor_table = floor_shadow_table(
+            mesh, len(P), vi[free_down], hit[:, [0, 2]], dw * cos[free_down], ao, floor_dirs, eps
+        )
+        timings["floor_shadow_s"] = time.perf_counter() - t0
 
     # the primary light's visibility table: the object and the vertex's own tangent plane block (the
     # floor is applied at run time: runtime/prt.py)
@@ -236,7 +261,62 @@ def compute_prt(
         bounces=int(bounces),
         bounce_primary=bounce_primary,
         bounce_matrix=bounce_matrix,
+        floor_dirs=floor_dirs,
+        floor_shadow=floor_table,
     )
+
+
+def floor_shadow_table(
+    mesh,
+    n_points: int,
+    ray_point: np.ndarray,
+    hit_xz: np.ndarray,
+    ray_weight: np.ndarray,
+    ao: Callable[[np.ndarray], np.ndarray],
+    directions: np.ndarray,
+    eps: float = DEFAULT_EPS,
+    cells: int = 48,
+) -> np.ndarray:
+    """The primary light's shadow on the floor, as each point's downward rays see it: (V, F).
+
+    The transfer gives the floor a downward ray meets the ambient's floor radiance times the floor's
+    sky visibility ``ao`` (:func:`floor_occlusion`): right for the ambient light, but the primary
+    light's share of the floor's light is shadowed by the object in the light's own direction (a
+    long shadow on the far side, full light on the near side). Row i, column f:
+    ``sum over point i's downward rays r of w_r (vis_f(x_r) - ao(x_r))``, with ``w_r = dw cos`` the
+    ray's weight, ``x_r`` the floor point it meets and ``vis_f(x)`` whether direction f is open from
+    x (0 below the horizon). At run time ``E_i += s L_floor floor_shadow_i(d)`` with s the primary
+    light's share of the floor's irradiance and L_floor the floor's radiance (runtime/prt.py).
+    Computed on a ``cells`` x ``cells`` floor grid over the footprint widened by
+    :data:`FLOOR_SHADOW_REACH` object heights (bilinear), 0 beyond it.
+    """
+    v = np.asarray(mesh.vertices, np.float64)
+    h = float(max(v[:, 1].max(), 1e-3))
+    lo = v[:, [0, 2]].min(0) - FLOOR_SHADOW_REACH * h
+    hi = v[:, [0, 2]].max(0) + FLOOR_SHADOW_REACH * h
+    gx, gz = np.linspace(lo[0], hi[0], cells), np.linspace(lo[1], hi[1], cells)
+    X, Z = np.meshgrid(gx, gz, indexing="ij")
+    grid_xz = np.stack([X.ravel(), Z.ravel()], 1)
+    up = np.flatnonzero(directions[:, 1] > 1e-6)
+    pts = np.stack([grid_xz[:, 0], np.full(len(grid_xz), eps), grid_xz[:, 1]], 1)
+    tri, _ = first_hits(mesh, np.repeat(pts, len(up), 0), np.tile(directions[up], (len(pts), 1)))
+    vis = np.zeros((len(pts), len(directions)))
+    vis[:, up] = (tri.reshape(len(pts), len(up)) < 0).astype(np.float64)
+    # (the floor's own sky visibility at the grid, as the transfer used it)
+    diff = vis - ao(grid_xz)[:, None]
+    diff[:, directions[:, 1] <= 1e-6] = 0.0  # a light below the horizon does not light the floor
+    # bilinear weights of each ray's floor point on the grid, summed per point: H (V, G)
+    fx = (hit_xz[:, 0] - lo[0]) / (hi[0] - lo[0]) * (cells - 1)
+    fz = (hit_xz[:, 1] - lo[1]) / (hi[1] - lo[1]) * (cells - 1)
+    inside = (fx >= 0) & (fx <= cells - 1) & (fz >= 0) & (fz <= cells - 1)
+    i0 = np.clip(np.floor(fx).astype(np.int64), 0, cells - 2)
+    j0 = np.clip(np.floor(fz).astype(np.int64), 0, cells - 2)
+    tx, tz = np.clip(fx - i0, 0, 1), np.clip(fz - j0, 0, 1)
+    H = np.zeros((n_points, cells * cells))
+    w = np.where(inside, ray_weight, 0.0)
+    for di, dj, cw in ((0, 0, (1 - tx) * (1 - tz)), (1, 0, tx * (1 - tz)), (0, 1, (1 - tx) * tz), (1, 1, tx * tz)):
+        np.add.at(H, (ray_point, (i0 + di) * cells + (j0 + dj)), w * cw)
+    return (H @ diff).astype(np.float32)
 
 
 def primary_bounce_matrix(op: Callable[[np.ndarray], np.ndarray], n: int, albedo: float, bounces: int) -> np.ndarray:
@@ -364,6 +444,7 @@ def render_transfer_arrays(
         progress=prog,
         bounces=bounces,
         with_bounce_matrix=False,
+        with_floor_table=False,
     )
     out = {"render_transfer": res.transfer.astype(np.float32)}
     if res.bounce is not None:

@@ -29,6 +29,15 @@ this module only reads and evaluates them, in well under a millisecond per frame
   proxy (cosine, distance, visibility: below), so a lamp shining into the vase's mouth lights its
   inside and one beside it does not, which the SH2 lobe could not tell apart. The render mesh gets
   the proxy's values carried (an interreflection is smooth).
+* ``floor_dirs`` (F, 3) and ``floor_shadow`` (V, F) float16, optional (bundles since the tenth wave):
+  the transfer gives the floor a downward ray meets the ambient's floor radiance times the floor's
+  sky visibility, right for the ambient but not for the primary light, whose share of the floor's
+  light the object shadows in the light's own direction (a long shadow behind a low lamp, full light
+  in front). ``floor_shadow_i(w_f)`` sums, over vertex i's downward rays, ``dw cos`` times (whether
+  direction f is open from the floor point the ray meets minus that point's sky visibility); at run
+  time ``E_i += floor_shadow_i(d) s L_floor`` with s the primary's share of the floor's irradiance and
+  L_floor the ambient's radiance straight down (:func:`_floor_shadow_term`). The render mesh gets the
+  proxy's values carried.
 * ``render_transfer``, ``render_bounce``, ``render_bounce_primary`` (R, 9), optional (``illuminet bundle
   --render-transfer``): the same integrals at every vertex of the render mesh. The object's
   self-occlusion varies faster than the lighting proxy's few hundred vertices sample it (the vase's
@@ -107,6 +116,8 @@ class PrtTables:
     bounce_primary: np.ndarray | None = None  # (V, 9) float64, optional
     render_bounce_primary: np.ndarray | None = None  # (R, 9) float32, optional
     bounce_matrix: np.ndarray | None = None  # (V, V) float32, optional
+    floor_dirs: np.ndarray | None = None  # (F, 3) float64 unit, optional
+    floor_shadow: np.ndarray | None = None  # (F, V) float32, optional (stored (V, F))
 
     @property
     def n_vertices(self) -> int:
@@ -158,8 +169,20 @@ class PrtTables:
             bounce_matrix = np.asarray(arrays["bounce_matrix"], np.float32)
             if bounce is None or bounce_matrix.shape != (V, V):
                 raise ValueError(f"bounce_matrix must be ({V}, {V}) and come with bounce, got {bounce_matrix.shape}")
-        if not all(a is None or np.isfinite(a).all() for a in (t, bounce, bounce_primary, bounce_matrix)):
-            raise ValueError("transfer/bounce hold non-finite values")
+        floor_dirs = floor_shadow = None
+        if ("floor_dirs" in arrays) != ("floor_shadow" in arrays):
+            raise ValueError("floor_dirs and floor_shadow come together (the primary light's floor-shadow table)")
+        if "floor_shadow" in arrays:
+            floor_dirs = np.asarray(arrays["floor_dirs"], np.float32)
+            floor_shadow = np.asarray(arrays["floor_shadow"], np.float32)
+            if floor_dirs.ndim != 2 or floor_dirs.shape[1] != 3 or len(floor_dirs) < 8:
+                raise ValueError(f"floor_dirs must be (F >= 8, 3), got {floor_dirs.shape}")
+            if not np.allclose(np.linalg.norm(floor_dirs, axis=1), 1.0, atol=1e-4):
+                raise ValueError("floor_dirs must be unit vectors")
+            if floor_shadow.shape != (V, len(floor_dirs)):
+                raise ValueError(f"floor_shadow must be ({V}, {len(floor_dirs)}), got {floor_shadow.shape}")
+        if not all(a is None or np.isfinite(a).all() for a in (t, bounce, bounce_primary, bounce_matrix, floor_shadow)):
+            raise ValueError("transfer/bounce/floor_shadow hold non-finite values")
         render = {}
         for key in ("render_transfer", "render_bounce", "render_bounce_primary"):
             if key not in arrays:
@@ -181,6 +204,10 @@ class PrtTables:
             bounce=None if bounce is None else bounce.astype(np.float64),
             bounce_primary=None if bounce_primary is None else bounce_primary.astype(np.float64),
             bounce_matrix=bounce_matrix,
+            floor_dirs=None
+            if floor_dirs is None
+            else floor_dirs.astype(np.float64) / np.linalg.norm(floor_dirs, axis=1, keepdims=True),
+            floor_shadow=None if floor_shadow is None else np.ascontiguousarray(floor_shadow.T),
             **render,
         )
 
@@ -204,6 +231,16 @@ class PrtTables:
         sel = np.flatnonzero(w)
         w = w[sel]
         return (w @ self.visibility[sel]) * (f / w.sum())
+
+    def floor_shadow_at(self, direction: np.ndarray) -> np.ndarray:
+        """The floor-shadow table (V,) for a light in ``direction`` (unit, object frame), interpolated
+        over ``floor_dirs`` with the same kernel as the visibility (in units of its own spacing)."""
+        d = np.asarray(direction, np.float64).reshape(3)
+        r = KERNEL_RADIUS * np.sqrt(4.0 * np.pi / len(self.floor_dirs))
+        r2 = float((2.0 * np.sin(min(r, np.pi) / 2.0)) ** 2)
+        w = np.maximum(1.0 - (2.0 - 2.0 * (self.floor_dirs @ d)) / r2, 0.0) ** 2
+        sel = np.flatnonzero(w)
+        return (w[sel] @ self.floor_shadow[sel]) / max(float(w[sel].sum()), 1e-12)
 
     def primary_visibility_per_vertex(self, directions: np.ndarray) -> np.ndarray:
         """Visibility (V,) of a light seen from each vertex in its own direction ``directions`` (V, 3),
@@ -261,14 +298,24 @@ def _directions_to(pos: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def _shade(
-    transfer, bounce, geom: PrtGeometry, estimate, vis_distant, vis_near, dtype, bounce_primary=None, bounce_of=None
+    transfer,
+    bounce,
+    geom: PrtGeometry,
+    estimate,
+    vis_distant,
+    vis_near,
+    dtype,
+    bounce_primary=None,
+    bounce_of=None,
+    floor_of=None,
 ) -> np.ndarray:
     """Shading of some vertices (the proxy's or the render mesh's) from their transfer and bounce
     arrays; ``vis_distant(d)`` / ``vis_near(pos)`` give those vertices' visibility of a distant light in
     direction d / of a light at pos (module docstring); ``bounce_primary`` (else ``bounce``) carries the
     primary light's interreflection, unless ``bounce_of(g)`` gives it from the primary's direct light g
-    on these vertices (the tables' ``bounce_matrix``). Evaluated in ``dtype``; returns float32 clamped
-    at 0.
+    on these vertices (the tables' ``bounce_matrix``); ``floor_of(d)`` gives these vertices' floor-shadow
+    values for a primary light in direction d (the tables' ``floor_shadow``). Evaluated in ``dtype``;
+    returns float32 clamped at 0.
 
     ``E = (T + B) . L + B1 . Lp + g rgb`` (Lp: the primary light as SH): ``T . L + B . (L + Lp)`` when
     the tables have no ``bounce_primary`` (B1 = B), the transfer alone without a bounce."""
@@ -303,8 +350,29 @@ def _shade(
         E += g.astype(dtype)[:, None] * rgb.astype(dtype)[None, :]
         if bounce is not None and bounce_of is None:
             E += (bounce_primary if bounce_primary is not None else bounce) @ primary_radiance_sh9(d, rgb).astype(dtype)
+        if floor_of is not None:
+            E += _floor_shadow_term(estimate, L, d if pos is None else pos / np.linalg.norm(pos), rgb, floor_of, dtype)
     np.maximum(E, 0.0, out=E)
     return E.astype(np.float32, copy=False)
+
+
+_UP = sh9(np.array([[0.0, 1.0, 0.0]]))[0]
+_DOWN = sh9(np.array([[0.0, -1.0, 0.0]]))[0]
+
+
+def _floor_shadow_term(estimate, L_rad, to_light: np.ndarray, rgb: np.ndarray, floor_of, dtype) -> np.ndarray:
+    """The primary light's share of the floor bounce moved by the object's shadow on the floor:
+    ``floor_shadow(d) x s x L_floor`` (V, 3), with s the primary's share of the floor's irradiance
+    (per channel, at the anchor; for a near light its direction from the anchor) and L_floor the
+    ambient's radiance straight down (the floor, as the transfer sees it)."""
+    up = float(to_light[1])
+    if up <= 0.0:
+        return np.zeros((1, 3), dtype)
+    p = rgb * up  # the primary light's irradiance on the floor at the anchor
+    a = np.maximum(_UP @ np.asarray(estimate.sh9, np.float64), 0.0)  # the ambient's, from above
+    share = p / np.maximum(p + a, 1e-12)
+    l_floor = np.maximum(_DOWN @ np.asarray(L_rad, np.float64), 0.0)
+    return floor_of(to_light).astype(dtype)[:, None] * (share * l_floor).astype(dtype)[None, :]
 
 
 def prt_irradiance(
@@ -337,6 +405,7 @@ def prt_irradiance(
         np.float64,
         tables.bounce_primary,
         None if tables.bounce_matrix is None else (lambda g: tables.bounce_matrix @ g.astype(np.float32)),
+        None if tables.floor_shadow is None else tables.floor_shadow_at,
     )
 
 
@@ -385,6 +454,7 @@ def prt_irradiance_render(
         None
         if tables.bounce_matrix is None
         else (lambda g: carried(tables.bounce_matrix @ g[proxy_index].astype(np.float32))),
+        None if tables.floor_shadow is None else (lambda d: carried(tables.floor_shadow_at(d))),
     )
 
 

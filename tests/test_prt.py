@@ -450,6 +450,15 @@ def test_damaged_prt_table_is_reported(tmp_path, prt_bundle):
     finalize_bundle(d, json.loads((d / "bundle.json").read_text()))
     with pytest.raises(BundleError, match=r"prt\.npz: bounce_matrix must be \(120, 120\)"):
         load_bundle(d)
+    # ... and the primary light's floor-shadow table
+    with np.load(prt_bundle / "prt.npz") as z:
+        arr["bounce_matrix"] = z["bounce_matrix"]
+        assert z["floor_shadow"].shape == (120, len(z["floor_dirs"]))
+        arr["floor_shadow"] = z["floor_shadow"][:-1]
+    np.savez_compressed(d / "prt.npz", **arr)
+    finalize_bundle(d, json.loads((d / "bundle.json").read_text()))
+    with pytest.raises(BundleError, match=r"prt\.npz: floor_shadow must be \(120, 512\)"):
+        load_bundle(d)
 
 
 def test_an_array_declaring_gigabytes_is_refused_before_it_is_read(tmp_path, prt_bundle):
@@ -482,9 +491,10 @@ def test_shipped_bundles_have_prt_made_by_the_command(name):
     assert b.has_model and b.prt is not None and b.prt.bounce is not None
     p = b.meta["prt"]
     assert p["command"].startswith(f"illuminet bundle --object builtin:{name}") and p["seed"] == 0
-    # proxy tables (~50 KB) + the transfer and the two bounce arrays of every render vertex (9026 x 9 x 3
-    # float32)
-    assert (b.path / "prt.npz").stat().st_size < 1024 * 1024
+    # proxy tables (transfer, 4096-direction visibility, bounce matrix, floor shadow: ~0.5 MB) + the
+    # transfer and the two bounce arrays of every render vertex (9026 x 9 x 3 float32), compressed
+    assert (b.path / "prt.npz").stat().st_size < 1536 * 1024
+    assert b.prt.floor_shadow is not None and b.prt.bounce_matrix is not None
     # the inside of the object is darker in the transfer than outside on average
     ao = b.prt.transfer[:, 0] / unoccluded_transfer(b.proxy_normals)[:, 0]
     assert ao.min() < 0.7 and ao.max() > 0.95
@@ -597,3 +607,47 @@ def test_the_bundle_command_defaults_to_the_models_table_directions():
     p = argparse.ArgumentParser()
     cmd.register(p.add_subparsers())
     assert p.parse_args(["bundle", "--object", "x", "--out", "y"]).directions == DEFAULT_TABLE_DIRECTIONS
+
+
+def _standing_cylinder():
+    m = trimesh.creation.cylinder(radius=0.05, height=0.15, sections=24)
+    m.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))  # axis z -> y
+    m.apply_translation([0, -m.bounds[0][1], 0])  # standing on the floor
+    return m
+
+
+def test_the_object_shadows_the_primary_lights_floor_bounce_on_its_far_side():
+    # ground truth shadows every light on the floor under and beside the object; the floor bounce of
+    # the transfer was the ambient's times the floor's sky visibility, the same on every side
+    from illuminet.models.prt import compute_prt
+
+    m = _standing_cylinder()
+    assert abs(m.bounds[0][1]) < 1e-9
+    sub = m.subdivide().subdivide()
+    pts, nrm = np.asarray(sub.vertices), np.asarray(sub.vertex_normals)
+    res = compute_prt(m, pts, nrm, transfer_rays=1024, table_directions=256, albedo=0.0)
+    tab = res.tables()
+    assert tab.floor_shadow is not None and tab.floor_shadow.shape == (len(tab.floor_dirs), len(pts))
+    low = _unit([1.0, 0.45, 0.0])  # a lamp low on +x: a long shadow on -x
+    q = tab.floor_shadow_at(low)
+    near_floor = pts[:, 1] < 0.03
+    far, near = near_floor & (pts[:, 0] < -0.03), near_floor & (pts[:, 0] > 0.03)
+    assert q[far].mean() < -0.05  # the floor it sees lies in the shadow (its sky visibility said lit)
+    assert q[near].mean() > q[far].mean() + 0.1
+    # mirrored light, mirrored answer (up to the tables' direction sampling)
+    q2 = tab.floor_shadow_at(low * [-1, 1, 1])
+    assert q2[near].mean() < -0.05 and abs(q2[near].mean() - q[far].mean()) < 0.05
+    # a light from straight above casts no shadow beside the object: the sky's share is what changes
+    assert abs(tab.floor_shadow_at(_unit([0, 1, 0]))[far].mean()) < abs(q[far].mean())
+    # below the horizon the light does not reach the floor
+    assert np.allclose(tab.floor_shadow_at(_unit([1, -0.2, 0])), 0.0)
+    # the shading: the far side's floor bounce is darker, the near side's lighter; a grey floor from below
+    sh = np.zeros((9, 3))
+    sh[0] = 1.0 / 0.282095 * np.pi * 0.3  # uniform ambient
+    est = LightEstimate(sh9=sh, primary_dir=low, primary_rgb=np.array([3.0, 3.0, 3.0]))
+    from illuminet.runtime.prt import prt_irradiance
+
+    with_t = prt_irradiance(tab, pts, nrm, est)
+    without = prt_irradiance(dataclasses.replace(tab, floor_shadow=None, floor_dirs=None), pts, nrm, est)
+    down_far = far & (nrm[:, 1] < -0.5)
+    assert (with_t[down_far] <= without[down_far] + 1e-6).all() and (with_t[down_far] < without[down_far]).any()
