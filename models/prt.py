@@ -306,17 +306,28 @@ def floor_shadow_table(
     diff = vis - ao(grid_xz)[:, None]
     diff[:, directions[:, 1] <= 1e-6] = 0.0  # a light below the horizon does not light the floor
     # bilinear weights of each ray's floor point on the grid, summed per point: H (V, G)
-    fx = (hit_xz[:, 0] - lo[0]) / (hi[0] - lo[0]) * (cells - 1)
-    fz = (hit_xz[:, 1] - lo[1]) / (hi[1] - lo[1]) * (cells - 1)
+    cell, wts, inside = _floor_bilinear(hit_xz, lo, hi, cells)
+    H = np.zeros((n_points, cells * cells))
+    w = np.where(inside, ray_weight, 0.0)
+    for c in range(4):
+        np.add.at(H, (ray_point, cell[:, c]), w * wts[:, c])
+    return (H @ diff).astype(np.float32)
+
+
+def _floor_bilinear(xz: np.ndarray, lo: np.ndarray, hi: np.ndarray, cells: int):
+    """Bilinear lookup of floor points ``xz`` (N, 2) on a ``cells`` x ``cells`` grid spanning ``lo`` ..
+    ``hi`` (row-major, x first): the 4 corner nodes (N, 4), their weights (N, 4) and whether each
+    point lies on the grid (N,)."""
+    xz = np.asarray(xz, np.float64)
+    fx = (xz[:, 0] - lo[0]) / (hi[0] - lo[0]) * (cells - 1)
+    fz = (xz[:, 1] - lo[1]) / (hi[1] - lo[1]) * (cells - 1)
     inside = (fx >= 0) & (fx <= cells - 1) & (fz >= 0) & (fz <= cells - 1)
     i0 = np.clip(np.floor(fx).astype(np.int64), 0, cells - 2)
     j0 = np.clip(np.floor(fz).astype(np.int64), 0, cells - 2)
     tx, tz = np.clip(fx - i0, 0, 1), np.clip(fz - j0, 0, 1)
-    H = np.zeros((n_points, cells * cells))
-    w = np.where(inside, ray_weight, 0.0)
-    for di, dj, cw in ((0, 0, (1 - tx) * (1 - tz)), (1, 0, tx * (1 - tz)), (0, 1, (1 - tx) * tz), (1, 1, tx * tz)):
-        np.add.at(H, (ray_point, (i0 + di) * cells + (j0 + dj)), w * cw)
-    return (H @ diff).astype(np.float32)
+    node = np.stack([i0 * cells + j0, (i0 + 1) * cells + j0, i0 * cells + j0 + 1, (i0 + 1) * cells + j0 + 1], 1)
+    wts = np.stack([(1 - tx) * (1 - tz), tx * (1 - tz), (1 - tx) * tz, tx * tz], 1)
+    return node, wts, inside
 
 
 def primary_bounce_matrix(op: Callable[[np.ndarray], np.ndarray], n: int, albedo: float, bounces: int) -> np.ndarray:
@@ -361,23 +372,11 @@ def floor_occlusion(
     w = D[:, 1] / D[:, 1].sum()
     tri, _ = first_hits(mesh, np.repeat(pts, len(D), 0), np.tile(D, (len(pts), 1)))
     open_ = (tri.reshape(len(pts), len(D)) < 0).astype(np.float64) @ w
-    grid = open_.reshape(cells, cells)
 
     def ao(xz: np.ndarray) -> np.ndarray:
-        xz = np.asarray(xz, np.float64)
-        fx = (xz[:, 0] - lo[0]) / (hi[0] - lo[0]) * (cells - 1)
-        fz = (xz[:, 1] - lo[1]) / (hi[1] - lo[1]) * (cells - 1)
-        inside = (fx >= 0) & (fx <= cells - 1) & (fz >= 0) & (fz <= cells - 1)
-        i0 = np.clip(np.floor(fx).astype(np.int64), 0, cells - 2)
-        j0 = np.clip(np.floor(fz).astype(np.int64), 0, cells - 2)
-        tx, tz = np.clip(fx - i0, 0, 1), np.clip(fz - j0, 0, 1)
-        val = (
-            (1 - tx) * (1 - tz) * grid[i0, j0]
-            + tx * (1 - tz) * grid[i0 + 1, j0]
-            + (1 - tx) * tz * grid[i0, j0 + 1]
-            + tx * tz * grid[i0 + 1, j0 + 1]
-        )
-        return np.where(inside, val, 1.0)
+        node, wts, inside = _floor_bilinear(xz, lo, hi, cells)
+        g = open_[node] * wts
+        return np.where(inside, g[:, 0] + g[:, 1] + g[:, 2] + g[:, 3], 1.0)
 
     return ao
 

@@ -90,6 +90,24 @@ def unpack_visibility(bits: np.ndarray, n_vertices: int) -> np.ndarray:
     return np.unpackbits(np.asarray(bits, np.uint8), axis=1, count=n_vertices, bitorder="little").astype(np.float32)
 
 
+def _kernel_chord2(n_directions: int) -> float:
+    """Squared chord length of the kernel radius (:data:`KERNEL_RADIUS` spacings of a table of
+    ``n_directions``)."""
+    r = KERNEL_RADIUS * np.sqrt(4.0 * np.pi / n_directions)
+    return float((2.0 * np.sin(min(r, np.pi) / 2.0)) ** 2)
+
+
+def _kernel_weights(cos: np.ndarray, r2: float) -> np.ndarray:
+    """Kernel weights from cosines to table directions (``cos`` overwritten): (1 - chord^2 / R^2)^2
+    inside the radius R (``r2`` = R^2), else 0; chord^2 = 2 - 2 cos, so the base is linear in cos (in
+    place: per frame)."""
+    w = np.multiply(cos, 2.0 / r2, out=cos)
+    w += 1.0 - 2.0 / r2
+    np.maximum(w, 0.0, out=w)
+    w *= w
+    return w
+
+
 @dataclass(frozen=True)
 class PrtTables:
     """A bundle's PRT tables for its V proxy vertices (see the module docstring).
@@ -126,8 +144,7 @@ class PrtTables:
     @property
     def _chord2(self) -> float:
         """Squared chord length of the kernel radius."""
-        r = KERNEL_RADIUS * np.sqrt(4.0 * np.pi / len(self.directions))
-        return float((2.0 * np.sin(min(r, np.pi) / 2.0)) ** 2)
+        return _kernel_chord2(len(self.directions))
 
     @classmethod
     def from_arrays(cls, arrays, n_vertices: int, n_render: int | None = None) -> PrtTables:
@@ -212,14 +229,8 @@ class PrtTables:
         )
 
     def _weights(self, cos: np.ndarray) -> np.ndarray:
-        """Kernel weights from cosines to table directions (overwritten): (1 - chord^2 / R^2)^2 inside
-        the radius R, else 0; chord^2 = 2 - 2 cos, so the base is linear in cos (in place: per frame)."""
-        r2 = self._chord2
-        w = np.multiply(cos, 2.0 / r2, out=cos)
-        w += 1.0 - 2.0 / r2
-        np.maximum(w, 0.0, out=w)
-        w *= w
-        return w
+        """Kernel weights from cosines to table directions (overwritten): :func:`_kernel_weights`."""
+        return _kernel_weights(cos, self._chord2)
 
     def primary_visibility(self, direction: np.ndarray) -> np.ndarray:
         """Visibility (V,) in [0, 1] of a distant light in ``direction`` (unit, object frame), floor included."""
@@ -236,9 +247,7 @@ class PrtTables:
         """The floor-shadow table (V,) for a light in ``direction`` (unit, object frame), interpolated
         over ``floor_dirs`` with the same kernel as the visibility (in units of its own spacing)."""
         d = np.asarray(direction, np.float64).reshape(3)
-        r = KERNEL_RADIUS * np.sqrt(4.0 * np.pi / len(self.floor_dirs))
-        r2 = float((2.0 * np.sin(min(r, np.pi) / 2.0)) ** 2)
-        w = np.maximum(1.0 - (2.0 - 2.0 * (self.floor_dirs @ d)) / r2, 0.0) ** 2
+        w = _kernel_weights(self.floor_dirs @ d, _kernel_chord2(len(self.floor_dirs)))
         sel = np.flatnonzero(w)
         return (w[sel] @ self.floor_shadow[sel]) / max(float(w[sel].sum()), 1e-12)
 

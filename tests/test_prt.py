@@ -426,39 +426,34 @@ def test_prt_mode_on_a_bundle_without_tables_names_the_command(tmp_path):
         _stage(d, shading="prt")
 
 
+def _write_prt(d, arr):
+    """Write ``arr`` as bundle ``d``'s prt.npz, with bundle.json's checksum brought up to date."""
+    from illuminet.models.export import finalize_bundle
+
+    np.savez_compressed(d / "prt.npz", **arr)
+    finalize_bundle(d, json.loads((d / "bundle.json").read_text()))
+
+
 def test_damaged_prt_table_is_reported(tmp_path, prt_bundle):
     import shutil
 
-    from illuminet.models.export import finalize_bundle
-
     d = tmp_path / "b"
     shutil.copytree(prt_bundle, d)
-    with np.load(d / "prt.npz") as z:
-        arr = {k: z[k] for k in z.files}
-    arr["transfer"] = arr["transfer"][:-1]
-    np.savez_compressed(d / "prt.npz", **arr)
-    finalize_bundle(d, json.loads((d / "bundle.json").read_text()))
-    with pytest.raises(BundleError, match=r"prt\.npz: transfer must be \(120, 9\)"):
-        load_bundle(d)
-    # the primary light's bounce matrix is checked the same way
-    arr = {k: v for k, v in arr.items()}
     with np.load(prt_bundle / "prt.npz") as z:
-        arr["transfer"] = z["transfer"]
-        assert z["bounce_matrix"].shape == (120, 120)
-        arr["bounce_matrix"] = z["bounce_matrix"][:, :-1]
-    np.savez_compressed(d / "prt.npz", **arr)
-    finalize_bundle(d, json.loads((d / "bundle.json").read_text()))
-    with pytest.raises(BundleError, match=r"prt\.npz: bounce_matrix must be \(120, 120\)"):
-        load_bundle(d)
-    # ... and the primary light's floor-shadow table
-    with np.load(prt_bundle / "prt.npz") as z:
-        arr["bounce_matrix"] = z["bounce_matrix"]
-        assert z["floor_shadow"].shape == (120, len(z["floor_dirs"]))
-        arr["floor_shadow"] = z["floor_shadow"][:-1]
-    np.savez_compressed(d / "prt.npz", **arr)
-    finalize_bundle(d, json.loads((d / "bundle.json").read_text()))
-    with pytest.raises(BundleError, match=r"prt\.npz: floor_shadow must be \(120, 512\)"):
-        load_bundle(d)
+        good = {k: z[k] for k in z.files}
+    assert good["bounce_matrix"].shape == (120, 120)
+    assert good["floor_shadow"].shape == (120, len(good["floor_dirs"]))
+    # each array cut by one row or column, the others intact: named with the shape it must have
+    for key, cut, message in [
+        ("transfer", lambda a: a[:-1], r"prt\.npz: transfer must be \(120, 9\)"),
+        # the primary light's bounce matrix is checked the same way
+        ("bounce_matrix", lambda a: a[:, :-1], r"prt\.npz: bounce_matrix must be \(120, 120\)"),
+        # ... and the primary light's floor-shadow table
+        ("floor_shadow", lambda a: a[:-1], r"prt\.npz: floor_shadow must be \(120, 512\)"),
+    ]:
+        _write_prt(d, {**good, key: cut(good[key])})
+        with pytest.raises(BundleError, match=message):
+            load_bundle(d)
 
 
 def test_an_array_declaring_gigabytes_is_refused_before_it_is_read(tmp_path, prt_bundle):
@@ -554,16 +549,13 @@ def test_render_transfer_shades_every_render_vertex(render_bundle, prt_bundle):
 def test_damaged_render_transfer_is_reported(tmp_path, render_bundle):
     import shutil
 
-    from illuminet.models.export import finalize_bundle
-
     d = tmp_path / "b"
     shutil.copytree(render_bundle, d)
     with np.load(d / "prt.npz") as z:
         arr = {k: z[k] for k in z.files}
     R = len(arr["render_transfer"])
     arr["render_transfer"] = arr["render_transfer"][:-1]
-    np.savez_compressed(d / "prt.npz", **arr)
-    finalize_bundle(d, json.loads((d / "bundle.json").read_text()))
+    _write_prt(d, arr)
     with pytest.raises(BundleError, match=rf"prt\.npz: render_transfer must be \({R}, 9\)"):
         load_bundle(d)
 
