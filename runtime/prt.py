@@ -36,7 +36,7 @@ this module only reads and evaluates them, in well under a millisecond per frame
   in front). ``floor_shadow_i(w_f)`` sums, over vertex i's downward rays, ``dw cos`` times (whether
   direction f is open from the floor point the ray meets minus that point's sky visibility); at run
   time ``E_i += floor_shadow_i(d) s L_floor`` with s the primary's share of the floor's irradiance and
-  L_floor the ambient's radiance straight down (:func:`_floor_shadow_term`). The render mesh gets the
+  L_floor the ambient's radiance straight down (:func:`_floor_shadow_colour`). The render mesh gets the
   proxy's values carried.
 * ``render_transfer``, ``render_bounce``, ``render_bounce_primary`` (R, 9), optional (``illuminet bundle
   --render-transfer``): the same integrals at every vertex of the render mesh. The object's
@@ -356,11 +356,22 @@ def _shade(
             g *= vis_near(pos)
         if bounce_of is not None:
             g = g + bounce_of(g)
-        E += g.astype(dtype)[:, None] * rgb.astype(dtype)[None, :]
+        # per-vertex scalars times a colour each, added by one (N, k) @ (k, 3) product: numpy's
+        # broadcast (N, 1) * (3,) runs a 3-long inner loop (0.08 ms a term for 9026 vertices, 0.03 ms
+        # for the product of both)
+        scalars, colours = [g], [rgb]
         if bounce is not None and bounce_of is None:
             E += (bounce_primary if bounce_primary is not None else bounce) @ primary_radiance_sh9(d, rgb).astype(dtype)
         if floor_of is not None:
-            E += _floor_shadow_term(estimate, L, d if pos is None else pos / np.linalg.norm(pos), rgb, floor_of, dtype)
+            to_light = d if pos is None else pos / np.linalg.norm(pos)
+            colour = _floor_shadow_colour(estimate, L, to_light, rgb)
+            if colour is not None:
+                scalars.append(floor_of(to_light))
+                colours.append(colour)
+        S = np.empty((len(E), len(scalars)), dtype)
+        for i, v in enumerate(scalars):
+            S[:, i] = v
+        E += S @ np.array(colours, dtype)
     np.maximum(E, 0.0, out=E)
     return E.astype(np.float32, copy=False)
 
@@ -369,19 +380,20 @@ _UP = sh9(np.array([[0.0, 1.0, 0.0]]))[0]
 _DOWN = sh9(np.array([[0.0, -1.0, 0.0]]))[0]
 
 
-def _floor_shadow_term(estimate, L_rad, to_light: np.ndarray, rgb: np.ndarray, floor_of, dtype) -> np.ndarray:
-    """The primary light's share of the floor bounce moved by the object's shadow on the floor:
-    ``floor_shadow(d) x s x L_floor`` (V, 3), with s the primary's share of the floor's irradiance
-    (per channel, at the anchor; for a near light its direction from the anchor) and L_floor the
-    ambient's radiance straight down (the floor, as the transfer sees it)."""
+def _floor_shadow_colour(estimate, L_rad, to_light: np.ndarray, rgb: np.ndarray) -> np.ndarray | None:
+    """The colour the floor-shadow table is weighted by (3,): the primary light's share of the floor
+    bounce moved by the object's shadow on the floor is ``floor_shadow(d) x s x L_floor``, with s the
+    primary's share of the floor's irradiance (per channel, at the anchor; for a near light its
+    direction from the anchor) and L_floor the ambient's radiance straight down (the floor, as the
+    transfer sees it). None for a light below the horizon."""
     up = float(to_light[1])
     if up <= 0.0:
-        return np.zeros((1, 3), dtype)
+        return None
     p = rgb * up  # the primary light's irradiance on the floor at the anchor
     a = np.maximum(_UP @ np.asarray(estimate.sh9, np.float64), 0.0)  # the ambient's, from above
     share = p / np.maximum(p + a, 1e-12)
     l_floor = np.maximum(_DOWN @ np.asarray(L_rad, np.float64), 0.0)
-    return floor_of(to_light).astype(dtype)[:, None] * (share * l_floor).astype(dtype)[None, :]
+    return share * l_floor
 
 
 def prt_irradiance(

@@ -26,6 +26,21 @@ def test_shipped_bundle_loads_and_is_small(name):
         TransferChain(b, prec)
 
 
+def test_carry_is_the_weighted_sum_of_the_proxy_neighbours_and_follows_new_carry_arrays():
+    b = load_bundle("builtin:vase")
+    rng = np.random.default_rng(0)
+    for shape in ((b.n_proxy,), (b.n_proxy, 1), (b.n_proxy, 3)):
+        v = rng.random(shape).astype(np.float32)
+        ref = v[b.carry_index] * b.carry_weight.reshape(b.carry_weight.shape + (1,) * (v.ndim - 1))
+        got = b.carry(v)
+        assert got.shape == (len(b.vertices),) + shape[1:] and got.dtype == np.float32
+        np.testing.assert_allclose(got, ref.sum(1), rtol=1e-6, atol=1e-7)
+    # the cached columns belong to the arrays they were made from: new carry arrays are used as given
+    b.carry_index = np.zeros_like(b.carry_index)
+    v = rng.random(b.n_proxy).astype(np.float32)
+    np.testing.assert_allclose(b.carry(v), v[0] * b.carry_weight.sum(1), rtol=1e-6)
+
+
 def test_builtin_names_lists_shipped():
     assert {"vase", "bowl"} <= set(builtin_names())
 

@@ -115,6 +115,8 @@ class Bundle:
     prior_shading: np.ndarray
     prt: PrtTables | None = None
     extra: dict = field(default_factory=dict)
+    # carry's columns, contiguous (made on first use, for the carry arrays they were made from)
+    _carry_cols: tuple | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def name(self) -> str:
@@ -175,12 +177,23 @@ class Bundle:
             raise ValueError(f"carry: expected {self.n_proxy} proxy values, got {v.shape[0]}")
         # one gather per neighbour, summed in the same order as ``(v[index] * w).sum(1)`` (the same
         # bits), without the (R, K, ...) temporary and numpy's slow reduction over a short middle
-        # axis: 0.5 ms instead of 1.7 ms per frame for the vase's 9026 render vertices
-        idx, wt = self.carry_index, self.carry_weight
+        # axis: 0.5 ms instead of 1.7 ms per frame for the vase's 9026 render vertices; each column's
+        # indices and weights contiguous (``np.take`` of an intp column): 0.10 -> 0.045 ms for (V,)
+        cols = self._carry_cols
+        if cols is None or cols[0] is not self.carry_index or cols[1] is not self.carry_weight:
+            idx, wt = self.carry_index, self.carry_weight
+            cols = (
+                idx,
+                wt,
+                [np.ascontiguousarray(idx[:, k], dtype=np.intp) for k in range(idx.shape[1])],
+                [np.ascontiguousarray(wt[:, k]) for k in range(wt.shape[1])],
+            )
+            self._carry_cols = cols
+        _, _, idx_k, wt_k = cols
         tail = (1,) * (v.ndim - 1)
-        out = v[idx[:, 0]] * wt[:, 0].reshape((-1,) + tail)
-        for k in range(1, idx.shape[1]):
-            out += v[idx[:, k]] * wt[:, k].reshape((-1,) + tail)
+        out = np.take(v, idx_k[0], axis=0) * wt_k[0].reshape((-1,) + tail)
+        for i, w in zip(idx_k[1:], wt_k[1:]):
+            out += np.take(v, i, axis=0) * w.reshape((-1,) + tail)
         return out.astype(np.float32, copy=False)
 
 
