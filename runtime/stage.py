@@ -264,10 +264,13 @@ class StageChain:
         *,
         start: int = 0,
         stop: int | None = None,
+        on_cpu: Callable[[str, float], None] | None = None,
     ) -> tuple[Frame, list[StageEvent]]:
         """All stages on ``frame``; returns the finished frame and the failures/skips (usually none).
 
-        ``on_time(stage_name, seconds)`` is called for every stage that ran (also when it failed).
+        ``on_time(stage_name, seconds)`` is called for every stage that ran (also when it failed), and
+        ``on_cpu(stage_name, seconds)`` with the CPU time the calling thread spent in it (wall time
+        counts waiting for the GIL and for other threads; thread CPU time does not).
         ``start``/``stop`` run only the stages ``[start:stop]`` (a pipelined loop runs the chain in
         two segments on two threads, each segment on one thread and in frame order, so every
         stage still sees every frame once, in order, with the same policy).
@@ -289,6 +292,7 @@ class StageChain:
                 continue
             before = frame.results
             t0 = time.perf_counter()
+            c0 = time.thread_time() if on_cpu is not None else 0.0
             try:
                 out = st.process(frame)
                 if not isinstance(out, Frame):
@@ -296,6 +300,8 @@ class StageChain:
             except Exception as e:
                 if on_time is not None:
                     on_time(self.names[k], time.perf_counter() - t0)
+                if on_cpu is not None:
+                    on_cpu(self.names[k], time.thread_time() - c0)
                 if self.strict:
                     raise
                 events.append(StageEvent(k, self.names[k], "failed", f"stage:{self.names[k]}: {type(e).__name__}", e))
@@ -303,6 +309,8 @@ class StageChain:
                 continue
             if on_time is not None:
                 on_time(self.names[k], time.perf_counter() - t0)
+            if on_cpu is not None:
+                on_cpu(self.names[k], time.thread_time() - c0)
             self._last_good[k] = {key: v for key, v in out.results.items() if key not in before or before[key] is not v}
             frame = out
         return frame, events

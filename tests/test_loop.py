@@ -84,6 +84,32 @@ def test_all_frames_flow_through_with_timing(session):
     assert sink.closed
 
 
+class BusyStage(Stage):
+    """Spends ``busy_s`` of CPU on every frame."""
+
+    name = "busy"
+
+    def __init__(self, busy_s):
+        self.busy_s = busy_s
+
+    def process(self, frame):
+        t0 = time.thread_time()
+        x = 0
+        while time.thread_time() - t0 < self.busy_s:
+            x += 1
+        return frame.with_result("busy", x)
+
+
+@pytest.mark.parametrize("pipeline", ["serial", "threads"])
+def test_each_stage_is_charged_its_own_cpu_time_not_its_waits(session, pipeline):
+    # a stage that sleeps 20 ms a frame costs no CPU; one that computes 20 ms costs 20 ms
+    st = run_loop(_asap(session), [SeqStage(delay_s=0.02), BusyStage(0.02)], [NullSink()], pipeline=pipeline)
+    assert st.frames == 10
+    assert min(st.samples["stage:level"].values) >= 0.02
+    assert st.stage_cpu_s["level"] < 0.05  # 10 frames: ~0 CPU, against >= 0.2 s of wall time
+    assert 0.2 <= st.stage_cpu_s["busy"] < 0.4
+
+
 def test_failing_frame_is_counted_stream_goes_on_with_last_good_result(session, caplog):
     sink = Collect()
     stage = SeqStage(fail_on={3, 4, 7})

@@ -60,6 +60,7 @@ import concurrent.futures
 import dataclasses
 import logging
 import math
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -76,6 +77,9 @@ from illuminet.runtime.stages.shadow_cue import ShadowTracker
 log = logging.getLogger(__name__)
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
+
+#: the estimate's worker thread (``[light] pipelined``)
+WORKER_NAME = "illuminet-light"
 
 #: latitude-longitude bins of the environment map (theta from +Y, phi around it)
 ENV_THETA, ENV_PHI = 12, 24
@@ -599,6 +603,8 @@ class LightEstimateStage(Stage):
         self.frames = 0
         self.skipped = 0
         self.ms: list[float] = []
+        self.cpu_s = 0.0  # thread CPU time of every estimate
+        self.worker_cpu_s = 0.0  # of those computed on the worker thread (pipelined)
         rate = float(c.rate_hz)
         self.period_ns = int(1e9 / rate) if rate > 0 else 0
         self._last: LightEstimate | None = None
@@ -611,7 +617,7 @@ class LightEstimateStage(Stage):
 
     def open(self) -> None:
         if self.pipelined and self._pool is None:
-            self._pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="illuminet-light")
+            self._pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=WORKER_NAME)
 
     def close(self) -> None:
         if self._pool is not None:
@@ -660,6 +666,7 @@ class LightEstimateStage(Stage):
     def _estimate(self, frame: Frame, anchor: Anchor, pl: PlaneLight) -> LightEstimate:
         """One estimate from one frame (the body of the stage; runs on the worker when pipelined)."""
         t0 = time.perf_counter()
+        c0 = time.thread_time()
         planes = tuple(frame.results.get(PLANES.name, ()))
         self._maybe_reset(anchor, frame)
         scale = float(pl.exposure_scale) if pl.exposure_scale and pl.exposure_scale > 0 else 1.0
@@ -797,6 +804,10 @@ class LightEstimateStage(Stage):
         )
         self.frames += 1
         self.ms.append((time.perf_counter() - t0) * 1e3)
+        c = time.thread_time() - c0
+        self.cpu_s += c
+        if threading.current_thread().name.startswith(WORKER_NAME):
+            self.worker_cpu_s += c
         if len(self.ms) > 2000:
             del self.ms[:1000]
         return est
@@ -1157,6 +1168,7 @@ class LightEstimateStage(Stage):
         }
         if self.ms:
             st["median_ms"] = round(float(np.median(self.ms)), 2)
+            st["cpu_ms"] = round(self.cpu_s / self.frames * 1e3, 2)  # thread CPU time per estimate
         s = self._state
         if s is not None and s.get("dir") is not None:
             st["primary_dir"] = [round(float(v), 2) for v in s["dir"]]

@@ -91,6 +91,11 @@ class LoopStats:
         ``"serial"`` or ``"threads"`` (what the loop ran; ``[loop] pipeline``), with ``depth``.
     in_flight_max : int
         Most frames that ever waited in the pipelined loop's hand-off (never more than ``depth``).
+    stage_cpu_s : dict
+        Stage name -> CPU seconds the loop's threads spent in it over the run (thread CPU time: what a
+        stage costs, without the waits its wall time includes). Work a stage hands to its own
+        threads (the light estimate's worker, a decoder pool, the GL driver) is counted by the stage
+        that owns it, if at all (the light stage's ``cpu_ms`` in its stats; the replay's ``decode_cpu_ms``).
     """
 
     def __init__(self) -> None:
@@ -113,6 +118,7 @@ class LoopStats:
         self._t_end: float | None = None
         self._cpu_start: float | None = None
         self._cpu_end: float | None = None
+        self.stage_cpu_s: dict[str, float] = {}
 
     # -- recording (called by the loop)
 
@@ -127,6 +133,11 @@ class LoopStats:
             self._step(name)
             self.samples[name].add(seconds)
             self._recent[name].append(seconds)
+
+    def add_cpu(self, name: str, seconds: float) -> None:
+        """Add the thread CPU time stage ``name`` took on one frame (:attr:`stage_cpu_s`)."""
+        with self._lock:
+            self.stage_cpu_s[name] = self.stage_cpu_s.get(name, 0.0) + seconds
 
     def start(self) -> None:
         with self._lock:
@@ -658,7 +669,7 @@ class _Loop:
             except _StreamEnded as e:
                 return e.reason
             if item is not None:  # None: a live source had nothing new yet; check the stop flags again
-                frame, events = self.chain.run(item.frame, on_time=self._stage_time)
+                frame, events = self.chain.run(item.frame, on_time=self._stage_time, on_cpu=self.stats.add_cpu)
                 self.finish(item, frame, events)
             self._maybe_report()
 
@@ -678,7 +689,9 @@ class _Loop:
             if item is not None:
                 t0 = time.perf_counter()
                 self._t_back_start = t0
-                frame, events = self.chain.run(item.frame, on_time=self._stage_time, start=self.split)
+                frame, events = self.chain.run(
+                    item.frame, on_time=self._stage_time, on_cpu=self.stats.add_cpu, start=self.split
+                )
                 self.finish(item, frame, item.events + events)
                 self._ema_back = _ema(self._ema_back, time.perf_counter() - t0)
             self._maybe_report()
@@ -704,7 +717,9 @@ class _Loop:
                     continue
                 taken += 1
                 t0 = time.perf_counter()
-                item.frame, item.events = self.chain.run(item.frame, on_time=self._stage_time, stop=self.split)
+                item.frame, item.events = self.chain.run(
+                    item.frame, on_time=self._stage_time, on_cpu=self.stats.add_cpu, stop=self.split
+                )
                 self._ema_front = _ema(self._ema_front, time.perf_counter() - t0)
                 handoff.put(item)
                 self.stats.note_in_flight(handoff.max_len)
@@ -785,7 +800,7 @@ class _Loop:
     def run_stages(self, frame: Frame) -> Frame:
         """The stages (StageChain: the one failure / missing-input policy); failures and skips counted and logged."""
         self.current = frame
-        frame, events = self.chain.run(frame, on_time=self._stage_time)
+        frame, events = self.chain.run(frame, on_time=self._stage_time, on_cpu=self.stats.add_cpu)
         self.count_events(frame, events)
         return frame
 
