@@ -108,6 +108,7 @@ def test_each_stage_is_charged_its_own_cpu_time_not_its_waits(session, pipeline)
     assert min(st.samples["stage:level"].values) >= 0.02
     assert st.stage_cpu_s["level"] < 0.05  # 10 frames: ~0 CPU, against >= 0.2 s of wall time
     assert 0.2 <= st.stage_cpu_s["busy"] < 0.4
+    assert 20 <= st.to_dict()["stage_cpu_ms_per_frame"]["busy"] < 40
 
 
 def test_failing_frame_is_counted_stream_goes_on_with_last_good_result(session, caplog):

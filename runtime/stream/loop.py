@@ -248,7 +248,8 @@ class LoopStats:
         return out
 
     def to_dict(self) -> dict[str, Any]:
-        """Everything: counters, ``cpu_ms_per_frame``, the pipeline mode, and each step's ``n``,
+        """Everything: counters, ``cpu_ms_per_frame`` (and ``stage_cpu_ms_per_frame``: each stage's
+        thread CPU time per frame), the pipeline mode, and each step's ``n``,
         ``median_ms``, ``p99_ms``, ``max_ms`` (``steps["latency"]``: capture to sinks)."""
         with self._lock:
             steps = {k: s.summary() for k, s in self.samples.items()}
@@ -263,6 +264,9 @@ class LoopStats:
                 "pipeline": self.pipeline,
                 "depth": self.depth,
                 "in_flight_max": self.in_flight_max,
+                "stage_cpu_ms_per_frame": {
+                    k: v / self.frames * 1e3 if self.frames else 0.0 for k, v in self.stage_cpu_s.items()
+                },
             }
         el = self.elapsed_s
         d["elapsed_s"] = el
