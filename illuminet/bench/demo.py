@@ -106,6 +106,8 @@ def measure(url: str, cfg, modes: list[str], frames: int, rounds: int, depth: in
     from illuminet.runtime.stream.loop import run_loop
 
     runs: dict[str, list] = {m: [] for m in modes}
+    # the light estimate's worker thread, per mode: its CPU is not inside any stage's process()
+    worker_cpu: dict[str, float] = {m: 0.0 for m in modes}
     probes: dict[str, StillSink] = {}
     for _ in range(rounds):
         for mode in modes:
@@ -120,8 +122,7 @@ def measure(url: str, cfg, modes: list[str], frames: int, rounds: int, depth: in
                 pipeline=mode,
                 depth=depth,
             )
-            # the light estimate's worker thread: its CPU is not inside any stage's process()
-            stats.worker_cpu_s = sum(float(getattr(st, "worker_cpu_s", 0.0)) for st in stages)
+            worker_cpu[mode] += sum(float(getattr(st, "worker_cpu_s", 0.0)) for st in stages)
             runs[mode].append(stats)
             probes[mode] = probe
     out = {}
@@ -139,7 +140,7 @@ def measure(url: str, cfg, modes: list[str], frames: int, rounds: int, depth: in
         for st in stats_list:
             for k, v in st.stage_cpu_s.items():
                 stage_cpu[k] = stage_cpu.get(k, 0.0) + v
-        worker = sum(st.worker_cpu_s for st in stats_list)
+        worker = worker_cpu[mode]
         lat = np.asarray(steps.get("latency", [0.0])) * 1e3
         out[mode] = {
             "pipeline": stats_list[-1].pipeline,
