@@ -306,6 +306,47 @@ def test_a_pool_outside_the_grid_is_found_on_the_wider_context_grid():
     assert max(errs[1.0]) > 1.5 * max(errs[2.0]), errs
 
 
+def test_a_tracked_lamp_is_refined_at_the_fine_step_and_a_moved_lamp_is_found_again(monkeypatch):
+    """A lamp found before and still best among the coarse seeds is refined by one round at the fine
+    step (27 positions), not two; it stays where it is on the same floor, follows a few centimetres,
+    and a lamp moved half a metre is found again by the seeds with both rounds."""
+    import illuminet.runtime.stages.light_estimate as LE
+
+    rounds = []
+    real = LE._gradient_shares
+
+    def counting(cands, *a):
+        if len(cands) == 27:
+            rounds.append(len(cands))
+        return real(cands, *a)
+
+    monkeypatch.setattr(LE, "_gradient_shares", counting)
+    lamp = np.array([0.3, 0.35, -0.2])
+    x, n, rgb = _planked_floor(lamp)
+    pa, pb = LE.grid_pairs(np.ones(len(x), bool), 32)
+    first = LE.fit_near_light_gradient(x, n, rgb, pa, pb, LE.NEAR_GRID)
+    assert len(rounds) == 2 and np.linalg.norm(first.position - lamp) < 0.1
+    seeds = np.concatenate([LE.NEAR_GRID, first.position[None]])  # as the stage passes them
+
+    rounds.clear()
+    same = LE.fit_near_light_gradient(x, n, rgb, pa, pb, seeds, seed=1, keep=first)
+    assert len(rounds) == 1 and np.array_equal(same.position, first.position)
+
+    # the lamp moved 4 cm: still the best seed, the fine step follows it (or keeps it within GRAD_KEEP)
+    moved = lamp + np.array([0.04, 0.0, 0.0])
+    x, n, rgb = _planked_floor(moved)
+    rounds.clear()
+    near = LE.fit_near_light_gradient(x, n, rgb, pa, pb, seeds, seed=2, keep=first)
+    assert len(rounds) == 1 and np.linalg.norm(near.position - moved) < 0.1
+
+    # moved 0.5 m: a coarse seed explains more than the kept place, so both rounds search around it
+    far = lamp + np.array([-0.5, 0.0, 0.3])
+    x, n, rgb = _planked_floor(far)
+    rounds.clear()
+    again = LE.fit_near_light_gradient(x, n, rgb, pa, pb, seeds, seed=3, keep=first)
+    assert len(rounds) == 2 and np.linalg.norm(again.position - far) < 0.1, again.position
+
+
 def test_grid_pairs_are_observed_neighbours():
     from illuminet.runtime.stages.light_estimate import grid_pairs
 

@@ -485,21 +485,27 @@ def fit_near_light_gradient(
         return NearFit(
             position=best[-1].astype(np.float64), r2=float(r2.max()), slope=np.zeros(3), intercepts=np.zeros((1, 3))
         )
-    step = np.array([0.1, 0.1, 0.1])
+    # a lamp still best among the coarse seeds is being tracked: it was refined to a 5 cm step before,
+    # so only the fine step is searched around it (one round of 27 positions, ~1.5 ms an estimate, not
+    # two); a lamp that moved farther than that is found by the seeds again, with both rounds
+    tracking = keep is not None and bool(np.all(best[-1] == keep.position))
+    step = np.full(3, 0.05 if tracking else 0.1)
     offs = np.stack(np.meshgrid(*([np.array([-1.0, 0.0, 1.0])] * 3), indexing="ij"), -1).reshape(-1, 3)
     ref = _subsample(len(pa), 2 * GRAD_PAIRS, seed + 1)
-    for _ in range(2):
+    for _ in range(1 if tracking else 2):
         cands = (best[:, None, :] + (offs * step)[None]).reshape(-1, 3)
         cands[:, 1] = np.maximum(cands[:, 1], 0.05)
         r2, _ = _gradient_shares(cands.astype(np.float32), x32, n32, dl[ref], pa[ref], pb[ref], 2)
         best = cands[np.argsort(r2)[-1:]]
         step = step / 2
     p = best[-1].astype(np.float64)
-    r2, _ = _gradient_shares(best[-1:].astype(np.float32), x32, n32, dl, pa, pb, 2)
     if keep is not None:
         kept = float(_gradient_shares(keep.position[None].astype(np.float32), x32, n32, dl, pa, pb, 2)[0][0])
-        if float(r2[0]) < kept + GRAD_KEEP:
+        if np.all(best[-1] == keep.position):  # the fine step kept it where it was
             return dataclasses.replace(keep, r2=kept)
+    r2, _ = _gradient_shares(best[-1:].astype(np.float32), x32, n32, dl, pa, pb, 2)
+    if keep is not None and float(r2[0]) < kept + GRAD_KEEP:
+        return dataclasses.replace(keep, r2=kept)
     # the slope and the ambient (the intercept) per colour channel, from the cells' values at p
     g = _near_basis(p[None], x.astype(np.float64), n.astype(np.float64))[0]
     X = np.c_[g, np.ones(len(g))]
