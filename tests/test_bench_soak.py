@@ -7,7 +7,7 @@ import re
 import numpy as np
 import pytest
 
-from illuminet.bench.soak import slope_mb_per_min
+from illuminet.bench.soak import heap_mb, slope_mb_per_min
 from illuminet.cli import main
 
 
@@ -15,6 +15,21 @@ def test_slope_is_the_least_squares_line_in_mb_per_minute():
     t = np.arange(0, 600, 1.0)
     assert slope_mb_per_min(t, 300 + 0.5 * t / 60) == pytest.approx(0.5)
     assert np.isnan(slope_mb_per_min(t[:2], t[:2]))
+
+
+def test_heap_figures_follow_a_real_allocation_and_its_release():
+    before = heap_mb()
+    if before is None:
+        pytest.skip("the C library is not glibc >= 2.33 (no mallinfo2): the soak prints RSS only")
+    # 64 blocks of 256 kB: below glibc's largest mmap threshold once raised, so they may come from the
+    # heap or be mmapped; either way they are in use
+    blocks = [np.ones(256 * 1024 // 8) for _ in range(64)]
+    during = heap_mb()
+    assert during[0] - before[0] >= 15.0, (before, during)
+    assert during[2] >= during[0] + during[1] - 1.0  # the heap holds what is in use and what is free in it
+    del blocks
+    after = heap_mb()
+    assert during[0] - after[0] >= 15.0, (during, after)
 
 
 def test_soak_runs_briefly_and_prints_its_figures(gl, capsys):
@@ -28,6 +43,8 @@ def test_soak_runs_briefly_and_prints_its_figures(gl, capsys):
     assert frames > 0 and mjpeg > 0 and events > 0, out
     assert re.search(r"per-frame loop time median [0-9.]+ ms, p99 [0-9.]+ ms", out)
     assert "failures: 0 " in out, out
+    if heap_mb() is not None:
+        assert re.search(r"where \(glibc heap, slope after warm-up, MB/min\): in use [+-][0-9.]+ \(a leak\)", out), out
 
 
 def test_soak_refuses_a_bad_duration(capsys):

@@ -5,13 +5,17 @@ Runs what ``illuminet demo --mjpeg`` runs -- the built-in default session replay
 estimate -> shading -> render) into the MJPEG server -- with two real HTTP clients attached for the
 whole run: one reads the MJPEG stream (``/stream.mjpg``, parsing every part, as a browser's network
 layer does), one the lighting estimate as Server-Sent Events (``/estimates``). Every second the
-process's resident memory (``VmRSS`` of ``/proc/self/status``) is sampled.
+process's resident memory (``VmRSS`` of ``/proc/self/status``) is sampled, and, where the C library
+is glibc (>= 2.33), its heap (``mallinfo2``: bytes in use, and bytes free inside the heap).
 
 Printed: the RSS slope in MB per minute after a warm-up (a least-squares line through the samples
 after the first 20 % of the run, at most 2 minutes: imports, the bundle, caches and the first
 frames' buffers settle there), and the drift between the medians of the first and the last fifth of
 those samples (robust to the allocator returning and re-taking ~10 MB at a time, which dominates a
-short run's slope); RSS at the start of the fit, at the end and its peak; frames
+short run's slope); RSS at the start of the fit, at the end and its peak; with glibc, where a growth
+lives: the slopes of the heap in use (a leak of C or Python allocations), of the free bytes inside
+the heap (fragmentation: freed blocks the allocator cannot give back) and of the rest of the RSS
+(libraries, the GL driver's own mappings, thread stacks); frames
 processed; failures (failed frames, sink failures, client errors and reconnects); the per-frame
 loop time (median, p99); frames and events the clients received. Target: a slope <= 0.1 MB/min over
 30 minutes (the default). A short run's slope is noisy (allocator and page-cache effects of a few
@@ -24,6 +28,8 @@ Nothing is read from ../shared/data.
 from __future__ import annotations
 
 import argparse
+import ctypes
+import ctypes.util
 import http.client
 import math
 import resource
@@ -53,6 +59,52 @@ def rss_mb() -> float:
         pass
     r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return r / 1024.0 if sys.platform != "darwin" else r / (1024.0 * 1024.0)
+
+
+class _MallInfo2(ctypes.Structure):
+    """glibc's ``struct mallinfo2`` (every field a ``size_t``)."""
+
+    _fields_ = [
+        (name, ctypes.c_size_t)
+        for name in (
+            "arena",
+            "ordblks",
+            "smblks",
+            "hblks",
+            "hblkhd",
+            "usmblks",
+            "fsmblks",
+            "uordblks",
+            "fordblks",
+            "keepcost",
+        )
+    ]
+
+
+def _mallinfo2():
+    """glibc's ``mallinfo2`` function, or None (another C library, or glibc < 2.33)."""
+    try:
+        name = ctypes.util.find_library("c")
+        fn = ctypes.CDLL(name).mallinfo2 if name else None
+    except (OSError, AttributeError):
+        return None
+    if fn is not None:
+        fn.restype = _MallInfo2
+        fn.argtypes = []
+    return fn
+
+
+_MALLINFO2 = _mallinfo2()
+
+
+def heap_mb() -> tuple[float, float, float] | None:
+    """glibc's heap now, MB: (in use, free inside the heap, the heap's total: sbrk'd arenas + mmapped
+    blocks), summed over every arena; None where glibc's ``mallinfo2`` is not available."""
+    if _MALLINFO2 is None:
+        return None
+    m = _MALLINFO2()
+    mib = 1024.0 * 1024.0
+    return (m.uordblks + m.hblkhd) / mib, m.fordblks / mib, (m.arena + m.hblkhd) / mib
 
 
 def slope_mb_per_min(t_s: np.ndarray, mb: np.ndarray) -> float:
@@ -130,6 +182,7 @@ def run(args: argparse.Namespace, cfg) -> dict:
     sink = MjpegSink("127.0.0.1", 0, stats=stats.snapshot, viewer_model="builtin:vase")
     sink.open()  # before the loop, so the clients connect first; run_loop's open is then a no-op
     samples: list[tuple[float, float]] = []
+    heap: list[tuple[float, float, float, float]] = []  # (t, in use, free inside, RSS outside the heap)
     stop = threading.Event()
     clients = [_Client(sink.port, "/stream.mjpg", stop), _Client(sink.port, "/estimates", stop)]
     for c in clients:
@@ -139,7 +192,11 @@ def run(args: argparse.Namespace, cfg) -> dict:
 
     def sample() -> None:
         while True:
-            samples.append((time.monotonic() - t0, rss_mb()))
+            t_s, rss = time.monotonic() - t0, rss_mb()
+            samples.append((t_s, rss))
+            h = heap_mb()
+            if h is not None:
+                heap.append((t_s, h[0], h[1], rss - h[2]))
             if stop.wait(interval) or time.monotonic() - t0 >= duration:
                 stop.set()
                 return
@@ -198,6 +255,19 @@ def run(args: argparse.Namespace, cfg) -> dict:
         else float("nan")
     )
     print(f"RSS drift: {drift:+.3f} MB/min between the medians of the first and last fifth after warm-up")
+    heap_slopes = None
+    if heap:
+        ht = np.array(heap)
+        hf = ht[:, 0] >= warmup
+        heap_slopes = {
+            k: slope_mb_per_min(ht[hf, 0], ht[hf, i]) for i, k in enumerate(("in_use", "free", "outside"), start=1)
+        }
+        print(
+            f"where (glibc heap, slope after warm-up, MB/min): in use {heap_slopes['in_use']:+.3f} (a leak), free "
+            f"inside the heap {heap_slopes['free']:+.3f} (fragmentation), RSS outside the heap "
+            f"{heap_slopes['outside']:+.3f} (libraries, GL driver, stacks); in use {ht[-1, 1]:.1f} MB, free "
+            f"{ht[-1, 2]:.1f} MB at the end"
+        )
     verdict = "met" if slope <= SLOPE_TARGET_MB_PER_MIN else ("NOT met" if math.isfinite(slope) else "no figure")
     note = "" if minutes >= DEFAULT_MINUTES else f" (a {minutes:g}-minute run: noisy; the target is over 30 min)"
     print(f"RSS slope: {slope:+.3f} MB/min after warm-up; target <= {SLOPE_TARGET_MB_PER_MIN} MB/min: {verdict}{note}")
@@ -219,6 +289,7 @@ def run(args: argparse.Namespace, cfg) -> dict:
         "rss_end_mb": float(mb[-1]) if len(mb) else float("nan"),
         "rss_peak_mb": float(mb.max()) if len(mb) else float("nan"),
         "warmup_s": warmup,
+        "heap_slopes_mb_per_min": heap_slopes,
         "rss_samples": [[round(float(a), 2), round(float(b), 2)] for a, b in samples],
         "target_mb_per_min": SLOPE_TARGET_MB_PER_MIN,
     }
