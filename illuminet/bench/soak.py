@@ -290,6 +290,7 @@ def run(args: argparse.Namespace, cfg) -> dict:
         "rss_peak_mb": float(mb.max()) if len(mb) else float("nan"),
         "warmup_s": warmup,
         "heap_slopes_mb_per_min": heap_slopes,
+        "heap_samples": [[round(float(v), 2) for v in h] for h in heap],  # (t s, in use, free, outside) MB
         "rss_samples": [[round(float(a), 2), round(float(b), 2)] for a, b in samples],
         "target_mb_per_min": SLOPE_TARGET_MB_PER_MIN,
     }
