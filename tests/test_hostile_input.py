@@ -50,6 +50,11 @@ BAD_INPUTS = [
     (["--set", "model.bundle=builtin:nope", "run", "synthetic://indoor"], 2, "builtin:nope"),
     (["--config", "{tmp}/bad.toml", "run", "synthetic://indoor"], 2, "bad.toml: [render] msaa"),
     (["--config", "{tmp}/missing.toml", "run", "synthetic://indoor"], 2, "missing.toml"),
+    (["--config", "{tmp}/binary.toml", "run", "synthetic://indoor"], 2, "binary.toml: not a text file"),
+    (["--config", "{tmp}", "run", "synthetic://indoor"], 2, "is a folder, not a config file"),
+    (["eval", "--cases", "-1"], 2, "--cases -1: expected a count >= 0"),
+    (["eval", "--camera-scenes", "-3"], 2, "--camera-scenes -3"),
+    (["record", "synthetic://indoor?frames=1", "/proc/no-session-here"], 1, "cannot create the session folder"),
     (["run", "synthetic://indoor", "--fps", "inf", "--video", "{tmp}/v.mp4"], 2, "[output] fps"),
     (["run", "synthetic://indoor", "--fps", "0", "--video", "{tmp}/v.mp4"], 2, "[output] fps"),
     # class 7: output paths, checked before the source opens
@@ -65,6 +70,7 @@ BAD_INPUTS = [
 @pytest.mark.parametrize("argv,code,expect", BAD_INPUTS, ids=[" ".join(a) for a, _, _ in BAD_INPUTS])
 def test_a_mistake_is_one_line_with_its_exit_status(tmp_path, capsys, argv, code, expect):
     (tmp_path / "bad.toml").write_text("[render]\nmsaa = 64\n")
+    (tmp_path / "binary.toml").write_bytes(b"\x89PNG\r\n\x1a\n\xf1\xff")
     (tmp_path / "afile").write_text("not a folder")
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
     t0 = time.monotonic()
@@ -398,6 +404,10 @@ def _relight_inputs(tmp_path):
     (tmp_path / "npz.npy.npz").rename(tmp_path / "npz.npy")
     (tmp_path / "huge.png").write_bytes(_png_header(20000, 20000) + b"\0" * 4096)
     (tmp_path / "adir").mkdir()
+    (tmp_path / "K_nan.json").write_text('{"fx": NaN, "fy": 60, "cx": 32, "cy": 24}')
+    (tmp_path / "K_list.json").write_text("[60, 60, 32, 24]")
+    (tmp_path / "K_missing.json").write_text('{"fx": 60, "fy": 60, "cx": 32}')
+    (tmp_path / "K_zero.json").write_text('{"fx": 60, "fy": 60, "cx": 32, "cy": 24, "width": 0, "height": 48}')
 
 
 BAD_RELIGHT = [
@@ -407,6 +417,12 @@ BAD_RELIGHT = [
     ({"--color": "{tmp}/huge.png"}, "header says 20000x20000"),
     ({"--depth": "{tmp}/huge.png"}, "header says 20000x20000"),
     ({"--color": "{tmp}/nothing.png"}, "no such file"),
+    ({"--intrinsics": "60,0,32,24"}, "expected finite fx, fy > 0"),
+    ({"--intrinsics": "{tmp}/K_nan.json"}, "got fx=nan"),
+    ({"--intrinsics": "{tmp}/K_list.json"}, "expected a JSON object with fx, fy, cx, cy in pixels, got list"),
+    ({"--intrinsics": "{tmp}/K_missing.json"}, "got no cy"),
+    ({"--intrinsics": "{tmp}/K_zero.json"}, "width and height must be > 0"),
+    ({"--intrinsics": "{tmp}/huge.png"}, "not JSON"),
 ]
 
 

@@ -222,6 +222,15 @@ def run(args: argparse.Namespace, cfg) -> int:
     from illuminet.runtime.config import ConfigError
 
     cluster.check_arguments(args)
+    for flag, value, least in (
+        ("--cases", args.cases, 0),
+        ("--flicker-scenes", args.flicker_scenes, 0),
+        ("--camera-scenes", args.camera_scenes, 0),
+        ("--vertices", args.vertices, 0),
+        ("--ablation-epochs", args.ablation_epochs, 1),
+    ):
+        if value < least:
+            raise _usage(f"{flag} {value}: expected a count >= {least}" + (" (0 skips it)" if least == 0 else ""))
     hdr = args.hdr if args.hdr is not None else (str(DEFAULT_HDR) if DEFAULT_HDR.is_dir() else "")
     if args.crosscheck:
         if args.ray is not None:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -153,7 +154,14 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
     h, w = depth.shape
     if Path(intr).is_file():
         try:
-            d = json.loads(Path(intr).read_text())
+            d = json.loads(Path(intr).read_text(encoding="utf-8"))
+        except (ValueError, UnicodeDecodeError) as e:
+            raise ValueError(f"--intrinsics {intr}: not JSON ({e}); expected an object with fx, fy, cx, cy") from None
+        missing = [k for k in ("fx", "fy", "cx", "cy") if k not in d] if isinstance(d, dict) else None
+        if missing is None or missing:
+            what = f"{type(d).__name__}" if missing is None else f"no {', '.join(missing)}"
+            raise ValueError(f"--intrinsics {intr}: expected a JSON object with fx, fy, cx, cy in pixels, got {what}")
+        try:
             K = Intrinsics(
                 float(d["fx"]),
                 float(d["fy"]),
@@ -162,14 +170,27 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
                 int(d.get("width", w)),
                 int(d.get("height", h)),
             )
-        except (KeyError, ValueError, json.JSONDecodeError) as e:
-            raise ValueError(f"--intrinsics {intr}: expected JSON with fx, fy, cx, cy: {e}") from None
+        except (TypeError, ValueError, OverflowError) as e:
+            raise ValueError(f"--intrinsics {intr}: fx, fy, cx, cy (and width, height) must be numbers: {e}") from None
+        _check_intrinsics(K, f"--intrinsics {intr}")
         if (K.width, K.height) != (w, h):
             K = K.scaled(w, h)
     else:
         fx, fy, cx, cy = _floats(intr, 4, "--intrinsics")
         K = Intrinsics(fx, fy, cx, cy, w, h)
+        _check_intrinsics(K, f"--intrinsics {intr}")
     return color, depth, K
+
+
+def _check_intrinsics(K, what: str) -> None:
+    """Focal lengths must be positive and every value finite; the size (when given) positive."""
+    if not all(math.isfinite(v) for v in (K.fx, K.fy, K.cx, K.cy)) or K.fx <= 0 or K.fy <= 0:
+        raise ValueError(
+            f"{what}: expected finite fx, fy > 0 and finite cx, cy in pixels, got fx={K.fx:g} fy={K.fy:g} "
+            f"cx={K.cx:g} cy={K.cy:g}"
+        )
+    if K.width <= 0 or K.height <= 0:
+        raise ValueError(f"{what}: width and height must be > 0 pixels, got {K.width}x{K.height}")
 
 
 def run(args: argparse.Namespace, cfg) -> int:

@@ -304,7 +304,12 @@ class SessionWriter:
             raise SessionError(
                 f"{self.path}: already contains a session; choose a new folder (recordings are never overwritten)"
             )
-        (self.path / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
+        try:
+            (self.path / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise SessionError(
+                f"{self.path}: cannot create the session folder ({e.strerror or e}); choose a folder you can write to"
+            ) from None
 
     # -- manifest
 
