@@ -512,7 +512,9 @@ def load(path: str | Path | None = None) -> Config:
     except FileNotFoundError:
         raise ConfigError(f"{path}: config file not found") from None
     except IsADirectoryError:
-        raise ConfigError(f"{path}: is a folder, not a config file (expected a TOML file such as config.toml)") from None
+        raise ConfigError(
+            f"{path}: is a folder, not a config file (expected a TOML file such as config.toml)"
+        ) from None
     except UnicodeDecodeError as e:
         raise ConfigError(
             f"{path}: not a text file (byte {e.start} is not UTF-8); expected a TOML file such as config.toml"
