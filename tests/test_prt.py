@@ -577,6 +577,17 @@ def test_bundle_command_errors_are_one_line(tmp_path, capsys):
     assert "holds a bundle of 'builtin:vase'" in capsys.readouterr().err
 
 
+def test_a_mesh_with_fewer_vertices_than_graph_neighbours_makes_a_bundle_that_loads(tmp_path, capsys):
+    # a single triangle: the proxy's kNN graph and the carry once asked for more neighbours than there
+    # are vertices, and the padded index (3) made the bundle the command had just written unloadable
+    (tmp_path / "tri.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0 0.1 0.02\nf 1 2 3\n")
+    assert main(["bundle", "--object", str(tmp_path / "tri.obj"), "--out", str(tmp_path / "b")]) == 0
+    b = load_bundle(str(tmp_path / "b"))
+    assert b.n_proxy == 3 and b.proxy_edges.max() < 3 and b.carry_index.max() < 3
+    assert sorted(map(tuple, b.proxy_edges.tolist())) == [(0, 1), (0, 2), (1, 2)]
+    np.testing.assert_allclose(b.carry_weight.sum(1), 1.0, rtol=1e-5)
+
+
 def test_low_sun_is_not_dimmed_by_the_floor_and_below_it_is_dark(sphere):
     mesh, res = sphere
     tab = res.tables()
