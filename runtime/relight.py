@@ -16,6 +16,7 @@ frame's transfer curve (sRGB unless a response curve is configured) gives pixel 
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -121,6 +122,17 @@ def lighting_stages(cfg: Config, response_lut=None) -> list:
     return stages
 
 
+def check_intrinsics(K: Intrinsics, what: str = "intrinsics") -> None:
+    """Focal lengths must be positive and every value finite; the size (when given) positive."""
+    if not all(math.isfinite(v) for v in (K.fx, K.fy, K.cx, K.cy)) or K.fx <= 0 or K.fy <= 0:
+        raise ValueError(
+            f"{what}: expected finite fx, fy > 0 and finite cx, cy in pixels, got fx={K.fx:g} fy={K.fy:g} "
+            f"cx={K.cx:g} cy={K.cy:g}"
+        )
+    if K.width <= 0 or K.height <= 0:
+        raise ValueError(f"{what}: width and height must be > 0 pixels, got {K.width}x{K.height}")
+
+
 def relight(
     color: np.ndarray,
     depth: np.ndarray,
@@ -146,6 +158,7 @@ def relight(
     from illuminet.runtime.assets.bundle import load_bundle
     from illuminet.runtime.stages.shading import ShadingStage
 
+    check_intrinsics(intrinsics)
     h, w = np.shape(depth)[:2]
     if not (0 <= anchor_px[0] < w and 0 <= anchor_px[1] < h):
         raise ValueError(f"anchor pixel ({anchor_px[0]}, {anchor_px[1]}) is outside the {w}x{h} image")

@@ -78,6 +78,11 @@ def test_relight_accepts_depth_at_another_resolution_and_plain_intrinsics():
         illuminet.relight(color, depth[:, :150], K, (160, 130), bundle="builtin:vase")
     with pytest.raises(ValueError, match="intrinsics: expected"):
         illuminet.relight(color, depth, (1.0, 2.0), (160, 130), bundle="builtin:vase")
+    # a negative or NaN focal length is named, not reported later as "no real plane observed"
+    with pytest.raises(ValueError, match=r"intrinsics: expected finite fx, fy > 0 .* got fx=-\d"):
+        illuminet.relight(color, depth, (-K.fx, K.fy, K.cx, K.cy), (160, 130), bundle="builtin:vase")
+    with pytest.raises(ValueError, match="got fx=nan"):
+        illuminet.relight(color, depth, (float("nan"), K.fy, K.cx, K.cy), (160, 130), bundle="builtin:vase")
 
 
 @pytest.mark.gl

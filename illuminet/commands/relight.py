@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
@@ -127,6 +126,7 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
     import cv2
 
     from illuminet.runtime.frame import Intrinsics, depth_from_mm
+    from illuminet.runtime.relight import check_intrinsics
 
     cpath = _input_file(color_path, "--color")
     dpath = _input_file(depth_path, "--depth")
@@ -172,25 +172,14 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
             )
         except (TypeError, ValueError, OverflowError) as e:
             raise ValueError(f"--intrinsics {intr}: fx, fy, cx, cy (and width, height) must be numbers: {e}") from None
-        _check_intrinsics(K, f"--intrinsics {intr}")
+        check_intrinsics(K, f"--intrinsics {intr}")
         if (K.width, K.height) != (w, h):
             K = K.scaled(w, h)
     else:
         fx, fy, cx, cy = _floats(intr, 4, "--intrinsics")
         K = Intrinsics(fx, fy, cx, cy, w, h)
-        _check_intrinsics(K, f"--intrinsics {intr}")
+        check_intrinsics(K, f"--intrinsics {intr}")
     return color, depth, K
-
-
-def _check_intrinsics(K, what: str) -> None:
-    """Focal lengths must be positive and every value finite; the size (when given) positive."""
-    if not all(math.isfinite(v) for v in (K.fx, K.fy, K.cx, K.cy)) or K.fx <= 0 or K.fy <= 0:
-        raise ValueError(
-            f"{what}: expected finite fx, fy > 0 and finite cx, cy in pixels, got fx={K.fx:g} fy={K.fy:g} "
-            f"cx={K.cx:g} cy={K.cy:g}"
-        )
-    if K.width <= 0 or K.height <= 0:
-        raise ValueError(f"{what}: width and height must be > 0 pixels, got {K.width}x{K.height}")
 
 
 def run(args: argparse.Namespace, cfg) -> int:
