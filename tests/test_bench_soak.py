@@ -7,7 +7,7 @@ import re
 import numpy as np
 import pytest
 
-from illuminet.bench.soak import heap_mb, slope_mb_per_min
+from illuminet.bench.soak import heap_mb, rise_by_thirds, slope_mb_per_min
 from illuminet.cli import main
 
 
@@ -15,6 +15,19 @@ def test_slope_is_the_least_squares_line_in_mb_per_minute():
     t = np.arange(0, 600, 1.0)
     assert slope_mb_per_min(t, 300 + 0.5 * t / 60) == pytest.approx(0.5)
     assert np.isnan(slope_mb_per_min(t[:2], t[:2]))
+
+
+def test_rise_by_thirds_tells_a_leak_from_a_plateau_through_the_swings():
+    t = np.arange(0.0, 1800.0)
+    swing = 8.0 * (np.sin(t / 7.0) > 0.6)  # the allocator returning and re-taking 8 MB, often
+    leak = 300 + 0.5 * t / 60 + swing
+    assert rise_by_thirds(t, leak) == pytest.approx([0.5, 0.5, 0.5], abs=0.05)
+    plateau = 300 + 20 * (1 - np.exp(-t / 300)) + swing
+    first, second, third = rise_by_thirds(t, plateau)
+    assert first > 1.5 and second < 0.4 and third < 0.05
+    step = 300 + 15.0 * (t > 1500) + swing  # one late step: all of it in the last third
+    assert rise_by_thirds(t, step) == pytest.approx([0.0, 0.0, 15.0 / ((1750 - 1250) / 60)], abs=0.3)
+    assert np.isnan(rise_by_thirds(t[:10], leak[:10])).all()
 
 
 def test_heap_figures_follow_a_real_allocation_and_its_release():

@@ -12,7 +12,9 @@ Printed: the RSS slope in MB per minute after a warm-up (a least-squares line th
 after the first 20 % of the run, at most 2 minutes: imports, the bundle, caches and the first
 frames' buffers settle there), and the drift between the medians of the first and the last fifth of
 those samples (robust to the allocator returning and re-taking ~10 MB at a time, which dominates a
-short run's slope); RSS at the start of the fit, at the end and its peak; with glibc, where a growth
+short run's slope); the rise of the RSS's floor in each third of the fitted run (a leak rises alike
+in each; an allocator settling to its high-water mark, in steps that thin out:
+:func:`rise_by_thirds`); RSS at the start of the fit, at the end and its peak; with glibc, where a growth
 lives: the slopes of the heap in use (a leak of C or Python allocations), of the free bytes inside
 the heap (fragmentation: freed blocks the allocator cannot give back) and of the rest of the RSS
 (libraries, the GL driver's own mappings, thread stacks); frames
@@ -112,6 +114,24 @@ def slope_mb_per_min(t_s: np.ndarray, mb: np.ndarray) -> float:
     if len(t_s) < 3 or np.ptp(t_s) <= 0:
         return float("nan")
     return float(np.polyfit(np.asarray(t_s) / 60.0, np.asarray(mb), 1)[0])
+
+
+def rise_by_thirds(t_s: np.ndarray, mb: np.ndarray) -> list[float]:
+    """How much ``mb`` rose in each third of the run, MB per minute: the change of its *floor* (the
+    lowest sample in the first and in the last sixth of the third, so the allocator's swings and the
+    frames in flight do not count) across the third. A leak rises by the same amount in every third; an
+    allocator settling to its high-water mark (rare coincident peaks, each arena keeping its largest
+    size) rises in steps that thin out. NaN where a third has fewer than 6 samples."""
+    t_s, mb = np.asarray(t_s, np.float64), np.asarray(mb, np.float64)
+    out = []
+    for part in np.array_split(np.arange(len(t_s)), 3):
+        if len(part) < 6:
+            out.append(float("nan"))
+            continue
+        a, b = np.array_split(part, 6)[0], np.array_split(part, 6)[-1]
+        dt = (np.median(t_s[b]) - np.median(t_s[a])) / 60.0
+        out.append(float((mb[b].min() - mb[a].min()) / dt) if dt > 0 else float("nan"))
+    return out
 
 
 class _Client(threading.Thread):
@@ -255,7 +275,13 @@ def run(args: argparse.Namespace, cfg) -> dict:
         else float("nan")
     )
     print(f"RSS drift: {drift:+.3f} MB/min between the medians of the first and last fifth after warm-up")
-    heap_slopes = None
+    thirds = rise_by_thirds(ft, fm)
+    print(
+        "RSS floor's rise by third of the run after warm-up: "
+        + ", ".join(f"{v:+.3f}" for v in thirds)
+        + " MB/min (a leak rises alike in each; an allocator settling to its high-water mark, less and less)"
+    )
+    heap_slopes = heap_thirds = None
     if heap:
         ht = np.array(heap)
         hf = ht[:, 0] >= warmup
@@ -268,6 +294,8 @@ def run(args: argparse.Namespace, cfg) -> dict:
             f"{heap_slopes['outside']:+.3f} (libraries, GL driver, stacks); in use {ht[-1, 1]:.1f} MB, free "
             f"{ht[-1, 2]:.1f} MB at the end"
         )
+        heap_thirds = rise_by_thirds(ht[hf, 0], ht[hf, 1])
+        print("heap in use, its floor's rise by third: " + ", ".join(f"{v:+.3f}" for v in heap_thirds) + " MB/min")
     verdict = "met" if slope <= SLOPE_TARGET_MB_PER_MIN else ("NOT met" if math.isfinite(slope) else "no figure")
     note = "" if minutes >= DEFAULT_MINUTES else f" (a {minutes:g}-minute run: noisy; the target is over 30 min)"
     print(f"RSS slope: {slope:+.3f} MB/min after warm-up; target <= {SLOPE_TARGET_MB_PER_MIN} MB/min: {verdict}{note}")
@@ -285,11 +313,13 @@ def run(args: argparse.Namespace, cfg) -> dict:
         "frame_p99_ms": total["p99_ms"],
         "rss_slope_mb_per_min": slope,
         "rss_drift_mb_per_min": drift,
+        "rss_floor_rise_by_third_mb_per_min": thirds,
         "rss_after_warmup_mb": fit_from,
         "rss_end_mb": float(mb[-1]) if len(mb) else float("nan"),
         "rss_peak_mb": float(mb.max()) if len(mb) else float("nan"),
         "warmup_s": warmup,
         "heap_slopes_mb_per_min": heap_slopes,
+        "heap_in_use_floor_rise_by_third_mb_per_min": heap_thirds,
         "heap_samples": [[round(float(v), 2) for v in h] for h in heap],  # (t s, in use, free, outside) MB
         "rss_samples": [[round(float(a), 2), round(float(b), 2)] for a, b in samples],
         "target_mb_per_min": SLOPE_TARGET_MB_PER_MIN,
