@@ -453,6 +453,8 @@ def load_calibration(path: str | Path) -> Calibration:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise CalibrationError(f"{path}: calibration file not found") from None
+    except UnicodeDecodeError:
+        raise CalibrationError(f"{path}: not a text file; expected a calibration JSON") from None
     except OSError as e:
         raise CalibrationError(f"{path}: cannot read calibration file: {e}") from None
     try:

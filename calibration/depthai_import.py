@@ -177,6 +177,10 @@ def import_depthai(path: str | Path, left_socket: int | None = None, right_socke
         data = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise CalibrationError(f"{path}: DepthAI calibration file not found") from None
+    except UnicodeDecodeError:
+        raise CalibrationError(f"{path}: not a text file; expected a DepthAI calibration JSON export") from None
+    except OSError as e:
+        raise CalibrationError(f"{path}: cannot read it: {e.strerror or e}") from None
     except json.JSONDecodeError as e:
         raise CalibrationError(f"{path}: not valid JSON: {e}") from None
     return parse_depthai(data, str(path), left_socket, right_socket, path=path)

@@ -111,8 +111,8 @@ def exposure_times_from_names(paths: Sequence[Path], times_json: Path | None = N
         times_json = cand if cand.is_file() else None
     if times_json is not None:
         try:
-            raw = json.loads(Path(times_json).read_text())
-        except (OSError, json.JSONDecodeError) as e:
+            raw = json.loads(Path(times_json).read_text(encoding="utf-8"))
+        except (OSError, ValueError) as e:  # ValueError: not JSON, or not UTF-8 text
             raise CalibrationError(f"{times_json}: cannot read exposure table: {e}") from None
         if not isinstance(raw, dict):
             raise CalibrationError(f'{times_json}: expected an object {{"file name": seconds}}')

@@ -128,6 +128,23 @@ def test_cli_errors_are_one_line_exit_2(tmp_path, capsys):
     bad.write_text("{}")
     assert main(["calibrate", "import-depthai", str(bad), "-o", str(tmp_path / "x.json")]) == 2
     assert "missing key 'cameraData'" in capsys.readouterr().err
+    binary = tmp_path / "photo.json"
+    binary.write_bytes(b"\x89PNG\r\n\x1a\n\xf1\xff")  # a picture saved under the wrong name
+    assert main(["calibrate", "import-depthai", str(binary), "-o", str(tmp_path / "x.json")]) == 2
+    err = capsys.readouterr().err
+    assert "photo.json: not a text file" in err and len(err.strip().splitlines()) == 1
+
+
+def test_an_output_that_cannot_be_made_is_one_line(tmp_path, capsys):
+    (tmp_path / "afile").write_text("not a folder")
+    for argv in (
+        ["calibrate", "board", "-o", str(tmp_path / "afile" / "board.pdf")],
+        ["calibrate", "capture", "synthetic://indoor?frames=2", "-o", str(tmp_path / "afile" / "views")],
+    ):
+        assert main(argv) == 1
+        err = capsys.readouterr().err
+        assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+        assert str(tmp_path / "afile") in err and "folder you can write to" in err
 
 
 def test_import_depthai_cli(tmp_path, capsys):

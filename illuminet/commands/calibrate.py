@@ -41,8 +41,8 @@ def _spec(args):
 
     if getattr(args, "board", None):
         try:
-            d = json.loads(Path(args.board).read_text())
-        except (OSError, json.JSONDecodeError) as e:
+            d = json.loads(Path(args.board).read_text(encoding="utf-8"))
+        except (OSError, ValueError) as e:  # ValueError: not JSON, or not UTF-8 text
             raise CalibrationError(f"{args.board}: cannot read board file: {e}") from None
         return BoardSpec.from_dict(d.get("board", d))
     try:
@@ -59,9 +59,9 @@ def _camera_ref(ref: str):
 
     path, _, cam = ref.partition(":") if not Path(ref).exists() else (ref, "", "")
     try:
-        text = json.loads(Path(path).read_text())
+        text = json.loads(Path(path).read_text(encoding="utf-8"))
         is_dai = isinstance(text, dict) and "cameraData" in text
-    except (OSError, json.JSONDecodeError):
+    except (OSError, ValueError):
         is_dai = False
     calib = import_depthai(path) if is_dai else load_calibration(path)
     return calib, cam or calib.color_camera
@@ -367,5 +367,13 @@ def _guard(fn):
         except CalibrationError as e:
             print(f"illuminet calibrate {args.calibrate_command}: {e}", file=sys.stderr)
             return 2
+        except OSError as e:  # an output file or folder that cannot be made (the inputs are checked above)
+            where = e.filename if e.filename is not None else "a file"
+            print(
+                f"illuminet calibrate {args.calibrate_command}: {where}: {e.strerror or e}; choose a path in a "
+                "folder you can write to",
+                file=sys.stderr,
+            )
+            return 1
 
     return run
