@@ -55,7 +55,8 @@ class V4l2Error(SourceError):
 
 
 MONO_REFUSAL = (
-    "{url} is a single (mono) camera: depth is required to find planes, and one camera gives none. "
+    "{url} names a single (mono) camera (no ?stereo= or ?right=): depth is required to find planes, "
+    "and one camera gives none. "
     "Use a stereo camera with its calibration file (a side-by-side UVC camera: v4l2://{dev}?stereo=sbs, "
     "or two cameras: v4l2://{dev}?right=/dev/videoN; calibration via ?calib=PATH or [source] calibration, "
     "see `illuminet calibrate stereo`), an OAK-D (oakd://), or a recording (replay://PATH)."

@@ -115,7 +115,8 @@ def test_parse_url_refuses(url, msg):
 
 
 def test_mono_camera_is_refused_with_the_reason():
-    with pytest.raises(v4l2.V4l2Error, match="single \\(mono\\) camera: depth is required to find planes"):
+    expect = r"names a single \(mono\) camera \(no \?stereo= or \?right=\): depth is required"
+    with pytest.raises(v4l2.V4l2Error, match=expect):
         v4l2.open_url("v4l2:///dev/video0", defaults())
 
 
