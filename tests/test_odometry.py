@@ -206,6 +206,31 @@ def test_untrackable_frames_restart_tracking_and_keep_the_object(static):
     assert d < 0.01 and yaw < 1.0
 
 
+def test_a_change_of_picture_size_restarts_tracking_and_keeps_the_object(static, caplog):
+    """A camera reconfigured mid-stream (or recordings of two sizes in a row): the last image and the
+    landmarks' pixels belong to the old size, so tracking restarts there with the pose held (before, LK
+    raised on every later frame and the anchor stage failed for good)."""
+    import cv2
+
+    def half(f):
+        h, w = f.color.shape[:2]
+        return f.replace(
+            color=cv2.resize(f.color, (w // 2, h // 2), interpolation=cv2.INTER_AREA),
+            depth=np.ascontiguousarray(f.depth[::2, ::2]),
+            intrinsics=f.intrinsics.scaled(w // 2, h // 2),
+        )
+
+    frames = list(static[:5]) + [half(f) for f in static[5:]]
+    with caplog.at_level(logging.INFO, logger="illuminet.runtime.stages.odometry"):
+        poses, outs, an, _ = _run(frames)
+    st = an.stats()["odometry"]
+    assert st["resets"] == 1 and st["lost_frames"] == 0
+    assert all(o.results["odometry"].state == "ok" for o in outs)
+    assert "changed size (640x400 -> 320x200)" in caplog.text
+    d, yaw = _drift(poses)
+    assert d < 0.01 and yaw < 1.0
+
+
 def test_reanchoring_restarts_the_fused_grid_but_camera_motion_does_not(orbit):
     def on_frame(i, an):
         if i == 10:

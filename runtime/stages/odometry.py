@@ -357,6 +357,18 @@ class Odometry:
         intr = frame.intrinsics
         if (intr.width, intr.height) != (W, H):
             intr = intr.scaled(W, H)
+        if self._grey is not None and self._grey.shape != grey.shape:
+            # the camera's resolution changed (reconfigured, another recording appended): the landmarks'
+            # pixels and the last image belong to the old size; start again from here with the pose held
+            log.info(
+                "odometry: the picture changed size (%dx%d -> %dx%d); restarting tracking with the last pose",
+                self._grey.shape[1] * DOWNSCALE,
+                self._grey.shape[0] * DOWNSCALE,
+                grey.shape[1] * DOWNSCALE,
+                grey.shape[0] * DOWNSCALE,
+            )
+            self.resets += 1
+            self._grey = None
         if self._grey is None or len(self._pts) < 3:
             self._start(grey, depth, intr)
             self.still.reset()
