@@ -17,6 +17,7 @@ culling stays off for open meshes (the depth test resolves visibility).
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -42,6 +43,8 @@ from illuminet.runtime.render.shaders import (
     with_transfer,
 )
 from illuminet.runtime.render.shadow import RECEIVER_FS, RECEIVER_VS, ShadowCaster
+
+log = logging.getLogger(__name__)
 
 #: anti-aliasing methods ([render] antialias): "edge" filters the object layer's silhouette (cheap),
 #: "msaa" draws it multisampled ([render] msaa samples; llvmpipe pays ~2x the object's cost), "off"
@@ -190,6 +193,9 @@ class Compositor:
         self._t_mark = 0.0
         self._cap = (0, 0)
         self._ocap = (0, 0)
+        #: times the crop's framebuffers were made larger (a new largest crop): each is a high-water
+        #: mark the process keeps (the GL driver's buffers are heap memory: ~20 MB at 1280x800)
+        self.grows = 0
         self._fbos: dict[str, Any] = {}
         self._ofbos: dict[str, Any] = {}
         self._bbox = (mesh.vertices.min(axis=0).astype(float), mesh.vertices.max(axis=0).astype(float))
@@ -272,6 +278,8 @@ class Compositor:
         cw, ch = self._cap
         if w > cw or h > ch:
             cw, ch = max(cw, -(-w // 128) * 128), max(ch, -(-h // 128) * 128)
+            self.grows += 1
+            log.info("render: the crop's framebuffers grow to %dx%d (a crop of %dx%d, the largest yet)", cw, ch, w, h)
             park(ctx)
             for obj in self._fbos.values():
                 obj.release()
