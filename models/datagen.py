@@ -119,21 +119,18 @@ def build_geometry(mesh, n_proxy: int = 400, k_graph: int = 6, seed: int = 0, na
     feat = np.concatenate([v, n * 0.1 * scale], axis=1)  # position + normal-weighted
     pidx = _farthest_points(feat, n_proxy, rng)
     tree = cKDTree(feat[pidx])
+    # a mesh with fewer vertices than neighbours asked for (a single triangle): cKDTree pads the missing
+    # ones with index P (one past the proxy) at an infinite distance
     P = len(pidx)
-    # a mesh with fewer vertices than neighbours asked for (a single triangle): cKDTree pads with index P
-    _, nb = tree.query(feat[pidx], k=min(k_graph + 1, P))
+    _, nb = tree.query(feat[pidx], k=k_graph + 1)
     edges = set()
-    for i, row in enumerate(np.atleast_2d(np.asarray(nb).reshape(P, -1))):
+    for i, row in enumerate(nb):
         for j in row[1:]:
             if i != j and j < P:
                 edges.add((min(i, int(j)), max(i, int(j))))
     edges = np.array(sorted(edges), dtype=np.int64).reshape(-1, 2)
-    d, ci = tree.query(feat, k=min(3, P))
-    d, ci = np.asarray(d).reshape(len(v), -1), np.asarray(ci).reshape(len(v), -1)
-    if ci.shape[1] < 3:  # carry from the proxy points there are, repeated (weights sum to 1 all the same)
-        pad = 3 - ci.shape[1]
-        d = np.concatenate([d, np.repeat(d[:, -1:], pad, 1)], 1)
-        ci = np.concatenate([ci, np.repeat(ci[:, -1:], pad, 1)], 1)
+    d, ci = tree.query(feat, k=3)
+    ci = np.where(ci < P, ci, ci[:, :1])  # a padded neighbour: any valid index, its weight is 0
     w = 1.0 / np.maximum(d, 1e-6) ** 2
     w /= w.sum(1, keepdims=True)
     return ObjectGeometry(

@@ -128,7 +128,8 @@ def rise_by_thirds(t_s: np.ndarray, mb: np.ndarray) -> list[float]:
         if len(part) < 6:
             out.append(float("nan"))
             continue
-        a, b = np.array_split(part, 6)[0], np.array_split(part, 6)[-1]
+        sixths = np.array_split(part, 6)
+        a, b = sixths[0], sixths[-1]
         dt = (np.median(t_s[b]) - np.median(t_s[a])) / 60.0
         out.append(float((mb[b].min() - mb[a].min()) / dt) if dt > 0 else float("nan"))
     return out

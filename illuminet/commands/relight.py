@@ -155,7 +155,7 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
     if Path(intr).is_file():
         try:
             d = json.loads(Path(intr).read_text(encoding="utf-8"))
-        except (ValueError, UnicodeDecodeError) as e:
+        except ValueError as e:  # not JSON, or not UTF-8 text
             raise ValueError(f"--intrinsics {intr}: not JSON ({e}); expected an object with fx, fy, cx, cy") from None
         missing = [k for k in ("fx", "fy", "cx", "cy") if k not in d] if isinstance(d, dict) else None
         if missing is None or missing:

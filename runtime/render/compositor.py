@@ -271,6 +271,11 @@ class Compositor:
             self._rcv_vao = ctx.vertex_array(self._rcv_prog, [(self._quad, "2f", "in_uv")])
 
     # -- framebuffers sized to the largest crop seen so far ------------------------------------------
+    @property
+    def framebuffer_size(self) -> tuple[int, int]:
+        """(width, height) of the crop's framebuffers now: the largest crop so far, rounded up."""
+        return self._cap
+
     def _ensure_capacity(self, w: int, h: int, ow: int, oh: int) -> None:
         import moderngl
 

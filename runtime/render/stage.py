@@ -209,7 +209,8 @@ class RenderStage(Stage):
         if self.comp is not None:
             s["antialias"] = self.comp.antialias + (f"x{self.comp.msaa}" if self.comp.msaa else "")
             s["shadow_redraws"] = self.comp.shadow.redraws if self.comp.shadow is not None else 0
-            s["framebuffer"] = f"{self.comp._cap[0]}x{self.comp._cap[1]}, grown {self.comp.grows}x"
+            fw, fh = self.comp.framebuffer_size
+            s["framebuffer"] = f"{fw}x{fh}, grown {self.comp.grows}x"
         if self._crop_px:
             s["crop_px_median"] = int(np.median(self._crop_px))
         d, share = self._light
