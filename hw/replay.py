@@ -28,6 +28,7 @@ import numpy as np
 from illuminet.hw import SourceError, parse_query, query_bool, query_choice, query_int
 from illuminet.runtime.config import Config
 from illuminet.runtime.frame import Frame
+from illuminet.runtime.scene import REPLAY_POSITION
 from illuminet.runtime.stage import EndOfStream, Source
 from illuminet.runtime.stream.session import MAX_FRAME_GAP_NS, CorruptFrame, SessionError, SessionReader
 
@@ -56,6 +57,10 @@ class ReplaySource(Source):
     """
 
     name = "replay"
+    #: every frame carries its (lap, position in the recording): with ``loop`` the world-locked anchor
+    #: puts the camera back at the recording's start when a new lap begins (odometry drift does not
+    #: add up lap after lap)
+    provides = (REPLAY_POSITION,)
 
     def __init__(
         self,
@@ -212,7 +217,8 @@ class ReplaySource(Source):
             if delay > 0 and self._closing.wait(delay * 1e-9):
                 return None  # closed while waiting
         self._emitted += 1
-        return frame.replace(seq=frame.seq + rnd * self._round_seq, t_device_ns=t_dev, t_host_ns=time.monotonic_ns())
+        frame = frame.replace(seq=frame.seq + rnd * self._round_seq, t_device_ns=t_dev, t_host_ns=time.monotonic_ns())
+        return frame.with_result(REPLAY_POSITION, (rnd, pos))
 
     def close(self) -> None:
         self._closed = True

@@ -259,8 +259,14 @@ LIGHT = ResultKey("light", "LightEstimate", "the room's lighting at the anchor: 
 SHADING = ResultKey("shading", "ObjectShading", "the object's per-vertex irradiance")
 COMPOSITE = ResultKey("composite", "ndarray HxWx3 uint8", "the output picture (sinks fall back to the camera colour)")
 SYNTHETIC_GT = ResultKey("synthetic_gt", "dict", "the synthetic camera's ground truth: frame index, T_cam_world")
+REPLAY_POSITION = ResultKey(
+    "replay_position",
+    "tuple[int, int]",
+    "a replay's (lap, frame index in the recording): a looped replay's camera is back at the recording's "
+    "start when the lap changes",
+)
 
 #: every declared key, by name
 RESULT_KEYS: dict[str, ResultKey] = {
-    k.name: k for k in (PLANES, ANCHOR, ODOMETRY, PLANE_LIGHT, LIGHT, SHADING, COMPOSITE, SYNTHETIC_GT)
+    k.name: k for k in (PLANES, ANCHOR, ODOMETRY, PLANE_LIGHT, LIGHT, SHADING, COMPOSITE, SYNTHETIC_GT, REPLAY_POSITION)
 }

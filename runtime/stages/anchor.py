@@ -51,7 +51,7 @@ import numpy as np
 
 from illuminet.runtime.config import Config
 from illuminet.runtime.frame import Frame
-from illuminet.runtime.scene import ANCHOR, ODOMETRY, PLANES, Anchor, Plane
+from illuminet.runtime.scene import ANCHOR, ODOMETRY, PLANES, REPLAY_POSITION, Anchor, Plane
 from illuminet.runtime.stage import LogOnce, Stage
 from illuminet.runtime.stages.odometry import Odometry, invert
 
@@ -68,6 +68,11 @@ LOCKS = ("world", "camera")
 #: the carried object's up axis and the carried origin is this close to it (when its ID changed).
 MATCH_DEG = 10.0
 MATCH_M = 0.08
+#: World lock on a looped replay: camera poses kept from the first lap, per position in the recording
+#: (its first frames: a lap's first frame may be dropped at recorded timing), and how far (frames) from
+#: a kept position a new lap's first frame may start and still take that pose.
+LAP_POSES = 64
+LAP_NEAR = 5
 
 
 def object_frame(normal: np.ndarray, origin: np.ndarray) -> np.ndarray:
@@ -194,6 +199,7 @@ class AnchorStage(Stage):
 
     name = "anchor"
     requires = (PLANES,)
+    optional = (REPLAY_POSITION,)
     provides = (ANCHOR,)  # + ODOMETRY with [anchor] lock = "world" (set in __init__)
     JUMP_M = 0.10
 
@@ -222,6 +228,10 @@ class AnchorStage(Stage):
         self._plane_world: tuple[np.ndarray, float] | None = None  # world lock: its plane, world frame
         self.placements = 0
         self.carried_frames = 0
+        self._lap: int | None = None  # looped replay: the lap of the last frame, and the first lap seen
+        self._first_lap: int | None = None
+        self._lap_poses: dict[int, np.ndarray] = {}  # first lap: position in the recording -> T_cam_world
+        self.lap_restarts = 0
 
     # -- choosing the plane and the point
     def _choose(self, frame: Frame, planes: tuple[Plane, ...]) -> tuple[Plane, np.ndarray] | None:
@@ -294,7 +304,12 @@ class AnchorStage(Stage):
         """World lock (module docstring): place once, then carry by odometry and re-snap onto the plane."""
         tracked = [p for p in planes if p.id == self._plane_id] if self._T_world_obj is not None else []
         plane_cam = (tracked[0].normal, tracked[0].offset) if tracked and self._plane_world is not None else None
+        rp = frame.results.get(REPLAY_POSITION.name)
+        if rp is not None:
+            self._new_lap(int(rp[0]), int(rp[1]))
         odo = self.odometry.update(frame, plane_cam, self._plane_world if plane_cam is not None else None)
+        if rp is not None and self._lap == self._first_lap and 0 <= rp[1] < LAP_POSES:
+            self._lap_poses.setdefault(int(rp[1]), odo.T_cam_world.copy())
         T_cw = odo.T_cam_world
         if self._T_world_obj is None:
             chosen = self._choose(frame, planes)
@@ -332,6 +347,25 @@ class AnchorStage(Stage):
         self.plane = plane
         anchor = Anchor(T_cam_obj=T_cam_obj, plane_id=plane.id, synthetic=False)
         return frame.with_result(ANCHOR, anchor).with_result(ODOMETRY, odo)
+
+    def _new_lap(self, lap: int, pos: int) -> None:
+        """A looped replay starting its recording again: the camera is back where the first lap saw it
+        at this position, so tracking restarts from that pose. Tracking across the jump instead (the
+        recording's end to its start) left ~1 mm of drift per lap, which a replay looped for an hour
+        adds up to metres: the object slid across the room."""
+        if self._lap is None:
+            self._lap = self._first_lap = lap
+            return
+        if lap == self._lap:
+            return
+        self._lap = lap
+        near = [k for k in self._lap_poses if abs(k - pos) <= LAP_NEAR]
+        if not near:
+            return  # the first lap kept no pose near here: track across the jump as with a camera
+        k = min(near, key=lambda k: abs(k - pos))
+        self.odometry.reset(pose=self._lap_poses[k])
+        self.lap_restarts += 1
+        log.debug("anchor: replay lap %d: tracking restarts from the first lap's pose at frame %d", lap, k)
 
     def _match(self, planes: tuple[Plane, ...], T_pred: np.ndarray) -> Plane | None:
         """The tracked plane the carried object stands on: normal near its up axis, origin near the plane."""
@@ -381,6 +415,7 @@ class AnchorStage(Stage):
             "lock": self.lock,
             "placements": self.placements,
             "carried_frames": self.carried_frames,
+            "replay_lap_restarts": self.lap_restarts,
             "odometry": self.odometry.stats() if self.odometry is not None else None,
             "warnings": dict(self._warn.counts),
         }

@@ -316,13 +316,16 @@ class Odometry:
         self.last: OdometryResult | None = None
 
     # -- public
-    def reset(self, keep_pose: bool = True) -> None:
-        """Forget the landmarks (the next good frame starts tracking again), keeping the pose by default."""
+    def reset(self, keep_pose: bool = True, pose: np.ndarray | None = None) -> None:
+        """Forget the landmarks (the next good frame starts tracking again), keeping the pose by default;
+        ``pose`` (a ``T_cam_world``) is where tracking starts again instead."""
         self._grey = None
         self._pts = np.zeros((0, 2), np.float32)
         self._lm = np.zeros((0, 3))
         self._nobs = np.zeros(0, np.int32)
-        if not keep_pose:
+        if pose is not None:
+            self.T_cam_world = np.array(pose, np.float64)
+        elif not keep_pose:
             self.T_cam_world = np.eye(4)
         self._velocity = None
         self.still.reset()
