@@ -80,6 +80,18 @@ def test_demo_composites_the_object_into_the_picture(tmp_path, capsys):
     assert 200 < changed.sum() < 0.3 * changed.size, changed.sum()
 
 
+def test_a_source_shorter_than_frames_still_gives_a_still(tmp_path, capsys):
+    """The still is the middle of --frames (frame 45 of 90); a 3-frame source never got there, and the
+    demo wrote no still and said nothing. Its last frame is the still now, and the report says so."""
+    still = tmp_path / "s.png"
+    src = "synthetic://indoor?seed=0&frames=3&size=320x200"
+    rc = main(["demo", "--no-video", "--source", src, "--still", str(still), "--strict"])
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    assert cv2.imread(str(still)).shape == (200, 320, 3)
+    assert f"still: {still} (the last frame, 2: the source ended first)" in text
+
+
 def test_demo_frames_and_live_config():
     from illuminet.cli import build_parser
     from illuminet.commands.demo import demo_config, demo_frames

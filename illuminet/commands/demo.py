@@ -129,7 +129,8 @@ def register(sub) -> None:
 
 
 class StillSink(Sink):
-    """Keeps what the demo reports: the shading methods seen, and a PNG still of frame ``index``."""
+    """Keeps what the demo reports: the shading methods seen, and a PNG still of frame ``index`` (the
+    last frame when the stream ends before it: a source shorter than ``--frames``)."""
 
     name = "still"
 
@@ -140,6 +141,8 @@ class StillSink(Sink):
         self.frames = 0
         self.composited = 0
         self.written: Path | None = None
+        self.written_frame = -1
+        self._last: np.ndarray | None = None  # the latest picture, until the still is written
 
     def write(self, frame: Frame) -> None:
         sh = frame.results.get(SHADING.name)
@@ -147,15 +150,26 @@ class StillSink(Sink):
         comp = frame.results.get(COMPOSITE.name)
         if comp is not None and comp is not frame.color:
             self.composited += 1
-        if self.path is not None and self.frames == self.index:
-            import cv2
-
-            self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.path is not None and self.written is None:
             pic = comp if comp is not None else frame.color
-            if not cv2.imwrite(str(self.path), np.ascontiguousarray(pic[:, :, ::-1])):
-                raise OSError(f"cannot write the still {self.path}")
-            self.written = self.path
+            if self.frames == self.index:
+                self._write(pic, self.frames)
+            else:
+                self._last = pic.copy()
         self.frames += 1
+
+    def _write(self, pic: np.ndarray, index: int) -> None:
+        import cv2
+
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if not cv2.imwrite(str(self.path), np.ascontiguousarray(pic[:, :, ::-1])):
+            raise OSError(f"cannot write the still {self.path}")
+        self.written, self.written_frame, self._last = self.path, index, None
+
+    def close(self) -> None:
+        """The stream ended before frame ``index``: the last frame is the still."""
+        if self.written is None and self._last is not None:
+            self._write(self._last, self.frames - 1)
 
     def stats(self) -> dict[str, Any]:
         return {"frames": self.frames, "composited": self.composited, "shading": dict(self.methods)}
@@ -489,7 +503,11 @@ def _print_report(stats, stages, probe: StillSink, cfg: Config, rc: int) -> None
     if cfg.output.video and rc == 0:
         print(f"video: {cfg.output.video}")
     if probe.written is not None:
-        print(f"still: {probe.written}")
+        early = probe.written_frame < probe.index
+        print(
+            f"still: {probe.written}"
+            + (f" (the last frame, {probe.written_frame}: the source ended first)" if early else "")
+        )
     rss = peak_rss_mb()
     print(
         f"peak resident memory: {rss:.0f} MB (target <= {RSS_TARGET_MB:.0f} MB)"
