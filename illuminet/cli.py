@@ -148,6 +148,10 @@ def report_error(e: IllumiNetError, *, debug: bool) -> int:
     return e.exit_code
 
 
+def _not_sparse_fallback(record: logging.LogRecord) -> bool:
+    return "unable to use sparse matrix" not in record.getMessage()
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit status (0 done, 1 run-time failure, 2 usage/configuration)."""
     parser = build_parser()
@@ -164,6 +168,9 @@ def main(argv: list[str] | None = None) -> int:
         # JAX probes for a TPU on every machine and logs "Unable to initialize backend 'tpu': ...
         # libtpu.so" at INFO: it says only that JAX runs on the CPU, as this project's JAX does
         logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)
+        # without scipy trimesh logs a traceback with "unable to use sparse matrix, falling back!" and
+        # then computes the same normals without it: not a failure, so not shown as one
+        logging.getLogger("trimesh.util").addFilter(_not_sparse_fallback)
     try:
         return int(args.func(args, cfg) or 0)
     except IllumiNetError as e:

@@ -75,6 +75,14 @@ def run(args, cfg) -> dict:
             f"{s['build_s']:8.2f}  {flag}"
         )
 
+    import importlib.util
+
+    if not any(importlib.util.find_spec(m) for m in ("embreex", "rtree")):
+        print(
+            "\nvisibility field: not measured: casting rays needs Embree (embreex) or rtree, which come "
+            "with the bundle extra: pip install 'illuminet[bundle]'"
+        )
+        return out
     mesh = proxy_mesh(load_object("builtin:vase"), 1000)
     t0 = time.perf_counter()
     field = VisibilityField(mesh, n_directions=1024)
