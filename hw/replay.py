@@ -240,6 +240,13 @@ class ReplaySource(Source):
         }
 
 
+def session_folder(url: str) -> Path | None:
+    """The session folder a ``replay://`` URL reads (None for another scheme or no path)."""
+    parts = urlsplit(url)
+    path = unquote(parts.netloc + parts.path)
+    return Path(path) if parts.scheme == "replay" and path else None
+
+
 def open_url(url: str, config: Config) -> ReplaySource:
     """``replay://PATH[?timing=recorded|asap][&loop=1][&max_frames=N]`` -> unopened :class:`ReplaySource`."""
     parts = urlsplit(url)

@@ -37,7 +37,10 @@ def build_stages(cfg: Config, *, render: bool = True) -> list[Stage]:
     from illuminet.runtime.stages.planes import PlaneStage
     from illuminet.runtime.stages.shading import ShadingStage
 
-    lut = load_response_lut(cfg.source.response_curve) if cfg.source.response_curve else None
+    try:
+        lut = load_response_lut(cfg.source.response_curve) if cfg.source.response_curve else None
+    except ValueError as e:  # a missing or unreadable file: the configuration's mistake, one line
+        raise ConfigError(f"[source] response_curve: {e}") from None
     stages: list[Stage] = []
     imu = ImuStage.from_config(cfg)  # a serial IMU ([imu] url) attaches gravity before planes need it
     if imu is not None:
@@ -71,8 +74,10 @@ _OUTPUT_DIRS = (
 )
 
 
-def check_output_paths(cfg: Config) -> None:
-    """Refuse, before anything is opened, every configured output that could not be written.
+def check_output_paths(cfg: Config, reads: Path | None = None) -> None:
+    """Refuse, before anything is opened, every configured output that could not be written, or that
+    would write into ``reads`` (the session folder a replay reads: an estimates or statistics file
+    named like one of its own files replaced the recording's).
 
     A statistics file is written only at the end of a run, so a typo in its folder would otherwise
     lose the whole run's statistics; a video or estimates file in a missing folder fails only after
@@ -84,6 +89,17 @@ def check_output_paths(cfg: Config) -> None:
     OutputPathError
         One line naming the key, the path and the fix.
     """
+    inside = reads.resolve() if reads is not None else None
+    for section, key, _ in _OUTPUT_FILES + _OUTPUT_DIRS:
+        value = cfg[section][key]
+        if not value or (key == "estimates" and value == "-") or inside is None:
+            continue
+        p = Path(value).resolve()
+        if p == inside or inside in p.parents:
+            raise OutputPathError(
+                f"[{section}] {key}: {value} is inside the session being replayed ({reads}); writing there "
+                "would change the recording: choose a path outside it"
+            )
     for section, key, what in _OUTPUT_FILES:
         value = cfg[section][key]
         if not value or (key == "estimates" and value == "-"):

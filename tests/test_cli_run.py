@@ -196,6 +196,40 @@ def test_replay_of_a_damaged_session_plays_the_intact_part(tmp_path, capsys):
     assert rc == 1 and "invalid session" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    "flag, name",
+    [
+        ("--estimates", "estimates.jsonl"),
+        ("--stats-json", "manifest.json"),
+        ("--video", "x.mp4"),
+        ("--png-dir", "frames"),
+        ("--record", "again"),
+    ],
+)
+def test_replay_outputs_never_write_into_the_session_being_replayed(tmp_path, capsys, flag, name):
+    """`replay S --estimates S/estimates.jsonl` replaced the recorded estimates, and `--stats-json
+    S/manifest.json` the manifest (the session no longer opened). Refused before the run now."""
+    s = tmp_path / "s"
+    make_session(s, 2)
+    before = {p.relative_to(s): p.read_bytes() for p in s.rglob("*") if p.is_file()}
+    for cmd in (["replay", str(s)], ["run", f"replay://{s}"]):
+        assert main([*cmd, "--timing", "asap", flag, str(s / name)]) == 2
+        err = capsys.readouterr().err
+        assert f"{s / name} is inside the session being replayed ({s})" in err, err
+    assert {p.relative_to(s): p.read_bytes() for p in s.rglob("*") if p.is_file()} == before
+
+
+def test_a_response_curve_that_cannot_be_read_is_one_line(tmp_path, capsys):
+    """[source] response_curve missing or not a table: a ValueError traceback from run and replay."""
+    bad = tmp_path / "c.png"
+    bad.write_text("hi")
+    for value, says in ((tmp_path / "none.json", "response curve file not found"), (bad, "cannot read")):
+        rc = main(["--set", f"source.response_curve={value}", "run", "synthetic://indoor?frames=2&size=64x48"])
+        err = capsys.readouterr().err
+        assert rc == 2 and f"[source] response_curve: {value}: " in err and says in err, err
+        assert "Traceback" not in err
+
+
 def test_clear_errors(tmp_path, capsys):
     assert main(["replay", str(tmp_path / "nope")]) == 1
     assert "is not a folder" in capsys.readouterr().err

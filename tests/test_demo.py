@@ -92,6 +92,15 @@ def test_a_source_shorter_than_frames_still_gives_a_still(tmp_path, capsys):
     assert f"still: {still} (the last frame, 2: the source ended first)" in text
 
 
+@pytest.mark.parametrize("name", ["st.xyz", "folder"])
+def test_a_still_that_cannot_be_written_is_refused_before_the_run(tmp_path, capsys, name):
+    (tmp_path / "folder").mkdir()
+    src = "synthetic://indoor?frames=2&size=64x48"
+    rc = main(["demo", "--source", src, "--no-video", "--still", str(tmp_path / name)])
+    err = capsys.readouterr().err
+    assert rc == 2 and f"--still {tmp_path / name}: expected an image file path" in err, err
+
+
 def test_demo_frames_and_live_config():
     from illuminet.cli import build_parser
     from illuminet.commands.demo import demo_config, demo_frames

@@ -409,7 +409,18 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
     frames = demo_frames(args)
     cfg = demo_config(args, cfg)
     url = _source_url(args, frames)
-    probe = StillSink(_still_path(args), index=(frames or 90) // 2)
+    still = _still_path(args)
+    if still:
+        import cv2
+
+        if Path(still).is_dir() or not cv2.haveImageWriter(still):
+            print(
+                f"illuminet demo: --still {still}: expected an image file path (.png, .jpg); "
+                f"{'it is a folder' if Path(still).is_dir() else 'OpenCV cannot write that extension'}",
+                file=sys.stderr,
+            )
+            return 2
+    probe = StillSink(still, index=(frames or 90) // 2)
     stats = LoopStats()
     try:
         if cfg.output.video:

@@ -176,12 +176,14 @@ def config_with_flags(args: argparse.Namespace, cfg: Config) -> Config:
 
 def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
     from illuminet.hw import open_source
+    from illuminet.hw.replay import session_folder
     from illuminet.pipeline import build_sinks, build_stages, check_output_paths
 
     # before any device or file is opened: every output path can be written (a statistics file in a
-    # missing folder would otherwise lose the run's statistics at its end). Errors here and in the
-    # set-up below reach illuminet.cli.main, which prints them as one line.
-    check_output_paths(cfg)
+    # missing folder would otherwise lose the run's statistics at its end), and none is inside the
+    # session a replay reads. Errors here and in the set-up below reach illuminet.cli.main, which
+    # prints them as one line.
+    check_output_paths(cfg, reads=session_folder(url))
     if with_stages:
         from illuminet.runtime.assets.bundle import resolve_bundle
 
