@@ -546,6 +546,8 @@ def _vec(v: Any, n: int, where: str) -> tuple[float, ...]:
 #: largest plausible focal length, in multiples of the image's larger side (a ~0.6 degree field of view;
 #: telephoto camera modules reach ~10x)
 MAX_FOCAL_PER_SIDE = 100.0
+#: largest image side the intrinsics may be stated at (pixels)
+MAX_SIDE = 100_000
 #: a gravity vector is a unit vector; a norm further from 1 than this is not one
 GRAVITY_NORM_TOLERANCE = 1e-2
 
@@ -560,6 +562,15 @@ def check_intrinsics(intr: Intrinsics, width: int, height: int, where: str) -> N
     A session with such intrinsics reads, but every frame then fails in the stages; refusing it at
     the boundary names the key instead. Raises :class:`SessionError`.
     """
+    iw, ih = intr.width, intr.height
+    if not (0 < iw <= MAX_SIDE and 0 < ih <= MAX_SIDE) or abs(iw * height - ih * width) > 0.01 * ih * width:
+        # the stages scale the intrinsics to the picture: 0 divided by zero, a negative width mirrored
+        # fx, another aspect ratio stretched one axis
+        raise SessionError(
+            f"{where}: key 'intrinsics.width'/'intrinsics.height': {iw}x{ih} does not describe the "
+            f"{width}x{height} pictures (expected their size, or a size of the same aspect ratio the "
+            "intrinsics were calibrated at)"
+        )
     side = max(width, height)
     for key in ("fx", "fy"):
         v = getattr(intr, key)
