@@ -66,12 +66,63 @@ BAD_INPUTS = [
     (["replay", "{tmp}/no-session"], 1, "no-session"),
 ]
 
+# the offline jobs (bundle, datagen, train, eval): every flag refused before any mesh, data or JAX work
+_BUNDLE = ["bundle", "--object", "builtin:sphere", "--out", "{tmp}/b", "--quiet"]
+_DATAGEN = ["datagen", "--object", "builtin:sphere", "--out", "{tmp}/dg.npz", "--samples", "2", "--quiet"]
+_TRAIN = ["train", "--object", "builtin:sphere", "--preset", "tiny", "--out", "{tmp}/t", "--quiet"]
+_EVAL = ["eval", "--no-figure", "--cases", "1", "--camera-scenes", "0", "--out", "{tmp}/ev"]
+BAD_INPUTS += [
+    (_BUNDLE + ["--height", "inf"], 2, "--height inf: expected a finite number of metres from 0.001 to 1000"),
+    (_BUNDLE + ["--height", "nan"], 2, "--height nan"),
+    (_BUNDLE + ["--seed", "-1"], 2, "--seed -1: expected a seed from 0 to 2**63-1"),
+    (_BUNDLE + ["--n-proxy", "0"], 2, "--n-proxy 0: expected a count >= 8"),
+    (_BUNDLE + ["--transfer-rays", "100000000"], 2, "--transfer-rays 100000000: expected a count from 64 to 65536"),
+    (_BUNDLE + ["--directions", "8"], 2, "--directions 8"),
+    (_BUNDLE + ["--bounces", "0"], 2, "--bounces 0: expected a count from 1 to 100"),
+    (_BUNDLE + ["--albedo", "1"], 2, "--albedo 1.0: expected a grey albedo in [0, 1)"),
+    (_BUNDLE + ["--out", "{tmp}/afile/b"], 2, "--out {tmp}/afile/b: {tmp}/afile is a file, not a folder"),
+    (_DATAGEN + ["--extent", "inf"], 2, "--extent inf: expected a finite number of metres from 0.01 to 100"),
+    (_DATAGEN + ["--extent", "0"], 2, "--extent 0.0"),
+    (_DATAGEN + ["--grid", "100000"], 2, "--grid 100000: expected a count from 8 to 512"),
+    (_DATAGEN + ["--n-proxy", "0"], 2, "--n-proxy 0: expected a count >= 8"),
+    (_DATAGEN + ["--seed", "-1"], 2, "--seed -1"),
+    (_DATAGEN + ["--seed", str(2**64)], 2, f"--seed {2**64}"),
+    (_DATAGEN + ["--hdr-share", "nan"], 2, "--hdr-share nan: expected a finite number from 0 to 1"),
+    (_DATAGEN + ["--out", "{tmp}/afile/dg.npz"], 2, "{tmp}/afile is a file, not a folder"),
+    (_DATAGEN + ["--hdr", "{tmp}/nothing"], 2, "--hdr {tmp}/nothing: no such folder; expected a folder of Radiance"),
+    (_DATAGEN + ["--hdr", "{tmp}"], 2, "--hdr {tmp}: the folder holds no .hdr maps"),
+    (_TRAIN + ["--batch", "0"], 2, "--batch 0: expected a count >= 1"),
+    (_TRAIN + ["--n-proxy", "0"], 2, "--n-proxy 0: expected a count >= 8"),
+    (_TRAIN + ["--seed", "-1"], 2, "--seed -1: expected a seed"),
+    (_TRAIN + ["--n-train", "0"], 2, "--n-train 0: expected a count >= 1"),
+    (_TRAIN + ["--n-val", "0"], 2, "--n-val 0: expected a count >= 1"),
+    (_TRAIN + ["--epochs-gan", "-1"], 2, "--epochs-gan -1: expected a count >= 0"),
+    (_TRAIN + ["--epochs-gae", "-1"], 2, "--epochs-gae -1"),
+    (_TRAIN + ["--unroll", "-1"], 2, "--unroll -1"),
+    (_TRAIN + ["--hdr", "{tmp}/afile"], 2, "--hdr {tmp}/afile: is a file, not a folder"),
+    (_TRAIN + ["--hdr", "{tmp}/nothing"], 2, "--hdr {tmp}/nothing: no such folder"),
+    (_TRAIN + ["--out", "{tmp}/afile"], 2, "--out {tmp}/afile: is a file, expected a folder"),
+    (_EVAL + ["--out", "{tmp}/afile"], 2, "--out {tmp}/afile: is a file, expected a folder"),
+    (_EVAL + ["--hdr", "{tmp}/nothing"], 2, "--hdr {tmp}/nothing: no such folder"),
+    (_EVAL + ["--hdr", "{tmp}/afile"], 2, "--hdr {tmp}/afile: is a file, not a folder"),
+    (_EVAL + ["--hdr", "{tmp}"], 2, "--hdr {tmp}: the folder holds no .hdr maps"),
+    (_EVAL + ["--hdr", "{tmp}/hdr3"], 2, "holds 3 .hdr map(s), but eval uses only the held-out ones"),
+    (_EVAL + ["--seed", "-1"], 2, "--seed -1"),
+    (_EVAL + ["--camera-frames", "1"], 2, "--camera-frames 1: expected a count >= 2"),
+    (_EVAL + ["--object-albedo", "nan"], 2, "--object-albedo: expected a number in [0, 1), got nan"),
+    (_EVAL + ["--crosscheck-spp", "0"], 2, "--crosscheck-spp 0"),
+    (_EVAL + ["--crosscheck-bounces", "-1"], 2, "--crosscheck-bounces -1: expected a count from 0 to 16"),
+]
+
 
 @pytest.mark.parametrize("argv,code,expect", BAD_INPUTS, ids=[" ".join(a) for a, _, _ in BAD_INPUTS])
 def test_a_mistake_is_one_line_with_its_exit_status(tmp_path, capsys, argv, code, expect):
     (tmp_path / "bad.toml").write_text("[render]\nmsaa = 64\n")
     (tmp_path / "binary.toml").write_bytes(b"\x89PNG\r\n\x1a\n\xf1\xff")
     (tmp_path / "afile").write_text("not a folder")
+    (tmp_path / "hdr3").mkdir()
+    for name in "abc":  # three maps: none of them is held out for eval (every 4th is)
+        (tmp_path / "hdr3" / f"{name}.hdr").write_bytes(b"#?RADIANCE\n")
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
     t0 = time.monotonic()
     assert main(argv) == code
@@ -83,6 +134,8 @@ def test_a_mistake_is_one_line_with_its_exit_status(tmp_path, capsys, argv, code
     # refused up front: nothing was run (no synthetic scene was built, no statistics file)
     assert time.monotonic() - t0 < 30
     assert not (tmp_path / "missing").exists()
+    # nor was an output of the offline jobs begun
+    assert not any((tmp_path / p).exists() for p in ("b", "dg.npz", "t", "ev")), sorted(tmp_path.iterdir())
 
 
 def test_a_gl_backend_that_cannot_start_is_one_line():
@@ -301,7 +354,19 @@ def test_a_manifest_symlinked_out_of_the_session_is_refused(tmp_path, capsys):
 # ------------------------------------------------------------ class 4: plausible-looking garbage
 
 
-@pytest.mark.parametrize("key,value", [("fx", float("nan")), ("fy", 0.0), ("fx", 1e300), ("cx", float("inf"))])
+@pytest.mark.parametrize(
+    "key,value",
+    # width 0 divided by zero in every stage, -64 mirrored fx, 480 for 48-pixel-high pictures stretched fy
+    [
+        ("fx", float("nan")),
+        ("fy", 0.0),
+        ("fx", 1e300),
+        ("cx", float("inf")),
+        ("width", 0),
+        ("width", -64),
+        ("height", 480),
+    ],
+)
 def test_implausible_session_intrinsics_are_refused(tmp_path, capsys, key, value):
     s = tmp_path / "s"
     make_session(s, 3)

@@ -22,6 +22,14 @@ import sys
 import time
 from pathlib import Path
 
+from illuminet.commands.train import check_count, check_number, check_out, check_seed
+from illuminet.runtime.errors import EXIT_USAGE, JobError
+
+#: most interreflections summed (8 converge at albedo 0.8; each one is a pass over every hit)
+MAX_BOUNCES = 100
+#: most transfer rays or table directions per vertex (16x the default: its tables grow as V x N)
+MAX_RAYS = 65536
+
 
 def register(sub) -> None:
     p = sub.add_parser(
@@ -94,6 +102,11 @@ def _command(args) -> str:
     return f"illuminet bundle --object {args.object} --out {args.out} --seed {args.seed}"
 
 
+def _usage(msg: str) -> JobError:
+    """A mistake in the flags: one line ``illuminet: ...`` from ``cli.main``, exit status 2."""
+    return JobError(msg, exit_code=EXIT_USAGE)
+
+
 def _same_object(existing: str, spec: str) -> bool:
     if existing.startswith("builtin:") or spec.startswith("builtin:"):
         return existing == spec
@@ -101,6 +114,16 @@ def _same_object(existing: str, spec: str) -> bool:
 
 
 def run(args: argparse.Namespace, cfg) -> int:
+    if args.height is not None:
+        check_number("--height", args.height, 0.001, 1000.0, " of metres", " (the object's height; 0.25 = 25 cm)")
+    if not 0.0 <= args.albedo < 1.0:  # NaN fails it too
+        raise _usage(f"--albedo {args.albedo}: expected a grey albedo in [0, 1) (default 0.8; 0 = no bounce)")
+    check_count("--bounces", args.bounces, 1, MAX_BOUNCES, note=" (8 converges at albedo 0.8)")
+    check_count("--n-proxy", args.n_proxy, 8)
+    check_count("--transfer-rays", args.transfer_rays, 64, MAX_RAYS, note=" (default 4096)")
+    check_count("--directions", args.directions, 64, MAX_RAYS, note=" (default 4096)")
+    check_seed(args.seed)
+    check_out("--out", Path(args.out), folder=True)
     try:
         import scipy  # noqa: F401  (the proxy's nearest neighbours)
     except ImportError:
@@ -122,18 +145,6 @@ def run(args: argparse.Namespace, cfg) -> int:
     from illuminet.runtime.assets.bundle import METADATA, BundleError
     from illuminet.runtime.assets.objects import ObjectLoadError
 
-    def fail(msg: str) -> int:
-        print(f"illuminet bundle: {msg}", file=sys.stderr)
-        return 2
-
-    if args.height is not None and not args.height > 0:
-        return fail(f"--height must be positive metres, got {args.height}")
-    if not 0.0 <= args.albedo < 1.0:
-        return fail(f"--albedo must be in [0, 1), got {args.albedo}")
-    if args.bounces < 1:
-        return fail(f"--bounces must be >= 1, got {args.bounces}")
-    if args.n_proxy < 8 or args.transfer_rays < 64 or args.directions < 64:
-        return fail("--n-proxy must be >= 8, --transfer-rays and --directions >= 64")
     bars: dict[str, Progress] = {}
 
     def progress(step: str, done: int, total: int) -> None:
@@ -147,11 +158,11 @@ def run(args: argparse.Namespace, cfg) -> int:
             try:
                 existing = json.loads((out / METADATA).read_text()).get("object", "")
             except json.JSONDecodeError as e:
-                return fail(f"{out / METADATA}: not valid JSON ({e}); choose another --out")
+                raise _usage(f"{out / METADATA}: not valid JSON ({e}); choose another --out") from None
             if not _same_object(str(existing), args.object):
-                return fail(f"--out {out} holds a bundle of {existing!r}, not {args.object!r}: choose another --out")
+                raise _usage(f"--out {out} holds a bundle of {existing!r}, not {args.object!r}: choose another --out")
             if args.height is not None or args.up != "y":
-                return fail(
+                raise _usage(
                     f"--out {out} is an existing bundle whose mesh is kept: --height/--up apply to new bundles only"
                 )
             if not args.quiet:
@@ -169,7 +180,7 @@ def run(args: argparse.Namespace, cfg) -> int:
             )
         else:
             if out.exists() and (not out.is_dir() or any(out.iterdir())):
-                return fail(
+                raise _usage(
                     f"--out {out} exists and is not a bundle folder (no {METADATA}): choose a new or empty folder"
                 )
             path, res = new_bundle(
@@ -188,7 +199,7 @@ def run(args: argparse.Namespace, cfg) -> int:
                 bounces=args.bounces,
             )
     except (ObjectLoadError, BundleError, OSError) as e:
-        return fail(str(e))
+        raise _usage(str(e)) from None
     total = sum((path.parent / f).stat().st_size for f in json.loads(path.read_text())["files"]) + path.stat().st_size
     t = res.timings_s
     rt = json.loads(path.read_text()).get("prt", {}).get("render_transfer")

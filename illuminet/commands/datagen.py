@@ -115,23 +115,27 @@ def write(out: Path, arrays, meta: dict) -> None:
 
 
 def run(args: argparse.Namespace, cfg) -> int:
-    from illuminet.commands.train import DEFAULT_HDR
+    from illuminet.commands.train import DEFAULT_HDR, check_count, check_hdr, check_number, check_out, check_seed
+    from illuminet.runtime.config import SCHEMA
 
     cluster.check_arguments(args)
     kinds = tuple(k for k in args.kinds.split(",") if k)
     if not kinds or any(k not in KINDS for k in kinds):
         raise _usage(f"--kinds {args.kinds!r}: expected a comma-separated list of {', '.join(KINDS)}")
-    if args.samples < 1:
-        raise _usage(f"--samples must be >= 1, got {args.samples}")
-    if args.seed < 0:
-        raise _usage(f"--seed must be >= 0 (it seeds numpy's SeedSequence), got {args.seed}")
-    if args.shard_size < 1:
-        raise _usage(f"--shard-size must be >= 1, got {args.shard_size}")
-    if args.n_proxy < 8 or args.grid < 8 or not args.extent > 0 or not 0.0 <= args.hdr_share <= 1.0:
-        raise _usage("--n-proxy and --grid must be >= 8, --extent > 0 and --hdr-share in [0, 1]")
+    check_count("--samples", args.samples, 1)
+    check_seed(args.seed)
+    check_count("--shard-size", args.shard_size, 1)
+    check_count("--n-proxy", args.n_proxy, 8)
+    # the plane patch the runtime measures ([plane_light] grid and extent_m): data outside it fit no bundle
+    grid, extent = SCHEMA["plane_light"]["grid"], SCHEMA["plane_light"]["extent_m"]
+    check_count("--grid", args.grid, 8, int(grid.max), note=" (cells per side, as [plane_light] grid allows)")
+    check_number("--extent", args.extent, extent.min, extent.max, " of metres", " (as [plane_light] extent_m allows)")
+    check_number("--hdr-share", args.hdr_share, 0.0, 1.0, note=" (the share of HDR-lit samples)")
     out = Path(args.out)
     if out.is_dir():
         raise _usage(f"--out {out} is a folder; give the data file's name (e.g. {out / 'data.npz'})")
+    check_out("--out", out, folder=False)
+    check_hdr(args.hdr)
     hdr = args.hdr if args.hdr is not None else (str(DEFAULT_HDR) if DEFAULT_HDR.is_dir() else "")
     from illuminet.models.datagen import data_spec
 
@@ -143,6 +147,11 @@ def run(args: argparse.Namespace, cfg) -> int:
         raise
     except ValueError as e:
         raise _usage(str(e)) from None
+    if args.hdr and not spec.hdr_lights:  # every map unreadable (each one logged above)
+        raise _usage(
+            f"--hdr {args.hdr}: none of its training maps (3 of every 4 .hdr files) could be read (see the "
+            "warnings above); give readable Radiance .hdr maps"
+        )
     meta = dict(spec.meta(), samples=args.samples)
     if hdr and not spec.hdr_lights:
         log.warning("no HDR maps found in %s; synthetic lights only", hdr)

@@ -179,6 +179,7 @@ def _ablation(ev, epochs: int) -> None:
 
 
 def _crosscheck(args, hdr: str) -> int:
+    from illuminet.commands.train import check_out
     from illuminet.models.crosscheck import CrosscheckUnavailable, markdown, run_crosscheck
     from illuminet.models.train import Progress
 
@@ -206,6 +207,7 @@ def _crosscheck(args, hdr: str) -> int:
         print(f"illuminet eval: {e}", file=sys.stderr)
         return 2
     out = Path(args.out or Path("eval") / "crosscheck")
+    check_out("--out", out, folder=True)
     out.mkdir(parents=True, exist_ok=True)
     (out / "crosscheck.json").write_text(json.dumps(report, indent=2) + "\n")
     md = markdown(report)
@@ -215,22 +217,41 @@ def _crosscheck(args, hdr: str) -> int:
     return 0
 
 
+def check_eval_arguments(args: argparse.Namespace) -> None:
+    """Every count, seed, number and path of the flags, before a bundle is loaded or a suite run."""
+    from illuminet.commands.train import check_count, check_hdr, check_out, check_seed
+
+    for flag, value, least, note in (
+        ("--cases", args.cases, 0, " (0 skips it)"),
+        ("--flicker-scenes", args.flicker_scenes, 0, " (0 skips it)"),
+        ("--camera-scenes", args.camera_scenes, 0, " (0 skips it)"),
+        ("--vertices", args.vertices, 0, " (0 = all)"),
+        ("--ablation-epochs", args.ablation_epochs, 1, ""),
+        ("--camera-frames", args.camera_frames, 2, " (the flicker figure compares consecutive frames)"),
+        ("--crosscheck-vertices", args.crosscheck_vertices, 1, ""),
+        ("--crosscheck-spp", args.crosscheck_spp, 1, ""),
+    ):
+        check_count(flag, value, least, note=note)
+    if args.crosscheck_bounces is not None:
+        from illuminet.hw.synthetic.scene import MAX_BOUNCES
+
+        check_count("--crosscheck-bounces", args.crosscheck_bounces, 0, MAX_BOUNCES, note=" (0 = direct light only)")
+    check_seed(args.seed)
+    if args.object_albedo is not None and not 0.0 <= args.object_albedo < 1.0:  # NaN fails it too
+        raise _usage(f"--object-albedo: expected a number in [0, 1), got {args.object_albedo!r} (0 = a black object)")
+    check_hdr(args.hdr, held_out=True)
+    if args.out:
+        check_out("--out", Path(args.out), folder=True)
+
+
 def run(args: argparse.Namespace, cfg) -> int:
-    from illuminet.commands.train import DEFAULT_HDR
+    from illuminet.commands.train import DEFAULT_HDR, check_out
     from illuminet.models.train import Progress
     from illuminet.runtime.assets.bundle import BundleError, load_bundle
     from illuminet.runtime.config import ConfigError
 
     cluster.check_arguments(args)
-    for flag, value, least in (
-        ("--cases", args.cases, 0),
-        ("--flicker-scenes", args.flicker_scenes, 0),
-        ("--camera-scenes", args.camera_scenes, 0),
-        ("--vertices", args.vertices, 0),
-        ("--ablation-epochs", args.ablation_epochs, 1),
-    ):
-        if value < least:
-            raise _usage(f"{flag} {value}: expected a count >= {least}" + (" (0 skips it)" if least == 0 else ""))
+    check_eval_arguments(args)
     hdr = args.hdr if args.hdr is not None else (str(DEFAULT_HDR) if DEFAULT_HDR.is_dir() else "")
     if args.crosscheck:
         if args.ray is not None:
@@ -275,6 +296,9 @@ def run(args: argparse.Namespace, cfg) -> int:
         return 2
     name = bundle.name if bundle is not None else str(spec)
     out = Path(args.out or Path("eval") / name)
+    check_out("--out", out, folder=True)
+    if args.hdr and ev is not None and not ev.hdr:  # every held-out map unreadable (each one logged above)
+        raise _usage(f"--hdr {args.hdr}: none of its held-out .hdr maps (every 4th) could be read; give readable maps")
     t0 = time.time()
     examples: dict = {}
     if args.ray is not None:
@@ -462,6 +486,10 @@ def _sharded(args, cfg, spec, bundle, suites, hdr, cam, out: Path):
     hdr_names: list[str] = []
     if args.cases > 0:
         hdr_lights, hdr_names = E.held_out_lights(hdr_dir)
+        if args.hdr and not hdr_lights:  # every held-out map unreadable (each one logged above)
+            raise _usage(
+                f"--hdr {args.hdr}: none of its held-out .hdr maps (every 4th) could be read; give readable maps"
+            )
         light = E.suites(hdr_lights)
         if hdr:
             print(f"# real HDR lighting from {hdr} (held-out maps: {', '.join(hdr_names) or 'none'})")

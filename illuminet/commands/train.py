@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import shlex
 import sys
 import time
@@ -105,6 +106,68 @@ def object_name(spec: str) -> str:
 
 def _usage(msg: str) -> JobError:
     return JobError(msg, exit_code=EXIT_USAGE)
+
+
+# ------------------------------------------------- flag checks shared by bundle, datagen, train, eval
+
+#: the largest seed: numpy's SeedSequence takes any integer >= 0, JAX's PRNGKey a 64-bit one
+SEED_MAX = 2**63 - 1
+
+
+def check_count(flag: str, value: int, least: int, most: int | None = None, note: str = "") -> None:
+    """Refuse an integer flag outside ``least .. most``: ``--flag VALUE: expected a count >= least``."""
+    if value < least or (most is not None and value > most):
+        want = f">= {least}" if most is None else f"from {least} to {most}"
+        raise _usage(f"{flag} {value}: expected a count {want}{note}")
+
+
+def check_seed(value: int, flag: str = "--seed") -> None:
+    """Refuse a seed numpy or JAX cannot take (negative, or beyond 64 bits)."""
+    if not 0 <= value <= SEED_MAX:
+        raise _usage(f"{flag} {value}: expected a seed from 0 to 2**63-1 (e.g. {flag} 0)")
+
+
+def check_number(flag: str, value: float, least: float, most: float, unit: str = "", note: str = "") -> None:
+    """Refuse a float flag that is not finite or outside ``least .. most`` (NaN fails every comparison)."""
+    if not (math.isfinite(value) and least <= value <= most):
+        raise _usage(f"{flag} {value}: expected a finite number{unit} from {least:g} to {most:g}{note}")
+
+
+def check_out(flag: str, out: Path, folder: bool) -> None:
+    """Refuse an output path that cannot be made: a file where a folder is needed (``folder``: ``out``
+    itself), or a file where one of its parent folders would be. Checked before any work."""
+    if folder and out.exists() and not out.is_dir():
+        raise _usage(f"{flag} {out}: is a file, expected a folder: choose a new or existing folder")
+    for parent in out.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise _usage(f"{flag} {out}: {parent} is a file, not a folder: choose another {flag}")
+            break
+
+
+def check_hdr(hdr: str | None, held_out: bool = False) -> None:
+    """Refuse an explicit ``--hdr`` that is missing, a file or holds no maps (``None``: the default
+    folder when present; ``''``: none). ``held_out``: eval uses only the held-out maps (every 4th)."""
+    if not hdr:
+        return
+    from illuminet.models.datagen import hdr_maps
+
+    folder = Path(hdr)
+    want = "expected a folder of Radiance .hdr environment maps, or --hdr '' for none"
+    if not folder.exists():
+        raise _usage(f"--hdr {hdr}: no such folder; {want}")
+    if not folder.is_dir():
+        raise _usage(f"--hdr {hdr}: is a file, not a folder; {want} (e.g. --hdr {folder.parent})")
+    maps = hdr_maps(folder)
+    if not maps:
+        other = sorted(p.name for p in folder.iterdir() if p.suffix.lower() in (".hdr", ".exr"))
+        seen = f" (only names ending in lower-case .hdr are read; found {', '.join(other[:3])})" if other else ""
+        raise _usage(f"--hdr {hdr}: the folder holds no .hdr maps{seen}; {want}")
+    if held_out and not hdr_maps(folder, "test"):
+        raise _usage(
+            f"--hdr {hdr}: holds {len(maps)} .hdr map(s), but eval uses only the held-out ones (every 4th in "
+            "name order, the training never sees them): give a folder of at least 4 maps, or --hdr '' for none"
+        )
 
 
 def catalogue(arg: str) -> list[tuple[str, str]]:
@@ -221,8 +284,36 @@ def _trained(out: Path, tcfg) -> bool:
     return True
 
 
+#: (flag, least, what 0 means) of the preset overrides; None: the preset's value
+_OVERRIDE_LEAST = {
+    "n-train": (1, ""),
+    "n-val": (1, ""),
+    "n-proxy": (8, ""),
+    "batch": (1, ""),
+    "epochs-gae": (0, " (0 skips the stage)"),
+    "epochs-colour": (0, " (0 skips the stage)"),
+    "epochs-gan": (0, " (0 skips the stage)"),
+    "epochs-finetune": (0, " (0 = the paper pipeline)"),
+    "unroll": (0, " (0 = no unrolled discriminator step)"),
+}
+
+
+def check_train_arguments(args: argparse.Namespace) -> None:
+    """Every flag's value, before JAX is imported or any data is made."""
+    check_seed(args.seed)
+    for flag in _OVERRIDES:
+        value = getattr(args, flag.replace("-", "_"))
+        if value is not None:
+            least, note = _OVERRIDE_LEAST[flag]
+            check_count(f"--{flag}", value, least, note=note)
+    check_hdr(args.hdr)
+    if args.out:
+        check_out("--out", Path(args.out), folder=True)
+
+
 def run(args: argparse.Namespace, cfg) -> int:
     cluster.check_arguments(args)
+    check_train_arguments(args)
     if args.ray is None or args.ray == cluster.LOCAL:  # the training runs in this Python environment
         try:
             import jax  # noqa: F401
@@ -247,6 +338,7 @@ def run(args: argparse.Namespace, cfg) -> int:
     if args.ray is not None:
         raise _usage("--ray trains a catalogue (--objects DIR|LIST), one Ray task per object; not one --object")
     out = Path(args.out or Path("bundles") / object_name(args.object))
+    check_out("--out", out, folder=True)
     try:
         path = train_one(config(args.object), out, _command(args), show_progress=not args.quiet)
     except (FileNotFoundError, ValueError) as e:
@@ -259,6 +351,7 @@ def run(args: argparse.Namespace, cfg) -> int:
 def _run_catalogue(args, objects: list[tuple[str, str]], config) -> int:
     """Train every object of the catalogue into ``<out>/<name>``: one after the other, or on Ray."""
     root = Path(args.out or "bundles")
+    check_out("--out", root, folder=True)
     command = _command(args)
     configs = {name: config(spec) for name, spec in objects}
     done = {name for name in configs if _trained(root / name, configs[name])}
