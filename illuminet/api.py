@@ -233,13 +233,26 @@ def open(
 
 
 def _intrinsics(intrinsics: Any, width: int, height: int) -> Intrinsics:
-    """Intrinsics, a 3x3 K, or (fx, fy, cx, cy) for the colour image (scaled when made for another size)."""
+    """Intrinsics, a 3x3 K, or (fx, fy, cx, cy) for the colour image (scaled when made for a size of the
+    same aspect ratio; another aspect ratio, a bool, an implausible focal length: refused)."""
+    from illuminet.runtime.relight import check_intrinsics, fit_intrinsics
+
     if isinstance(intrinsics, Intrinsics):
         K = intrinsics
     else:
-        a = np.asarray(intrinsics, np.float64)
+        if any(isinstance(x, (bool, np.bool_)) for x in np.asarray(intrinsics, dtype=object).ravel()):
+            raise ValueError(f"intrinsics: expected numbers in pixels, got a bool in {intrinsics!r}")
+        try:
+            a = np.asarray(intrinsics, np.float64)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"intrinsics: expected numbers in pixels, got {intrinsics!r}: {e}") from None
         if a.shape == (3, 3):
-            K = Intrinsics(a[0, 0], a[1, 1], a[0, 2], a[1, 2], width, height)
+            if a[1, 0] != 0 or a[2, 0] != 0 or a[2, 1] != 0 or a[2, 2] != 1:
+                raise ValueError(
+                    f"intrinsics: a 3x3 camera matrix must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], got "
+                    f"{a.tolist()} (transposed?)"
+                )
+            K = Intrinsics(float(a[0, 0]), float(a[1, 1]), float(a[0, 2]), float(a[1, 2]), width, height)
         elif a.shape == (4,):
             K = Intrinsics(*(float(x) for x in a), width, height)
         else:
@@ -247,7 +260,8 @@ def _intrinsics(intrinsics: Any, width: int, height: int) -> Intrinsics:
                 f"intrinsics: expected an Intrinsics, a 3x3 camera matrix or (fx, fy, cx, cy), "
                 f"got an array of shape {a.shape}"
             )
-    return K if (K.width, K.height) == (width, height) else K.scaled(width, height)
+    check_intrinsics(K)
+    return fit_intrinsics(K, width, height)
 
 
 def align_depth(depth: np.ndarray, color_shape: tuple[int, ...], what: str = "depth") -> np.ndarray:
@@ -263,6 +277,10 @@ def align_depth(depth: np.ndarray, color_shape: tuple[int, ...], what: str = "de
     d = np.asarray(depth)
     if d.ndim != 2:
         raise ValueError(f"{what}: expected a single-channel image, got shape {d.shape}")
+    if d.size == 0:
+        raise ValueError(f"{what}: empty (shape {d.shape}); expected a 2-D array of depths")
+    if d.dtype.kind not in "fiu":
+        raise ValueError(f"{what}: expected depths as numbers (float metres or uint16 millimetres), got {d.dtype}")
     if d.dtype == np.uint16:
         d = d.astype(np.float32) * np.float32(1e-3)
     d = d.astype(np.float32, copy=False)
@@ -315,8 +333,8 @@ def relight(
     from illuminet.runtime.relight import relight as _relight
 
     color = np.ascontiguousarray(color)
-    if color.ndim != 3 or color.shape[2] != 3 or color.dtype != np.uint8:
-        raise ValueError(f"color: expected an HxWx3 uint8 RGB image, got {color.shape} {color.dtype}")
+    if color.ndim != 3 or color.shape[2] != 3 or color.dtype != np.uint8 or color.size == 0:
+        raise ValueError(f"color: expected a non-empty HxWx3 uint8 RGB image, got {color.shape} {color.dtype}")
     d = align_depth(depth, color.shape)
     h, w = color.shape[:2]
     K = _intrinsics(intrinsics, w, h)

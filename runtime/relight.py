@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,10 +52,12 @@ class RelightResult:
     plane_observed: float  # fraction of the plane grid that was observed
     light: LightEstimate | None = None  # the frame's light estimate, when the chain made one
 
-    def save(self, path) -> None:
+    def save(self, path) -> str | None:
         """Write the documented npz (see docs/models.md, "relight npz"), with :func:`light_fields` when
-        the frame had a light estimate."""
+        the frame had a light estimate. Returns the file name written (numpy adds ``.npz`` to a name
+        without it: :func:`npz_path`), None for a file object."""
         extra = light_fields(self.light) if self.light is not None else {}
+        written = None if hasattr(path, "write") else npz_path(path)
         np.savez_compressed(
             path,
             vertices=self.vertices.astype(np.float32),
@@ -75,6 +78,14 @@ class RelightResult:
             format=np.int64(1),
             **extra,
         )
+        return written
+
+
+def npz_path(path) -> str:
+    """The file :func:`numpy.savez_compressed` writes for ``path``: ``.npz`` appended unless the name
+    ends with it (case-sensitively, as numpy does: ``r.out`` -> ``r.out.npz``)."""
+    p = os.fspath(path)
+    return p if p.endswith(".npz") else p + ".npz"
 
 
 #: the frame the light fields of the relight npz are given in
@@ -122,15 +133,127 @@ def lighting_stages(cfg: Config, response_lut=None) -> list:
     return stages
 
 
+#: largest image side (pixels) intrinsics may claim: a width or height over it is not a camera's
+MAX_INTRINSICS_SIDE = 100_000
+#: the field of view (degrees, per axis) focal lengths must give: 2 atan(width / 2 fx) within these
+FOV_RANGE_DEG = (0.5, 179.0)
+#: relative difference of aspect ratios below which intrinsics made for another size are scaled
+ASPECT_TOLERANCE = 0.01
+#: exposure time (microseconds) and ISO accepted as metadata: what cameras report, with margin
+EXPOSURE_US_RANGE = (1.0, 1e9)
+ISO_RANGE = (1.0, 1e7)
+#: a median depth over this (metres) is refused as millimetres given where metres were expected
+MAX_MEDIAN_DEPTH_M = 100.0
+
+
+def _is_number(v) -> bool:
+    """A real number, not a bool (``True`` is an ``int`` to Python, never a focal length)."""
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+
+
 def check_intrinsics(K: Intrinsics, what: str = "intrinsics") -> None:
-    """Focal lengths must be positive and every value finite; the size (when given) positive."""
+    """Focal lengths must be positive and every value finite; the size (when given) positive whole
+    pixels up to :data:`MAX_INTRINSICS_SIDE`; the focal lengths a field of view in :data:`FOV_RANGE_DEG`
+    for that size (1e30 or 1e-9 pixels is a unit or typing mistake, not a lens)."""
+    if not isinstance(K, Intrinsics):
+        raise ValueError(f"{what}: expected an Intrinsics, got {type(K).__name__}")
+    for name in ("fx", "fy", "cx", "cy", "width", "height"):
+        v = getattr(K, name)
+        if not _is_number(v):
+            raise ValueError(f"{what}: {name} must be a number in pixels, got {v!r} ({type(v).__name__})")
     if not all(math.isfinite(v) for v in (K.fx, K.fy, K.cx, K.cy)) or K.fx <= 0 or K.fy <= 0:
         raise ValueError(
             f"{what}: expected finite fx, fy > 0 and finite cx, cy in pixels, got fx={K.fx:g} fy={K.fy:g} "
             f"cx={K.cx:g} cy={K.cy:g}"
         )
-    if K.width <= 0 or K.height <= 0:
+    if not (math.isfinite(K.width) and math.isfinite(K.height)) or K.width <= 0 or K.height <= 0:
         raise ValueError(f"{what}: width and height must be > 0 pixels, got {K.width}x{K.height}")
+    if K.width != int(K.width) or K.height != int(K.height):
+        raise ValueError(f"{what}: width and height must be whole pixels, got {K.width:g}x{K.height:g}")
+    if K.width > MAX_INTRINSICS_SIDE or K.height > MAX_INTRINSICS_SIDE:
+        raise ValueError(
+            f"{what}: width x height {K.width:g}x{K.height:g} is over {MAX_INTRINSICS_SIDE} pixels a side, not a "
+            f"camera image; expected the image size in pixels the intrinsics were calibrated at"
+        )
+    lo, hi = FOV_RANGE_DEG
+    for f, side, fname, sname in ((K.fx, K.width, "fx", "wide"), (K.fy, K.height, "fy", "high")):
+        fov = math.degrees(2.0 * math.atan(side / (2.0 * f)))
+        if not lo <= fov <= hi:
+            raise ValueError(
+                f"{what}: {fname}={f:g} pixels for an image {int(side)} px {sname} is a {fov:.3g} deg field of "
+                f"view; expected focal lengths in pixels giving {lo:g}-{hi:g} deg (typically 0.5-2x the image "
+                f"width)"
+            )
+
+
+def fit_intrinsics(K: Intrinsics, width: int, height: int, what: str = "intrinsics") -> Intrinsics:
+    """``K`` for a ``width`` x ``height`` image: as is when made for that size, scaled when made for a
+    proportional one (calibrated at 1280x960, image 640x480), refused for another aspect ratio (scaling
+    would stretch fx and fy differently: a silently wrong camera)."""
+    if (K.width, K.height) == (width, height):
+        return K
+    a, b = K.width / K.height, width / height
+    if abs(a - b) > ASPECT_TOLERANCE * b:
+        raise ValueError(
+            f"{what}: made for a {K.width:g}x{K.height:g} image but the colour image is {width}x{height}, another "
+            f"aspect ratio; give the width and height the intrinsics were calibrated at (or none, for intrinsics "
+            f"of this image)"
+        )
+    return K.scaled(width, height)
+
+
+def check_depth(depth: np.ndarray, what: str = "depth") -> None:
+    """Depth in metres must hold some finite value > 0 and not look like millimetres (median over
+    :data:`MAX_MEDIAN_DEPTH_M`); else no plane can be found and the error would blame the plane."""
+    d = np.asarray(depth)
+    if d.ndim != 2 or d.size == 0:
+        raise ValueError(f"{what}: expected a non-empty 2-D array of depths, got shape {d.shape}")
+    if d.dtype.kind not in "fiu":
+        raise ValueError(f"{what}: expected depths as numbers (metres), got {d.dtype}")
+    valid = np.isfinite(d) & (d > 0)
+    if not valid.any():
+        with np.errstate(invalid="ignore"):
+            counts = {
+                "NaN": int(np.isnan(d).sum()) if d.dtype.kind == "f" else 0,
+                "infinite": int(np.isinf(d).sum()) if d.dtype.kind == "f" else 0,
+                "negative": int((d < 0).sum()),
+                "zero (invalid)": int((d == 0).sum()),
+            }
+        parts = ", ".join(f"{n} {k}" for k, n in counts.items() if n)
+        raise ValueError(
+            f"{what}: no valid depth: none of its {d.size} values is a finite number > 0 ({parts}); expected "
+            f"distances in metres (0 = invalid)"
+        )
+    med = float(np.median(d[valid]))
+    if med > MAX_MEDIAN_DEPTH_M:
+        raise ValueError(
+            f"{what}: median depth {med:g} m looks like millimetres; float depth is in metres: divide by 1000 "
+            f"(or give uint16 millimetres, e.g. a 16-bit PNG)"
+        )
+
+
+def check_exposure(exposure, what: str = "exposure") -> None:
+    """Exposure metadata, when given, must be plausible: time in microseconds within
+    :data:`EXPOSURE_US_RANGE`, ISO within :data:`ISO_RANGE` (0, NaN or 1e308 would be ignored or
+    turn the radiance into NaN)."""
+    if exposure is None:
+        return
+    if not isinstance(exposure, Exposure):
+        raise ValueError(
+            f"{what}: expected an Exposure(exposure_us=..., iso=...) or None, got {type(exposure).__name__}"
+        )
+    for v, name, unit, (lo, hi) in (
+        (exposure.exposure_us, "exposure time", " microseconds", EXPOSURE_US_RANGE),
+        (exposure.iso, "ISO", "", ISO_RANGE),
+    ):
+        if v is None:
+            continue
+        if not _is_number(v) or not math.isfinite(v) or not lo <= v <= hi:
+            shown = f"{v:g}" if _is_number(v) else repr(v)
+            raise ValueError(
+                f"{what}: the {name} must be a finite number from {lo:g} to {hi:g}{unit}, got {shown}; "
+                f"expected the exposure time in microseconds and the ISO, e.g. 8000,400"
+            )
 
 
 def relight(
@@ -149,17 +272,28 @@ def relight(
     ----------
     color : (H, W, 3) uint8 RGB (sRGB, or the configured response curve)
     depth : (H, W) float32 metres aligned to colour, 0 = invalid
-    intrinsics : Intrinsics of the colour image
+    intrinsics : Intrinsics of the colour image (made for a proportional size: scaled; another aspect
+        ratio, an implausible field of view or size: refused, :func:`check_intrinsics`)
     anchor_px : (x, y) pixel where the object stands
     cfg : Config (``[planes]``, ``[anchor]``, ``[plane_light]``, ``[model]`` are used)
     bundle, precision : override ``[model] bundle`` / ``precision``
-    exposure : Exposure metadata, when known (else the image's own linear units are used)
+    exposure : Exposure metadata, when known (else the image's own linear units are used); values
+        outside :data:`EXPOSURE_US_RANGE` / :data:`ISO_RANGE` are refused (:func:`check_exposure`)
+
+    Raises
+    ------
+    ValueError
+        A mistake in the inputs, one line naming it: see :func:`check_intrinsics`, :func:`check_depth`
+        (no valid depth, or millimetres where metres are expected), :func:`check_exposure`, the anchor.
     """
     from illuminet.runtime.assets.bundle import load_bundle
     from illuminet.runtime.stages.shading import ShadingStage
 
     check_intrinsics(intrinsics)
+    check_depth(depth)
+    check_exposure(exposure)
     h, w = np.shape(depth)[:2]
+    intrinsics = fit_intrinsics(intrinsics, w, h)  # made for a proportional size: scaled; else refused
     if not (0 <= anchor_px[0] < w and 0 <= anchor_px[1] < h):
         raise ValueError(f"anchor pixel ({anchor_px[0]}, {anchor_px[1]}) is outside the {w}x{h} image")
     over = [("anchor", "mode", "pixel"), ("anchor", "pixel", [float(anchor_px[0]), float(anchor_px[1])])]

@@ -136,3 +136,44 @@ def test_readme_python_example_runs(gl, capsys):
     assert "(9026, 3)" in out and ns["preview"].shape == (400, 640, 3)
     assert ns["res"].radiance.mean() > 0 and ns["picture"].dtype == np.uint8
     assert re.search(r"^\d+ True ", out, re.M)  # estimates with a primary light were printed
+
+
+def test_relight_api_refuses_mistaken_inputs_with_one_line_each():
+    from illuminet.runtime.frame import Exposure, Intrinsics
+
+    color, depth, K = floor_rgbd()  # 320x200, fx 256
+
+    def bad(match, **kw):
+        args = {"depth": depth, "intrinsics": K} | kw
+        exposure = args.pop("exposure", None)
+        with pytest.raises(ValueError, match=match) as e:
+            illuminet.relight(color, args["depth"], args["intrinsics"], (160, 130), "builtin:vase", exposure=exposure)
+        assert "\n" not in str(e.value)
+
+    bad(r"depth: empty \(shape \(0, 0\)\)", depth=np.ones((0, 0), np.float32))
+    bad("depth: expected depths as numbers", depth=depth > 0)
+    bad("depth: median depth .* looks like millimetres", depth=depth * 1000)
+    bad(r"depth: no valid depth: .*\(64000 NaN\)", depth=np.full_like(depth, np.nan))
+    bad("made for a 640x200 image but the colour image is 320x200", intrinsics=Intrinsics(256, 256, 160, 100, 640, 200))
+    bad("width x height 1e\\+30x1e\\+30 is over 100000", intrinsics=Intrinsics(256, 256, 160, 100, 1e30, 1e30))
+    bad("intrinsics: expected numbers in pixels, got a bool", intrinsics=(True, 256, 160, 100))
+    bad("intrinsics: fx=1e\\+30 pixels for an image 320 px wide", intrinsics=(1e30, 1e30, 160, 100))
+    bad("intrinsics: fx=1e-09 pixels", intrinsics=(1e-9, 1e-9, 160, 100))
+    bad(r"a 3x3 camera matrix must be .*\(transposed\?\)", intrinsics=K.K.T)
+    bad("exposure: the ISO must be a finite number", exposure=Exposure(exposure_us=8000.0, iso=float("nan")))
+    bad("exposure: the exposure time must be", exposure=Exposure(exposure_us=1e308, iso=1e308))
+    with pytest.raises(ValueError, match="color: expected a non-empty"):
+        illuminet.relight(np.zeros((0, 0, 3), np.uint8), depth, K, (160, 130), "builtin:vase")
+
+
+def test_relight_api_scales_intrinsics_of_a_proportional_size_and_save_names_the_file(tmp_path):
+    from illuminet.runtime.frame import Intrinsics
+
+    color, depth, K = floor_rgbd()
+    full = illuminet.relight(color, depth, K, (160, 130), bundle="builtin:vase")
+    big = Intrinsics(4 * K.fx, 4 * K.fy, (K.cx + 0.5) * 4 - 0.5, (K.cy + 0.5) * 4 - 0.5, 1280, 800)  # same camera
+    scaled = illuminet.relight(color, depth, big, (160, 130), bundle="builtin:vase")
+    assert np.allclose(scaled.T_cam_obj, full.T_cam_obj, atol=1e-4)
+    assert scaled.save(tmp_path / "r.out") == str(tmp_path / "r.out.npz")  # numpy's rule, told
+    assert (tmp_path / "r.out.npz").is_file()
+    assert full.save(tmp_path / "r.npz") == str(tmp_path / "r.npz")

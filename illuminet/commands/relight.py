@@ -9,7 +9,9 @@ Example::
 colour image: the same field of view, at the colour's or another resolution (a stereo camera's
 640x400 for 1280x800 colour is resized nearest-neighbour to the colour size). ``--intrinsics`` is
 ``fx,fy,cx,cy`` or a JSON file with those keys (plus optional width/height; scaled to the colour
-size when they differ). The npz format is documented in docs/models.md ("relight npz").
+size when they differ; another aspect ratio is refused). The npz format is documented in docs/models.md
+("relight npz"); an ``--out`` name without ``.npz`` gets it appended (numpy's rule), and the message
+names the file written. ``--exposure US,ISO``: exposure time in microseconds and ISO (e.g. 8000,400).
 ``--preview PNG`` also writes the lit object composited into the colour image (the runtime's
 renderer: shading, cast shadow, occlusion; needs OpenGL via EGL).
 """
@@ -82,16 +84,31 @@ def _input_file(path: str, flag: str) -> Path:
     return p
 
 
-def _check_output(path: str, flag: str) -> None:
-    """Refuse an output path that cannot be written, before any work (issue 13: not after a minute)."""
+def _check_output(path: str, flag: str, image: bool = False) -> None:
+    """Refuse an output path that cannot be written, before any work (issue 13: not after a minute);
+    ``image``: also one whose extension names no image format OpenCV writes (.png, .jpg, ...)."""
+    import os
+
     from illuminet.runtime.errors import OutputPathError
 
     p = Path(path)
+    if "\x00" in path:
+        raise OutputPathError(f"{flag} {path!r}: a NUL byte in the path; not a file name")
     if p.is_dir():
         raise OutputPathError(f"{flag} {path}: is a folder; expected a file path")
     parent = p.parent
     if not parent.is_dir():
         raise OutputPathError(f"{flag} {path}: folder {parent} does not exist; create it first")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise OutputPathError(f"{flag} {path}: folder {parent} is not writable; choose another folder")
+    if p.exists() and not os.access(p, os.W_OK):
+        raise OutputPathError(f"{flag} {path}: the file exists and is not writable; choose another name")
+    if image:
+        import cv2
+
+        if not cv2.haveImageWriter(path):
+            what = f"{p.suffix} is not an image format OpenCV can write" if p.suffix else "no extension"
+            raise OutputPathError(f"{flag} {path}: {what}; expected an image file name such as preview.png (or .jpg)")
 
 
 def _check_image_header(p: Path, flag: str) -> None:
@@ -121,12 +138,19 @@ def _load_npy(p: Path, flag: str) -> np.ndarray:
     return a.astype(np.float32)
 
 
+def _whole(v) -> int | float:
+    """A JSON width/height as an int when it is whole (``640``, ``640.0``), else as given, for
+    :func:`~illuminet.runtime.relight.check_intrinsics` to refuse (``640.5``, ``1e30`` stays a number)."""
+    f = float(v)
+    return int(f) if f.is_integer() and abs(f) <= 2**53 else f
+
+
 def load_inputs(color_path: str, depth_path: str, intr: str):
     """Read colour, depth and intrinsics with errors that name the file and what was expected."""
     import cv2
 
     from illuminet.runtime.frame import Intrinsics, depth_from_mm
-    from illuminet.runtime.relight import check_intrinsics
+    from illuminet.runtime.relight import check_depth, check_intrinsics, fit_intrinsics
 
     cpath = _input_file(color_path, "--color")
     dpath = _input_file(depth_path, "--depth")
@@ -135,7 +159,9 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
     if bgr is None:
         raise ValueError(f"--color {color_path}: cannot read an image from it")
     color = np.ascontiguousarray(bgr[..., ::-1])
-    if depth_path.endswith(".npy"):
+    with open(dpath, "rb") as f:
+        is_npy = f.read(6) == b"\x93NUMPY"
+    if is_npy or dpath.suffix.lower() == ".npy":  # X.NPY too; a numpy array under any name is one
         depth = _load_npy(dpath, "--depth")
     else:
         _check_image_header(dpath, "--depth")
@@ -151,6 +177,7 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
     from illuminet.api import align_depth
 
     depth = align_depth(depth, color.shape, what=f"--depth {depth_path}")  # another resolution: nearest
+    check_depth(depth, f"--depth {depth_path}")  # none valid, or millimetres in a .npy: named here
     h, w = depth.shape
     if Path(intr).is_file():
         try:
@@ -161,20 +188,29 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
         if missing is None or missing:
             what = f"{type(d).__name__}" if missing is None else f"no {', '.join(missing)}"
             raise ValueError(f"--intrinsics {intr}: expected a JSON object with fx, fy, cx, cy in pixels, got {what}")
+        flags = [k for k in ("fx", "fy", "cx", "cy", "width", "height") if isinstance(d.get(k), bool)]
+        if flags:
+            raise ValueError(
+                f"--intrinsics {intr}: {flags[0]} is {json.dumps(d[flags[0]])}; expected a number in pixels"
+            )
+        if ("width" in d) != ("height" in d):
+            raise ValueError(
+                f"--intrinsics {intr}: has {'width' if 'width' in d else 'height'} but not "
+                f"{'height' if 'width' in d else 'width'}; give both (the image size it was calibrated at) or neither"
+            )
         try:
             K = Intrinsics(
                 float(d["fx"]),
                 float(d["fy"]),
                 float(d["cx"]),
                 float(d["cy"]),
-                int(d.get("width", w)),
-                int(d.get("height", h)),
+                _whole(d.get("width", w)),
+                _whole(d.get("height", h)),
             )
         except (TypeError, ValueError, OverflowError) as e:
             raise ValueError(f"--intrinsics {intr}: fx, fy, cx, cy (and width, height) must be numbers: {e}") from None
         check_intrinsics(K, f"--intrinsics {intr}")
-        if (K.width, K.height) != (w, h):
-            K = K.scaled(w, h)
+        K = fit_intrinsics(K, w, h, f"--intrinsics {intr}")  # proportional size: scaled; else refused
     else:
         fx, fy, cx, cy = _floats(intr, 4, "--intrinsics")
         K = Intrinsics(fx, fy, cx, cy, w, h)
@@ -185,29 +221,33 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
 def run(args: argparse.Namespace, cfg) -> int:
     from illuminet.runtime.assets.bundle import BundleError
     from illuminet.runtime.frame import Exposure
-    from illuminet.runtime.relight import relight
+    from illuminet.runtime.relight import check_exposure, npz_path, relight
 
     try:
         _check_output(args.out, "--out")
+        out = npz_path(args.out)  # numpy writes r.out as r.out.npz: check and name that file
+        if out != args.out:
+            _check_output(out, "--out")
         if args.preview:
-            _check_output(args.preview, "--preview")
-        color, depth, K = load_inputs(args.color, args.depth, args.intrinsics)
-        ax, ay = _floats(args.anchor, 2, "--anchor")
+            _check_output(args.preview, "--preview", image=True)
         exp = None
-        if args.exposure:
+        if args.exposure is not None:
             us, iso = _floats(args.exposure, 2, "--exposure")
             exp = Exposure(exposure_us=us, iso=iso)
+            check_exposure(exp, f"--exposure {args.exposure}")
+        ax, ay = _floats(args.anchor, 2, "--anchor")
+        color, depth, K = load_inputs(args.color, args.depth, args.intrinsics)
         res = relight(color, depth, K, (ax, ay), cfg, bundle=args.bundle, exposure=exp, precision=args.precision)
     except (ValueError, BundleError, OSError) as e:
         print(f"illuminet relight: {e}", file=sys.stderr)
         return 2
     try:
-        res.save(args.out)
+        res.save(out)
     except OSError as e:  # the folder vanished or filled up since it was checked
-        print(f"illuminet relight: --out {args.out}: cannot write it: {e.strerror or e}", file=sys.stderr)
+        print(f"illuminet relight: --out {args.out}: cannot write {out}: {e.strerror or e}", file=sys.stderr)
         return 1
     print(
-        f"wrote {args.out}: {len(res.vertices)} vertices, method {res.method}, "
+        f"wrote {out}: {len(res.vertices)} vertices, method {res.method}, "
         f"{res.plane_observed:.0%} of the plane grid observed, mean radiance "
         f"{np.round(res.radiance.mean(0), 4).tolist()}"
     )
@@ -226,9 +266,15 @@ def run(args: argparse.Namespace, cfg) -> int:
                 file=sys.stderr,
             )
             return 1
-        if not cv2.imwrite(args.preview, np.ascontiguousarray(pic[:, :, ::-1])):
+        try:
+            written = cv2.imwrite(args.preview, np.ascontiguousarray(pic[:, :, ::-1]))
+        except cv2.error as e:  # checked up front; an encoder that still refuses is one line too
+            written, reason = False, " ".join(str(e).split())[-200:]
+        else:
+            reason = "the folder changed since it was checked, or the disk is full"
+        if not written:
             print(
-                f"illuminet relight: --preview {args.preview}: cannot write it (folder missing? extension?)",
+                f"illuminet relight: --preview {args.preview}: cannot write it ({reason}); the npz was written",
                 file=sys.stderr,
             )
             return 1
