@@ -14,6 +14,7 @@ current layout unless told otherwise.
 
 from __future__ import annotations
 
+import math
 import zlib
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -22,6 +23,13 @@ import cv2
 import numpy as np
 
 from illuminet.calibration.calibfile import CalibrationError
+
+#: largest board picture :func:`board_image` renders: pixels a side and pixels in all (a 300 dpi A0 poster
+#: is 9933 x 14043 px, 139 Mpx); beyond that OpenCV fails to allocate or the machine swaps
+MAX_SIDE_PX = 20_000
+MAX_PIXELS = 200_000_000
+#: highest raster resolution accepted (printers stop at a few thousand dpi)
+MAX_DPI = 10_000.0
 
 #: page sizes in millimetres (portrait)
 PAGES_MM: dict[str, tuple[float, float]] = {
@@ -73,6 +81,8 @@ class BoardSpec:
             raise CalibrationError(f"board: aspect (square height / width) must be in (0.5, 2), got {self.aspect}")
         if self.squares_x < 3 or self.squares_y < 3:
             raise CalibrationError(f"board: expected at least 3x3 squares, got {self.squares_x}x{self.squares_y}")
+        if not (0 < self.square_mm and math.isfinite(self.square_mm)):
+            raise CalibrationError(f"board: square size must be a positive number of mm, got {self.square_mm}")
         if not (0 < self.marker_mm < self.square_mm):
             raise CalibrationError(
                 f"board: marker size must be positive and smaller than the square, got marker "
@@ -155,8 +165,8 @@ def board_image(spec: BoardSpec, dpi: float = 300.0, margin_mm: float = 0.0) -> 
     restored exactly by the PDF writer (the image is placed at ``size_mm``), so rounding only
     resamples, never changes the printed square size.
     """
-    if dpi <= 0:
-        raise CalibrationError(f"board: dpi must be positive, got {dpi}")
+    if not (0 < dpi <= MAX_DPI):  # also refuses nan
+        raise CalibrationError(f"board: --dpi must be a number in (0, {MAX_DPI:g}], got {dpi}")
     sq_px = int(round(spec.square_mm * dpi / 25.4))
     if sq_px < 8:
         raise CalibrationError(
@@ -164,8 +174,13 @@ def board_image(spec: BoardSpec, dpi: float = 300.0, margin_mm: float = 0.0) -> 
             "unreadable; raise --dpi or the square size"
         )
     margin_px = int(round(margin_mm * dpi / 25.4))
-    w, h = spec.squares_x * sq_px, spec.squares_y * sq_px
-    img = spec.cv_board().generateImage((w + 2 * margin_px, h + 2 * margin_px), marginSize=margin_px, borderBits=1)
+    w, h = spec.squares_x * sq_px + 2 * margin_px, spec.squares_y * sq_px + 2 * margin_px
+    if max(w, h) > MAX_SIDE_PX or w * h > MAX_PIXELS:
+        raise CalibrationError(
+            f"board: {spec.size_mm[0]:g} x {spec.size_mm[1]:g} mm at {dpi:g} dpi would be a {w}x{h} px picture, "
+            f"more than {MAX_SIDE_PX} px a side or {MAX_PIXELS / 1e6:g} Mpx; lower --dpi, --square-mm or --squares"
+        )
+    img = spec.cv_board().generateImage((w, h), marginSize=margin_px, borderBits=1)
     return img
 
 

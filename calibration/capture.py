@@ -16,6 +16,7 @@ so "far from every kept view" means "a new pose".
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -161,6 +162,44 @@ def _split(color_rgb: np.ndarray, split: str) -> list[np.ndarray]:
     raise CalibrationError(f"split: expected 'none' or 'sbs' (side-by-side stereo), got {split!r}")
 
 
+def check_capture_options(views: int, target_coverage: float, max_frames: int, min_novelty: float) -> None:
+    """Refuse values of :func:`capture_views`' options that cannot work (named by their command-line flags).
+
+    Raises
+    ------
+    CalibrationError
+    """
+    if views < 1:
+        raise CalibrationError(f"--views: expected the number of views to keep, at least 1, got {views}")
+    if not (0.0 <= target_coverage <= 1.0):  # also refuses nan
+        raise CalibrationError(
+            f"--coverage: expected the image fraction to cover, 0..1 (such as 0.8), got {target_coverage}"
+        )
+    if max_frames < 1:
+        raise CalibrationError(f"--max-frames: expected the most frames to read, at least 1, got {max_frames}")
+    if not (0.0 <= min_novelty < math.inf):
+        raise CalibrationError(f"--min-novelty: expected a pose change of 0 or more (such as 0.08), got {min_novelty}")
+
+
+def check_output_folder(out_dir: str | Path) -> None:
+    """Refuse an output folder that already holds files: new views would overwrite ``view_000.png``...
+    and leave an earlier capture's later views beside them, mixing two captures.
+
+    Raises
+    ------
+    CalibrationError
+    """
+    out = Path(out_dir)
+    if not out.is_dir():
+        return
+    first = next((p for p in out.rglob("*") if not p.is_dir()), None)
+    if first is not None:
+        raise CalibrationError(
+            f"{out}: output folder is not empty (holds {first.relative_to(out)}, from an earlier capture?); "
+            "choose a new folder with -o, or empty this one"
+        )
+
+
 def capture_views(
     source: Source,
     out_dir: str | Path,
@@ -183,8 +222,12 @@ def capture_views(
     Raises
     ------
     CalibrationError
-        When the source ends without a single usable view (says how many frames were read).
+        When the source ends without a single usable view (says how many frames were read), an
+        option is out of range (:func:`check_capture_options`), or ``out_dir`` already holds files
+        (:func:`check_output_folder`: nothing is overwritten).
     """
+    check_capture_options(views, target_coverage, max_frames, min_novelty)
+    check_output_folder(out_dir)
     out = Path(out_dir)
     subdirs = [out] if split == "none" else [out / "left", out / "right"]
     for d in subdirs:

@@ -76,10 +76,17 @@ def parse_depthai(
             links.setdefault(sock, []).append((to, R, T))
             links.setdefault(to, []).append((sock, R.T, -R.T @ T))
     rect = data.get("stereoRectificationData") or {}
+    left_from = "--left-socket" if left_socket is not None else "stereoRectificationData.leftCameraSocket"
+    right_from = "--right-socket" if right_socket is not None else "stereoRectificationData.rightCameraSocket"
     if left_socket is None:
         left_socket = rect.get("leftCameraSocket")
     if right_socket is None:
         right_socket = rect.get("rightCameraSocket")
+    if left_socket is not None and left_socket == right_socket:
+        raise CalibrationError(
+            f"{where}: stereo left and right are the same socket {left_socket} ({left_from}, {right_from}): "
+            f"a stereo pair needs two cameras; choose two different sockets of {sockets}"
+        )
     stereo = None
     meta = {
         "tool": "illuminet calibrate import-depthai",
@@ -91,6 +98,11 @@ def parse_depthai(
         if pose is None:
             raise CalibrationError(f"{where}: no extrinsics chain links socket {left_socket} to socket {right_socket}")
         R, T = pose
+        if not np.linalg.norm(T) > 0:
+            raise CalibrationError(
+                f"{where}: the extrinsics put socket {left_socket} and socket {right_socket} at the same place "
+                "(0 mm baseline): not a stereo pair; check the sockets (--left-socket/--right-socket) or the file"
+            )
         stereo = StereoCalib(socket_name(left_socket), socket_name(right_socket), R, T)
         meta["depthai_stereo_rectification"] = {
             k: rect[k] for k in ("rectifiedRotationLeft", "rectifiedRotationRight") if k in rect

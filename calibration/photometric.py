@@ -18,6 +18,7 @@ This module owns
 from __future__ import annotations
 
 import json
+import math
 import re
 from collections.abc import Sequence
 from pathlib import Path
@@ -116,7 +117,17 @@ def exposure_times_from_names(paths: Sequence[Path], times_json: Path | None = N
             raise CalibrationError(f"{times_json}: cannot read exposure table: {e}") from None
         if not isinstance(raw, dict):
             raise CalibrationError(f'{times_json}: expected an object {{"file name": seconds}}')
-        table = {str(k): float(v) for k, v in raw.items()}
+        for k, v in raw.items():
+            try:  # not bool (a JSON true), str, null, list or object; a huge integer overflows
+                t = float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else math.nan
+            except OverflowError:
+                t = math.inf
+            if not (0 < t < math.inf):
+                raise CalibrationError(
+                    f'{times_json}: "{k}": expected the exposure time in seconds as a positive number '
+                    f"(such as 0.01), got {json.dumps(v)[:40]}"
+                )
+            table[str(k)] = t
     out = []
     for p in paths:
         p = Path(p)
@@ -130,6 +141,48 @@ def exposure_times_from_names(paths: Sequence[Path], times_json: Path | None = N
             )
         out.append(float(t))
     return out
+
+
+#: most Debevec pixel samples: the solve is a dense SVD of (samples * images + 257) x (samples + 256),
+#: cubic in ``samples`` (1000 takes ~15 s; 2000 ~100 s and degenerates in float32)
+MAX_SAMPLES = 1000
+#: largest Debevec lambda: beyond it the smoothness term swamps the data in float32 and the curve
+#: comes out wrong without any error (typical values are 1..100)
+MAX_SMOOTHNESS = 1000.0
+
+
+def check_response_options(samples: int, smoothness: float, image_size: tuple[int, int] | None = None) -> None:
+    """Refuse Debevec parameters that cannot work (named by their command-line flags).
+
+    ``image_size`` (width, height), when given, also checks that OpenCV can lay ``samples`` out as a
+    grid on the image (it asserts otherwise).
+
+    Raises
+    ------
+    CalibrationError
+    """
+    if not (0 < smoothness <= MAX_SMOOTHNESS):  # also refuses nan
+        raise CalibrationError(
+            f"--smoothness: expected the Debevec lambda, a number in (0, {MAX_SMOOTHNESS:g}] (typically 1..100), "
+            f"got {smoothness}"
+        )
+    if not (1 <= samples <= MAX_SAMPLES):
+        raise CalibrationError(f"--samples: expected 1..{MAX_SAMPLES} pixel samples (such as 120), got {samples}")
+    if image_size is not None and not _sample_grid_fits(samples, *image_size):
+        ok = [n for n in range(1, MAX_SAMPLES + 1) if _sample_grid_fits(n, *image_size)]
+        near = min(ok, key=lambda n: abs(n - samples), default=None)
+        hint = f"try --samples {near}" if near else "the images are too small for a response calibration"
+        raise CalibrationError(
+            f"--samples: {samples} pixel samples cannot be laid out as a grid on {image_size[0]}x{image_size[1]} "
+            f"images; {hint}"
+        )
+
+
+def _sample_grid_fits(samples: int, w: int, h: int) -> bool:
+    """Whether cv2.CalibrateDebevec (random=False) can place ``samples`` on a w x h grid (it asserts otherwise;
+    photo/src/calibrate.cpp)."""
+    x_points = int(math.sqrt(samples * w / h))
+    return 0 < x_points <= w and 0 < samples // x_points <= h
 
 
 def calibrate_response(
@@ -154,8 +207,8 @@ def calibrate_response(
     Raises
     ------
     CalibrationError
-        Fewer than 3 images, mixed sizes, non-uint8 images, or exposure times that do not span a
-        useful range.
+        Fewer than 3 images, mixed sizes, non-uint8 images, exposure times that do not span a
+        useful range, or ``samples``/``smoothness`` out of range (:func:`check_response_options`).
     """
     if len(images) < 3:
         raise CalibrationError(f"response calibration needs at least 3 exposures, got {len(images)}")
@@ -166,6 +219,7 @@ def calibrate_response(
         raise CalibrationError(f"bracket images have different sizes: {sorted(shapes)}")
     if any(im.dtype != np.uint8 or im.ndim != 3 or im.shape[2] != 3 for im in images):
         raise CalibrationError("bracket images must be 8-bit colour (HxWx3 uint8)")
+    check_response_options(samples, smoothness, (images[0].shape[1], images[0].shape[0]))
     t = np.asarray(times_s, np.float32)
     if np.any(t <= 0):
         raise CalibrationError(f"exposure times must be positive, got {t.tolist()}")

@@ -147,7 +147,8 @@ def test_an_output_that_cannot_be_made_is_one_line(tmp_path, capsys):
         assert str(tmp_path / "afile") in err and "folder you can write to" in err
 
 
-def test_import_depthai_cli(tmp_path, capsys):
+def _depthai_data(translation_cm=-7.5):
+    """A two-camera DepthAI export: socket 1 -> socket 2 at ``translation_cm`` along x."""
     K = [[800.0, 0, 640.0], [0, 800.0, 400.0], [0, 0, 1]]
     cam = {"width": 1280, "height": 800, "intrinsicMatrix": K, "distortionCoeff": [0.0] * 14, "cameraType": 0}
     data = {
@@ -159,7 +160,7 @@ def test_import_depthai_cli(tmp_path, capsys):
                     "extrinsics": {
                         "rotationMatrix": np.eye(3).tolist(),
                         "toCameraSocket": 2,
-                        "translation": {"x": -7.5, "y": 0.0, "z": 0.0},
+                        "translation": {"x": translation_cm, "y": 0.0, "z": 0.0},
                     }
                 },
             ],
@@ -177,13 +178,135 @@ def test_import_depthai_cli(tmp_path, capsys):
         ],
         "stereoRectificationData": {"leftCameraSocket": 1, "rightCameraSocket": 2},
     }
+    return data
+
+
+def test_import_depthai_cli(tmp_path, capsys):
     src = tmp_path / "dai.json"
-    src.write_text(json.dumps(data))
+    src.write_text(json.dumps(_depthai_data()))
     out = tmp_path / "ours.json"
     assert main(["calibrate", "import-depthai", str(src), "-o", str(out)]) == 0
     c = load_calibration(out)
     assert c.stereo.baseline_m == pytest.approx(0.075) and c.stereo.T[0] == pytest.approx(-0.075)
     assert "baseline 75.00 mm" in capsys.readouterr().out
+
+
+def _one_line(capsys) -> str:
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    return err
+
+
+def test_import_depthai_refuses_a_pair_without_baseline(tmp_path, capsys):
+    src = tmp_path / "dai.json"
+    src.write_text(json.dumps(_depthai_data()))
+    out = tmp_path / "ours.json"
+    argv = ["calibrate", "import-depthai", str(src), "-o", str(out)]
+    assert main([*argv, "--left-socket", "1", "--right-socket", "1"]) == 2
+    err = _one_line(capsys)
+    assert "same socket 1" in err and "--left-socket" in err and "two different sockets" in err
+    assert main([*argv, "--left-socket", "2"]) == 2  # the file's right socket is 2 too
+    assert "same socket 2" in _one_line(capsys)
+    src.write_text(json.dumps(_depthai_data(translation_cm=0.0)))  # two sockets at one place
+    assert main(argv) == 2
+    assert "0 mm baseline" in _one_line(capsys)
+    assert not out.exists()  # nothing written that load_calibration would refuse later
+
+
+def test_board_keeps_a_json_it_did_not_write(tmp_path, capsys):
+    cal = tmp_path / "calibration.json"
+    cal.write_text('{"format": "illuminet-calibration", "cameras": {}}\n')
+    before = cal.read_bytes()
+    assert main(["calibrate", "board", "--dpi", "50", "-o", str(tmp_path / "calibration.png")]) == 2
+    err = _one_line(capsys)
+    assert str(cal) in err and "choose another -o name" in err
+    assert cal.read_bytes() == before and not (tmp_path / "calibration.png").exists()
+    # its own board description from an earlier run is replaced without fuss
+    for mm in ("20", "25"):
+        assert main(["calibrate", "board", "--dpi", "50", "--square-mm", mm, "-o", str(tmp_path / "b.png")]) == 0
+    assert json.loads((tmp_path / "b.json").read_text())["board"]["square_mm"] == 25.0
+
+
+def test_board_picture_size_is_bounded(tmp_path, capsys):
+    out = str(tmp_path / "x.png")
+    assert main(["calibrate", "board", "--square-mm", "10000", "--marker-mm", "9000", "-o", out]) == 2
+    err = _one_line(capsys)
+    assert "Mpx" in err and "--dpi" in err and "--square-mm" in err
+    for argv in (["--dpi", "100000"], ["--dpi", "nan"], ["--dpi", "inf"], ["--square-mm", "inf"]):
+        assert main(["calibrate", "board", *argv, "-o", out]) == 2, argv
+        err = _one_line(capsys)
+        assert "--dpi" in err or "square size" in err, err
+    assert not (tmp_path / "x.png").exists()
+
+
+def _bracket_dir(folder):
+    """A static random scene at 5..80 ms, 80x60 PNGs named by exposure."""
+    folder.mkdir()
+    rad = np.random.default_rng(0).uniform(0.02, 1.0, (60, 80, 3))
+    for ms in (5, 10, 20, 40, 80):
+        code = np.clip(rad * ms / 40.0, 0, 1) ** (1 / 2.2) * 255
+        cv2.imwrite(str(folder / f"img_{ms}ms.png"), code.astype(np.uint8))
+    return folder
+
+
+@pytest.mark.timeout(60)  # --smoothness nan used to hang in OpenCV
+def test_photometric_flags_are_checked(tmp_path, capsys):
+    br = _bracket_dir(tmp_path / "br")
+    out = tmp_path / "r.npy"
+    cmd = ["calibrate", "photometric", str(br), "-o", str(out)]
+    for value in ("-1", "0", "inf", "nan"):
+        assert main([*cmd, "--smoothness", value]) == 2, value
+        assert "--smoothness: expected" in _one_line(capsys)
+    for value in ("0", "-5", "100000"):
+        assert main([*cmd, "--samples", value]) == 2, value
+        assert "--samples: expected 1..1000" in _one_line(capsys)
+    times = tmp_path / "t.json"
+    for value in ('"abc"', "null", "[1]", "true", "-0.01", "NaN"):
+        times.write_text(f'{{"img_5ms.png": {value}, "img_10ms.png": 0.01}}')
+        assert main([*cmd, "--times", str(times)]) == 2, value
+        err = _one_line(capsys)
+        assert f'{times}: "img_5ms.png": expected the exposure time in seconds' in err, err
+    assert not out.exists()
+    assert main([*cmd, "--samples", "60", "--smoothness", "20"]) == 0, capsys.readouterr().err
+    assert np.load(out).shape == (256, 3)
+
+
+def test_capture_refuses_a_folder_with_earlier_views(tmp_path, capsys):
+    views = tmp_path / "views"
+    views.mkdir()
+    for k in range(3):  # an earlier capture
+        (views / f"view_{k:03d}.png").write_bytes(b"earlier %d" % k)
+    argv = ["calibrate", "capture", "synthetic://indoor?frames=2", "-o", str(views)]
+    assert main(argv) == 2
+    err = _one_line(capsys)
+    assert f"{views}: output folder is not empty" in err and "choose a new folder" in err
+    assert sorted(p.read_bytes() for p in views.iterdir()) == [b"earlier 0", b"earlier 1", b"earlier 2"]
+    # the library refuses it too, before reading a frame
+    src = _BoardSource(board_poses(SPEC, 2, seed=9))
+    with pytest.raises(CalibrationError, match="output folder is not empty"):
+        capture_views(src, views, SPEC)
+    assert src._i == 0 and (views / "view_000.png").read_bytes() == b"earlier 0"
+    # a failed sbs capture leaves only empty left/ and right/: trying again there is fine
+    (tmp_path / "sbs" / "left").mkdir(parents=True)
+    (tmp_path / "sbs" / "right").mkdir()
+    with pytest.raises(CalibrationError, match=r"no usable board view in 0 frame\(s\)"):
+        capture_views(_BoardSource([]), tmp_path / "sbs", SPEC, split="sbs")
+
+
+def test_capture_flags_are_checked(tmp_path, capsys):
+    out = tmp_path / "views"
+    for flag, value in (
+        ("--max-frames", "0"),
+        ("--views", "0"),
+        ("--coverage", "2"),
+        ("--coverage", "nan"),
+        ("--coverage", "-0.5"),
+        ("--min-novelty", "nan"),
+    ):
+        assert main(["calibrate", "capture", "synthetic://indoor?frames=2", flag, value, "-o", str(out)]) == 2
+        err = _one_line(capsys)
+        assert err.startswith(f"illuminet calibrate capture: {flag}: expected") and value in err, err
+    assert not out.exists()
 
 
 class _BoardSource(Source):

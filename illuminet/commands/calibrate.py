@@ -75,16 +75,17 @@ def cmd_board(args, cfg) -> int:
     from illuminet.calibration.board import board_image, write_pdf, write_png
 
     spec = _spec(args)
-    img = board_image(spec, dpi=args.dpi)
     out = Path(args.output)
-    if out.suffix.lower() == ".pdf":
-        write_pdf(out, img, spec.size_mm, page=args.page, caption=spec.describe() + " - print at 100% (actual size)")
-    elif out.suffix.lower() == ".png":
-        write_png(out, img, args.dpi)
-    else:
+    if out.suffix.lower() not in (".pdf", ".png"):
         print(f"illuminet calibrate board: output must end in .pdf or .png, got {out}", file=sys.stderr)
         return 2
     side = out.with_suffix(".json")
+    _check_board_sidecar(side, out)
+    img = board_image(spec, dpi=args.dpi)
+    if out.suffix.lower() == ".pdf":
+        write_pdf(out, img, spec.size_mm, page=args.page, caption=spec.describe() + " - print at 100% (actual size)")
+    else:
+        write_png(out, img, args.dpi)
     side.write_text(json.dumps({"board": spec.to_dict()}, indent=2) + "\n")
     print(
         f"wrote {out} ({spec.describe()}; {spec.size_mm[0]:g} x {spec.size_mm[1]:g} mm, "
@@ -95,12 +96,35 @@ def cmd_board(args, cfg) -> int:
     return 0
 
 
+def _check_board_sidecar(side: Path, out: Path) -> None:
+    """Refuse to replace ``side`` unless it is a board description an earlier ``calibrate board`` wrote
+    (``-o calibration.png`` must not destroy a camera's calibration.json)."""
+    from illuminet.calibration.board import BoardSpec
+    from illuminet.calibration.calibfile import CalibrationError
+
+    if not side.exists() or side.is_dir():  # a folder: writing it fails with the usual OSError line
+        return
+    try:
+        d = json.loads(side.read_text(encoding="utf-8"))
+    except (OSError, ValueError):  # ValueError: not JSON, or not UTF-8 text
+        d = None
+    fields = set(BoardSpec.__dataclass_fields__)
+    if isinstance(d, dict) and set(d) == {"board"} and isinstance(d["board"], dict) and set(d["board"]) <= fields:
+        return
+    raise CalibrationError(
+        f"{side}: exists and is not a board description from `calibrate board` (-o {out.name} writes the "
+        f"board's description there); choose another -o name, or move {side.name} away"
+    )
+
+
 def cmd_capture(args, cfg) -> int:
     """``calibrate capture``: open the source URL and keep diverse board views."""
-    from illuminet.calibration.capture import capture_views
+    from illuminet.calibration.capture import capture_views, check_capture_options, check_output_folder
     from illuminet.hw import SourceError, open_source
 
     spec = _spec(args)
+    check_capture_options(args.views, args.coverage, args.max_frames, args.min_novelty)
+    check_output_folder(args.output)  # before the camera opens: nothing of an earlier capture is overwritten
 
     def show(n, v, sel):
         kept = len(sel.descriptors)
@@ -225,8 +249,14 @@ def cmd_photometric(args, cfg) -> int:
 
     from illuminet.calibration.calibfile import load_calibration, save_calibration
     from illuminet.calibration.charuco import list_images, read_image
-    from illuminet.calibration.photometric import calibrate_response, exposure_times_from_names, save_response_lut
+    from illuminet.calibration.photometric import (
+        calibrate_response,
+        check_response_options,
+        exposure_times_from_names,
+        save_response_lut,
+    )
 
+    check_response_options(args.samples, args.smoothness)
     files = [f for f in list_images([args.bracket_dir]) if f.name != "coverage.png"]
     times = exposure_times_from_names(files, Path(args.times) if args.times else None)
     imgs = [read_image(f) for f in files]
@@ -280,14 +310,16 @@ def register(sub) -> None:
     b = csub.add_parser("board", help="write a printable ChArUco board (PDF or PNG)")
     _board_args(b)
     b.add_argument("-o", "--output", default="board.pdf", help="output .pdf or .png (default board.pdf)")
-    b.add_argument("--dpi", type=float, default=300.0, help="raster resolution (default 300)")
+    b.add_argument("--dpi", type=float, default=300.0, help="raster resolution, at most 10000 (default 300)")
     b.add_argument("--page", default="a4", help="PDF page: a4, a3, letter, tabloid or fit (default a4)")
     b.set_defaults(func=_guard(cmd_board))
 
     c = csub.add_parser("capture", help="collect diverse board views from a source URL")
     c.add_argument("source_url", metavar="SOURCE_URL", help="v4l2:///dev/video0, oakd://, replay://DIR, ...")
     _board_args(c)
-    c.add_argument("-o", "--output", default="calib_views", help="folder for the images (default calib_views)")
+    c.add_argument(
+        "-o", "--output", default="calib_views", help="new or empty folder for the images (default calib_views)"
+    )
     c.add_argument("--views", type=int, default=25, help="views to keep (default 25)")
     c.add_argument("--coverage", type=float, default=0.8, help="image coverage to reach, 0..1 (default 0.8)")
     c.add_argument("--max-frames", type=int, default=3000, help="stop after this many frames (default 3000)")
@@ -343,8 +375,10 @@ def register(sub) -> None:
     ph.add_argument(
         "--times", metavar="JSON", help='{"file name": seconds}; default: exposures.json in the folder, else file names'
     )
-    ph.add_argument("--samples", type=int, default=120, help="pixel samples for Debevec (default 120)")
-    ph.add_argument("--smoothness", type=float, default=10.0, help="Debevec lambda (default 10)")
+    ph.add_argument("--samples", type=int, default=120, help="pixel samples for Debevec, 1..1000 (default 120)")
+    ph.add_argument(
+        "--smoothness", type=float, default=10.0, help="Debevec lambda, above 0 and at most 1000 (default 10)"
+    )
     ph.add_argument("--calibration", metavar="FILE", help="also record the LUT in this calibration file")
     ph.set_defaults(func=_guard(cmd_photometric))
 
