@@ -177,3 +177,9 @@ def main(argv: list[str] | None = None) -> int:
         return report_error(e, debug=debug or level <= logging.DEBUG)
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # `illuminet config | head`: the reader left; nothing to report
+        try:
+            sys.stdout = open(os.devnull, "w")  # noqa: SIM115 (the interpreter flushes stdout at exit)
+        except OSError:
+            pass
+        return 0

@@ -75,3 +75,18 @@ def test_missing_file_and_bad_toml(tmp_path):
     p.write_text("[planes\n")
     with pytest.raises(C.ConfigError, match="not valid TOML"):
         C.load(p)
+
+
+def test_illuminet_config_piped_into_head_ends_quietly():
+    """`illuminet config | head` ended in a BrokenPipeError traceback once head had its lines: here the
+    reader leaves before the first line."""
+    import subprocess
+    import sys
+
+    p = subprocess.Popen(
+        [sys.executable, "-m", "illuminet", "config"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO
+    )
+    p.stdout.close()  # the reader is gone: every write of the command meets a broken pipe
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=120) == 0, err
+    assert "Traceback" not in err and "BrokenPipe" not in err, err

@@ -248,6 +248,9 @@ def run(args: argparse.Namespace, cfg) -> dict:
     client_errors = sum(c.errors for c in clients)
     failures = int(d["failed_frames"]) + int(d["sink_failures"]) + client_errors
     print(stats.format_stats())
+    for st in stages:  # where the object stood: the crop's framebuffers grow with it (a memory step)
+        if st.name in ("anchor", "render"):
+            print(f"  {st.name}: " + ", ".join(f"{k}={v}" for k, v in st.stats().items() if k != "odometry"))
     print(
         f"frames: {d['frames']} in {t[-1] if len(t) else 0:.0f} s; per-frame loop time median "
         f"{total['median_ms']:.1f} ms, p99 {total['p99_ms']:.1f} ms"

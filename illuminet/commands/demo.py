@@ -75,8 +75,9 @@ def register(sub) -> None:
         description="Run the AR pipeline (planes -> plane light -> shading -> render) on the built-in default "
         "session (a small recording of the synthetic RGB-D camera: a near lamp, 1280x800 colour, "
         "640x400 depth, looped; or --source URL) and write the composited stream to a video, with a PNG "
-        "still, per-stage timing and peak memory. Says which shading (learned model or baseline) "
-        "it used.",
+        "still, per-stage timing and peak memory. Says which shading it used (by default the object's "
+        "precomputed radiance transfer of the frame's light estimate; the learned model or a baseline "
+        "when configured or when no estimate exists).",
     )
     p.add_argument(
         "--frames",
@@ -89,7 +90,7 @@ def register(sub) -> None:
         "--out",
         default="out/demo.mp4",
         metavar="PATH",
-        help="video file to write (.mp4, .avi, .mkv; default out/demo.mp4)",
+        help="video file to write (.mp4, .m4v, .mov, .mkv, .avi; default out/demo.mp4; --no-video for none)",
     )
     p.add_argument("--no-video", action="store_true", help="write no video file")
     p.add_argument("--png-dir", metavar="DIR", help="also write every output frame as a PNG into DIR")

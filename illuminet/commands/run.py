@@ -72,7 +72,7 @@ def add_live_output_flags(g) -> None:
 
 def _add_output_flags(p: argparse.ArgumentParser, *, record: bool = True) -> None:
     g = p.add_argument_group("outputs (override [output])")
-    g.add_argument("--video", metavar="PATH", help="write the output to a video file (.mp4, .avi, .mkv)")
+    g.add_argument("--video", metavar="PATH", help="write the output to a video file (.mp4, .m4v, .mov, .mkv, .avi)")
     g.add_argument("--fps", type=float, help="frame rate written into the video file ([output] fps)")
     g.add_argument("--png-dir", metavar="DIR", help="write a PNG per output frame into DIR")
     if record:

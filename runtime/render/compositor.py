@@ -284,7 +284,7 @@ class Compositor:
         if w > cw or h > ch:
             cw, ch = max(cw, -(-w // 128) * 128), max(ch, -(-h // 128) * 128)
             self.grows += 1
-            log.info("render: the crop's framebuffers grow to %dx%d (a crop of %dx%d, the largest yet)", cw, ch, w, h)
+            log.debug("render: the crop's framebuffers grow to %dx%d (a crop of %dx%d, the largest yet)", cw, ch, w, h)
             park(ctx)
             for obj in self._fbos.values():
                 obj.release()

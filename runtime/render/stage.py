@@ -144,6 +144,7 @@ class RenderStage(Stage):
     def close(self) -> None:
         """Free the GPU objects (the shared context stays); safe to call twice."""
         if self.comp is not None:
+            self._fb_final = (self.comp.framebuffer_size, self.comp.grows)  # stats() after close (reports)
             self.comp.release()
             self.comp = None
 
@@ -209,8 +210,12 @@ class RenderStage(Stage):
         if self.comp is not None:
             s["antialias"] = self.comp.antialias + (f"x{self.comp.msaa}" if self.comp.msaa else "")
             s["shadow_redraws"] = self.comp.shadow.redraws if self.comp.shadow is not None else 0
-            fw, fh = self.comp.framebuffer_size
-            s["framebuffer"] = f"{fw}x{fh}, grown {self.comp.grows}x"
+        fb = (
+            (self.comp.framebuffer_size, self.comp.grows) if self.comp is not None else getattr(self, "_fb_final", None)
+        )
+        if fb is not None:
+            (fw, fh), grows = fb
+            s["framebuffer"] = f"{fw}x{fh}, grown {grows}x"
         if self._crop_px:
             s["crop_px_median"] = int(np.median(self._crop_px))
         d, share = self._light
