@@ -160,14 +160,14 @@ def parse_url(url: str) -> OakdOptions:
         "mono": size,
         "queue": query_int(),
         "imu": query_bool,
-        "imu_rate": query_int(),
+        "imu_rate": query_int(1, 1000),  # the BMI270 / BNO086 accelerometers report up to ~500 Hz
         "preset": query_choice(*sorted(_PRESETS), lower=True),
         "lr_check": query_bool,
         "subpixel": query_bool,
         "extended": query_bool,
         "undistort": query_bool,
-        "exposure_us": query_int(),
-        "iso": query_int(),
+        "exposure_us": query_int(0, 33000),  # 0 = auto; the colour sensors' manual range is 1..33000 us
+        "iso": query_int(0, 1600),  # 0 = auto; manual 100..1600
         "sync_ms": query_float,
         "timeout_s": query_float,
         "reconnect": query_bool,
@@ -186,6 +186,10 @@ def parse_url(url: str) -> OakdOptions:
         )
     if o.timeout_s <= 0 or o.imu_rate <= 0:
         raise ValueError(f"{url}: timeout_s and imu_rate must be positive")
+    if o.sync_ms < 0:
+        raise ValueError(f"{url}: sync_ms={o.sync_ms:g}: expected >= 0 (0 = half a frame period)")
+    if 0 < o.iso < 100:
+        raise ValueError(f"{url}: iso={o.iso}: expected 100..1600 for manual exposure (0 = auto)")
     if o.protocol == "usb" and _is_ip(o.device):
         raise ValueError(f"{url}: protocol=usb cannot reach the network device {o.device}; drop one of them")
     return o

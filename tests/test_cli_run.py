@@ -186,6 +186,15 @@ def test_replay_check_lists_problems(tmp_path, capsys):
     assert rc == 1 and "problem:" in out and "000002.depth.png" in out and "4 intact frames" in out
 
 
+def test_replay_check_of_a_session_without_frames_is_not_ok(tmp_path, capsys):
+    s = tmp_path / "s"
+    make_session(s, 2)
+    (s / "frames.jsonl").write_text("")
+    rc = main(["replay", str(s), "--check"])
+    out = capsys.readouterr().out
+    assert rc == 1 and "problem: no intact frame: nothing to replay" in out and "OK" not in out.splitlines()
+
+
 def test_replay_of_a_damaged_session_plays_the_intact_part(tmp_path, capsys):
     make_session(tmp_path / "s", 5)
     (tmp_path / "s" / "frames" / "000002.depth.png").unlink()

@@ -354,6 +354,13 @@ def test_bad_viewer_model_is_refused_before_the_server_starts(tmp_path):
         MjpegSink(port=0, viewer_model=str(tmp_path / "m.fbx"))
     with pytest.raises(ValueError, match="unknown built-in object"):
         MjpegSink(port=0, viewer_model="builtin:teapot")
+    # files that exist but hold nothing to draw: refused now, not a 500 at the first /model.glb
+    (tmp_path / "empty.obj").write_bytes(b"")
+    with pytest.raises(ValueError, match="'.*empty.obj': cannot load it as a mesh"):
+        MjpegSink(port=0, viewer_model=str(tmp_path / "empty.obj"))
+    (tmp_path / "bad.glb").write_bytes(b"glTF\x02\x00\x00\x00\x0c\x00\x00\x00")
+    with pytest.raises(ValueError, match="'.*bad.glb': not a readable glTF binary"):
+        MjpegSink(port=0, viewer_model=str(tmp_path / "bad.glb"))
 
 
 @pytest.mark.gl

@@ -57,6 +57,11 @@ def test_parse_url_defaults_and_options():
         ("oakd://?preset=magic", "preset='magic'"),
         ("oakd://?exposure_us=1000", "needs both exposure_us and iso"),
         ("oakd://?imu=maybe", "expected 0/1"),
+        # accepted before, then a 13 s device search (and values the camera would reject)
+        ("oakd://?sync_ms=-1", "sync_ms=-1: expected >= 0"),
+        ("oakd://?exposure_us=-5&iso=-5", "expected an integer in 0..33000"),
+        ("oakd://?exposure_us=100&iso=50", "iso=50: expected 100..1600"),
+        ("oakd://?imu_rate=99999999", "expected an integer in 1..1000"),
     ],
 )
 def test_parse_url_refuses_bad_values(url, msg):

@@ -259,6 +259,8 @@ def cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
             print(f"illuminet: {e}", file=sys.stderr)
             return 1
         problems = reader.check()
+        if len(reader) == 0:  # replay then fails: "nothing to play" is the session's problem
+            problems = [*problems, "no intact frame: nothing to replay"]
         m = reader.manifest
         print(
             f"{args.session}: {m['format']} v{m['version']}, {reader.width}x{reader.height}, colour "

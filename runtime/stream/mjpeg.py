@@ -699,12 +699,15 @@ class MjpegSink(Sink):
         viewer.check_model_spec(viewer_model)  # a wrong --viewer-model is reported before anything starts
         self.viewer_model = str(viewer_model)
         self.object_scale = float(object_scale)
+        self._model: bytes | None = None
+        if not self.viewer_model.startswith("builtin:"):
+            # a file is loaded now (an empty or broken one is named before the run, not a 500 later)
+            self._model = viewer.model_glb(self.viewer_model, self.object_scale)
         self._quality = int(quality)
         self.max_fps = float(max_fps)
         self._hub = _Hub(self._quality, self.max_fps)
         self._camera_hub = _Hub(self._quality, self.max_fps)
         self._estimates = _EstimateBox()
-        self._model: bytes | None = None
         self._model_lock = threading.Lock()
         self._server: ThreadingHTTPServer | None = None
         self._threads: list[threading.Thread] = []

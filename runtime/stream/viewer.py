@@ -106,14 +106,26 @@ def model_glb(spec: str, scale: float = 1.0) -> bytes:
         ``[render] object_scale``, applied to converted models (as the renderer draws them).
     """
     check_model_spec(spec)
-    if not str(spec).startswith("builtin:") and Path(spec).suffix.lower() == ".glb":
-        return Path(spec).read_bytes()
     import trimesh
+
+    if not str(spec).startswith("builtin:") and Path(spec).suffix.lower() == ".glb":
+        try:
+            scene = trimesh.load(str(spec), force="scene")
+        except Exception as e:  # noqa: BLE001 (trimesh raises many types for a broken file)
+            raise ValueError(f"[output] viewer_model = {spec!r}: not a readable glTF binary ({e})") from None
+        if not any(len(getattr(g, "faces", ())) for g in scene.geometry.values()):
+            raise ValueError(f"[output] viewer_model = {spec!r}: holds no triangles to draw")
+        return Path(spec).read_bytes()
 
     from illuminet.runtime.assets.objects import load_object
     from illuminet.runtime.render.mesh import DEFAULT_ALBEDO
 
-    mesh = load_object(str(spec), height=None)
+    try:
+        mesh = load_object(str(spec), height=None)
+    except Exception as e:  # noqa: BLE001 (an empty or broken mesh file: named, not a traceback)
+        raise ValueError(f"[output] viewer_model = {spec!r}: cannot load it as a mesh ({e})") from None
+    if len(mesh.faces) == 0:
+        raise ValueError(f"[output] viewer_model = {spec!r}: holds no triangles to draw")
     if scale != 1.0:
         mesh.apply_scale(float(scale))
     visual = getattr(mesh, "visual", None)
