@@ -143,6 +143,13 @@ def make_config(preset: str = "default", **overrides) -> TrainConfig:
 # --------------------------------------------------------------------------- small utilities
 
 
+def _is_terminal(stream) -> bool:
+    try:
+        return stream.isatty()
+    except (AttributeError, ValueError):  # closed or not a real stream
+        return False
+
+
 class Progress:
     """Progress of a long loop on stderr, drawn by tqdm (rate, ETA, the caller's loss figures).
 
@@ -155,11 +162,13 @@ class Progress:
     def __init__(self, label: str, total: int, enabled: bool = True):
         self.label, self.total = label, max(total, 1)
         self._bar = None
+        self._plain = -1  # without tqdm: the last tenth printed as a plain line (-1: none yet)
         if enabled:
             try:
                 from tqdm import tqdm
             except ImportError:
                 tqdm = None
+                self._plain = 0 if _is_terminal(sys.stderr) else -2  # -2: nothing (logs have their lines)
             if tqdm is not None:
                 self._bar = tqdm(
                     total=self.total,
@@ -174,6 +183,12 @@ class Progress:
     def __call__(self, done: int, total: int | None = None, extra: str = "") -> None:
         bar = self._bar
         if bar is None:
+            if self._plain >= 0:  # no tqdm on a terminal: a line at each tenth, so a long job shows life
+                total = total or self.total
+                tenth = min(10, done * 10 // max(total, 1))
+                if tenth > self._plain:
+                    self._plain = tenth
+                    print(f"{self.label}: {done}/{total}" + (f" ({extra})" if extra else ""), file=sys.stderr)
             return
         if total and total != bar.total:
             bar.total = total

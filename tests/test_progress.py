@@ -114,3 +114,31 @@ def test_training_progress_is_tqdm_and_quiet_when_not_a_terminal(capsys):
     assert "3/5" in out.getvalue() and "loss 0.5" in out.getvalue()
     b(5)
     assert "5/5" in out.getvalue()
+
+
+def test_a_job_progress_without_tqdm_prints_a_line_at_each_tenth_on_a_terminal(monkeypatch, capsys):
+    """A plain install has no tqdm: eval and datagen showed nothing for a minute. On a terminal they
+    now print a plain line at each tenth; piped, nothing (logs keep their own lines)."""
+    import builtins
+    import sys
+
+    from illuminet.models.train import Progress
+
+    real_import = builtins.__import__
+
+    def no_tqdm(name, *a, **k):
+        if name == "tqdm":
+            raise ImportError("no tqdm")
+        return real_import(name, *a, **k)
+
+    monkeypatch.setattr(builtins, "__import__", no_tqdm)
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
+    bar = Progress("camera", 40)
+    for i in range(1, 41):
+        bar(i, extra="indoor")
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[0] == "camera: 4/40 (indoor)" and lines[-1] == "camera: 40/40 (indoor)" and len(lines) == 10
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: False, raising=False)
+    bar = Progress("camera", 40)
+    bar(40)
+    assert capsys.readouterr().err == ""

@@ -252,6 +252,10 @@ def run(args: argparse.Namespace, cfg) -> int:
 
     cluster.check_arguments(args)
     check_eval_arguments(args)
+    if logging.getLogger().getEffectiveLevel() > logging.DEBUG:
+        # every camera scene places its object once: one "anchor: placed on plane ..." line per scene
+        # buried the progress (--log-level debug shows them)
+        logging.getLogger("illuminet.runtime.stages.anchor").setLevel(logging.WARNING)
     hdr = args.hdr if args.hdr is not None else (str(DEFAULT_HDR) if DEFAULT_HDR.is_dir() else "")
     if args.crosscheck:
         if args.ray is not None:
