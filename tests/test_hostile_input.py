@@ -48,6 +48,7 @@ BAD_INPUTS = [
     (["--set", "planes.smoothing=1.5", "run", "synthetic://indoor"], 2, "[planes] smoothing"),
     (["--set", "model.bundle={tmp}/no-bundle", "run", "synthetic://indoor"], 2, "no-bundle"),
     (["--set", "model.bundle=builtin:nope", "run", "synthetic://indoor"], 2, "builtin:nope"),
+    (["--set", "model.bundle=", "run", "synthetic://indoor"], 2, "[model] bundle is empty"),  # was "." + 2 lines
     (["--config", "{tmp}/bad.toml", "run", "synthetic://indoor"], 2, "bad.toml: [render] msaa"),
     (["--config", "{tmp}/missing.toml", "run", "synthetic://indoor"], 2, "missing.toml"),
     (["--config", "{tmp}/binary.toml", "run", "synthetic://indoor"], 2, "binary.toml: not a text file"),

@@ -72,6 +72,11 @@ def builtin_names() -> list[str]:
 def resolve_bundle(spec: str | Path) -> Path:
     """``builtin:NAME`` or a folder -> the bundle folder (not yet checked)."""
     s = str(spec)
+    if not s.strip():  # Path("") is ".": the working folder would be blamed for having no bundle.json
+        raise BundleError(
+            f"[model] bundle is empty; expected builtin:NAME (built-in: "
+            f"{', '.join('builtin:' + n for n in builtin_names()) or 'none installed'}) or a bundle folder"
+        )
     if s.startswith("builtin:"):
         name = s.split(":", 1)[1]
         p = builtin_dir() / name
