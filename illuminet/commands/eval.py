@@ -245,17 +245,26 @@ def check_eval_arguments(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace, cfg) -> int:
+    cluster.check_arguments(args)
+    check_eval_arguments(args)
+    # every camera scene places its object once: one "anchor: placed on plane ..." line per scene
+    # buried the progress (--log-level debug shows them); the level is restored after the run
+    anchor_log = logging.getLogger("illuminet.runtime.stages.anchor")
+    level = anchor_log.level
+    if logging.getLogger().getEffectiveLevel() > logging.DEBUG:
+        anchor_log.setLevel(logging.WARNING)
+    try:
+        return _run(args, cfg)
+    finally:
+        anchor_log.setLevel(level)
+
+
+def _run(args: argparse.Namespace, cfg) -> int:
     from illuminet.commands.train import DEFAULT_HDR, check_out
     from illuminet.models.train import Progress
     from illuminet.runtime.assets.bundle import BundleError, load_bundle
     from illuminet.runtime.config import ConfigError
 
-    cluster.check_arguments(args)
-    check_eval_arguments(args)
-    if logging.getLogger().getEffectiveLevel() > logging.DEBUG:
-        # every camera scene places its object once: one "anchor: placed on plane ..." line per scene
-        # buried the progress (--log-level debug shows them)
-        logging.getLogger("illuminet.runtime.stages.anchor").setLevel(logging.WARNING)
     hdr = args.hdr if args.hdr is not None else (str(DEFAULT_HDR) if DEFAULT_HDR.is_dir() else "")
     if args.crosscheck:
         if args.ray is not None:
