@@ -111,6 +111,15 @@ def parse_depthai(
         missing = [s for s in (left_socket, right_socket) if s is not None and s not in sockets]
         if missing:
             raise CalibrationError(f"{where}: stereo socket(s) {missing} not in cameraData (sockets {sockets})")
+        # one side given and the file names no pair: writing no stereo pair without a word left the user
+        # to find out at the first stereo run
+        lone, other = (
+            ("--left-socket", "--right-socket") if right_socket is None else ("--right-socket", "--left-socket")
+        )
+        raise CalibrationError(
+            f"{where}: {lone} given but the other camera of the pair is not known (the file names no "
+            f"stereoRectificationData): give {other} too (sockets here: {sockets})"
+        )
     return Calibration(cameras=cams, stereo=stereo, meta=meta)
 
 

@@ -211,6 +211,15 @@ def test_import_depthai_refuses_a_pair_without_baseline(tmp_path, capsys):
     assert main(argv) == 2
     assert "0 mm baseline" in _one_line(capsys)
     assert not out.exists()  # nothing written that load_calibration would refuse later
+    # one side given, and the file names no pair: it wrote a file with no stereo pair, without a word
+    data = _depthai_data()
+    del data["stereoRectificationData"]
+    src.write_text(json.dumps(data))
+    assert main([*argv, "--left-socket", "1"]) == 2
+    err = _one_line(capsys)
+    assert "--left-socket given" in err and "give --right-socket too" in err
+    assert not out.exists()
+    assert main(argv) == 0  # no pair asked for and none named: the cameras alone, as before
 
 
 def test_board_keeps_a_json_it_did_not_write(tmp_path, capsys):
