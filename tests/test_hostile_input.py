@@ -690,3 +690,23 @@ def _sessions_cfg(protocol: str):
     from illuminet.runtime.config import apply_overrides, defaults
 
     return apply_overrides(defaults(), [("source", "oakd_protocol", protocol)])
+
+
+def test_a_mesh_file_with_a_nan_vertex_is_refused_not_patched(tmp_path, capsys):
+    """trimesh's processing silently dropped the faces of a NaN vertex, so `bundle --object` made a
+    bundle of a mesh with a hole; the file is now refused, naming it."""
+    import numpy as np
+    import trimesh
+
+    m = trimesh.creation.icosphere(1)
+    v = m.vertices.copy()
+    v[3] = np.nan
+    obj = tmp_path / "nan.obj"
+    lines = [f"v {x[0]!r} {x[1]!r} {x[2]!r}" for x in v.tolist()] + [
+        f"f {a + 1} {b + 1} {c + 1}" for a, b, c in m.faces
+    ]
+    obj.write_text("\n".join(lines))
+    assert main(["bundle", "--object", str(obj), "--out", str(tmp_path / "b")]) == 2
+    err = capsys.readouterr().err
+    assert f"{obj}: 1 vertex/vertices with non-finite coordinates" in err and "used by 5 face(s)" in err, err
+    assert not (tmp_path / "b").exists()

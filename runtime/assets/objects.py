@@ -189,10 +189,22 @@ def load_object(
         raise ObjectLoadError(
             f"object {spec!r}: no such file (expected builtin:{'|'.join(BUILTIN_OBJECTS)} or a mesh file path)"
         )
+    # single-mesh formats are read unprocessed first: trimesh's processing silently drops the faces of a
+    # vertex with NaN or infinite coordinates (a broken export), which the check below then never saw
+    single = path.suffix.lower() in (".obj", ".ply", ".stl", ".off")
     try:
-        loaded = trimesh.load(str(path))
+        loaded = trimesh.load(str(path), process=not single)
     except Exception as e:  # trimesh raises many types for broken files
         raise ObjectLoadError(f"{path}: cannot read as a mesh ({type(e).__name__}: {e})") from None
+    if single and isinstance(loaded, trimesh.Trimesh):
+        bad = ~np.all(np.isfinite(loaded.vertices), axis=1)
+        if bad.any():
+            faces = int(np.any(bad[loaded.faces], axis=1).sum()) if len(loaded.faces) else 0
+            raise ObjectLoadError(
+                f"{path}: {int(bad.sum())} vertex/vertices with non-finite coordinates (NaN or inf), used by "
+                f"{faces} face(s); fix or re-export the mesh"
+            )
+        loaded.process()  # what trimesh.load(process=True) does: merge duplicate vertices, drop degenerate faces
     if isinstance(loaded, trimesh.Scene):
         if not loaded.geometry:
             raise ObjectLoadError(f"{path}: the file holds no geometry")
