@@ -474,6 +474,16 @@ def _relight_inputs(tmp_path):
     (tmp_path / "K_list.json").write_text("[60, 60, 32, 24]")
     (tmp_path / "K_missing.json").write_text('{"fx": 60, "fy": 60, "cx": 32}')
     (tmp_path / "K_zero.json").write_text('{"fx": 60, "fy": 60, "cx": 32, "cy": 24, "width": 0, "height": 48}')
+    np.save(tmp_path / "empty.npy", np.ones((0, 0), np.float32))
+    np.save(tmp_path / "mm.npy", np.full((48, 64), 2000.0))  # millimetres where .npy means metres
+    np.save(tmp_path / "nan.npy", np.full((48, 64), np.nan, np.float32))
+    np.save(tmp_path / "neg.npy", np.full((48, 64), -2.0, np.float32))
+    np.save(tmp_path / "inf.npy", np.full((48, 64), np.inf, np.float32))
+    k = '"fx": 60, "fy": 60, "cx": 32, "cy": 24'
+    (tmp_path / "K_aspect.json").write_text(f'{{{k}, "width": 640, "height": 48}}')
+    (tmp_path / "K_bool.json").write_text('{"fx": true, "fy": 60, "cx": 32, "cy": 24}')
+    (tmp_path / "K_huge.json").write_text(f'{{{k}, "width": 1e30, "height": 1e30}}')
+    (tmp_path / "K_half.json").write_text(f'{{{k}, "width": 1280}}')
 
 
 BAD_RELIGHT = [
@@ -489,6 +499,25 @@ BAD_RELIGHT = [
     ({"--intrinsics": "{tmp}/K_missing.json"}, "got no cy"),
     ({"--intrinsics": "{tmp}/K_zero.json"}, "width and height must be > 0"),
     ({"--intrinsics": "{tmp}/huge.png"}, "not JSON"),
+    ({"--preview": "{tmp}/p.xyz"}, "--preview {tmp}/p.xyz: .xyz is not an image format"),
+    ({"--preview": "{tmp}/p"}, "--preview {tmp}/p: no extension"),
+    ({"--depth": "{tmp}/empty.npy"}, "--depth {tmp}/empty.npy: empty (shape (0, 0))"),
+    ({"--intrinsics": "{tmp}/K_aspect.json"}, "made for a 640x48 image but the colour image is 64x48"),
+    ({"--intrinsics": "{tmp}/K_bool.json"}, "--intrinsics {tmp}/K_bool.json: fx is true; expected a number"),
+    ({"--intrinsics": "{tmp}/K_huge.json"}, "1e+30x1e+30 is over 100000 pixels a side"),
+    ({"--intrinsics": "{tmp}/K_half.json"}, "has width but not height; give both"),
+    ({"--exposure": "0,0"}, "--exposure 0,0: the exposure time must be a finite number"),
+    ({"--exposure": "nan,100"}, "--exposure nan,100: the exposure time must be a finite number"),
+    ({"--exposure": "-5,100"}, "--exposure -5,100: the exposure time must be"),
+    ({"--exposure": "8000,0"}, "--exposure 8000,0: the ISO must be"),
+    ({"--exposure": "1e308,1e308"}, "--exposure 1e308,1e308: the exposure time must be"),
+    ({"--exposure": ""}, "--exposure: expected 2 comma-separated numbers"),
+    ({"--depth": "{tmp}/mm.npy"}, "--depth {tmp}/mm.npy: median depth 2000 m looks like millimetres"),
+    ({"--depth": "{tmp}/nan.npy"}, "--depth {tmp}/nan.npy: no valid depth: none of its 3072 values"),
+    ({"--depth": "{tmp}/neg.npy"}, "(3072 negative)"),
+    ({"--depth": "{tmp}/inf.npy"}, "(3072 infinite)"),
+    ({"--intrinsics": "1e30,1e30,32,24"}, "--intrinsics 1e30,1e30,32,24: fx=1e+30 pixels for an image 64 px wide"),
+    ({"--intrinsics": "1e-9,1e-9,32,24"}, "--intrinsics 1e-9,1e-9,32,24: fx=1e-09 pixels"),
 ]
 
 
@@ -503,13 +532,14 @@ def test_bad_relight_inputs_are_one_line_each(tmp_path, capsys, change, expect):
         "--out": "{tmp}/r.npz",
         **change,
     }
-    argv = ["relight"] + [x.replace("{tmp}", str(tmp_path)) for kv in opts.items() for x in kv]
+    # --flag=value: values such as "-5,100" or "" would read as flags otherwise
+    argv = ["relight"] + [f"{k}={v}".replace("{tmp}", str(tmp_path)) for k, v in opts.items()]
     t0 = time.monotonic()
     assert main(argv) == 2
     assert time.monotonic() - t0 < 10  # refused from the header, not after decoding 400 Mpx
     lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert len(lines) == 1 and expect.replace("{tmp}", str(tmp_path)) in lines[0], lines
-    assert not (tmp_path / "r.npz").exists() and not (tmp_path / "missing").exists()
+    assert not list(tmp_path.glob("r.npz*")) and not (tmp_path / "missing").exists()  # nothing written
 
 
 # --------------------------------------------------------------------- class 6: server hardening
