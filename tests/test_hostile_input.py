@@ -740,3 +740,24 @@ def test_a_mesh_file_with_a_nan_vertex_is_refused_not_patched(tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"{obj}: 1 vertex/vertices with non-finite coordinates" in err and "used by 5 face(s)" in err, err
     assert not (tmp_path / "b").exists()
+
+
+@pytest.mark.parametrize(
+    "far, expect",
+    [
+        ((1e200, 0.0, 0.0), "1 vertex/vertices lie 1e+200 units from the origin"),  # overflowed into a traceback
+        ((1e7, 0.0, 0.0), "the mesh is 1e+07 units long but only 2 across"),  # a stray vertex: nothing left
+    ],
+)
+def test_a_mesh_file_with_a_vertex_far_off_is_one_line(tmp_path, capsys, far, expect):
+    import trimesh
+
+    m = trimesh.creation.icosphere(1)
+    lines = [f"v {x[0]!r} {x[1]!r} {x[2]!r}" for x in m.vertices.tolist()] + [f"v {far[0]!r} {far[1]!r} {far[2]!r}"]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in m.faces] + [f"f 1 2 {len(m.vertices) + 1}"]
+    obj = tmp_path / "far.obj"
+    obj.write_text("\n".join(lines))
+    assert main(["bundle", "--object", str(obj), "--out", str(tmp_path / "b")]) == 2
+    err = capsys.readouterr().err
+    assert f"{obj}: {expect}" in err and "Traceback" not in err, err
+    assert not (tmp_path / "b").exists()

@@ -157,6 +157,33 @@ def normalise(mesh: trimesh.Trimesh, height: float | None = DEFAULT_HEIGHT) -> t
     return mesh
 
 
+#: largest vertex coordinate a mesh file may hold (its units: metres, millimetres...): beyond it the
+#: float32 the renderer draws with loses the object's shape, and squared distances overflow
+MAX_COORDINATE = 1e9
+#: most the longest side of a mesh may exceed its shortest non-zero one: beyond it the object is a few
+#: stray vertices far from the rest (a broken export), and scaling it to its height leaves nothing
+MAX_ASPECT = 1e5
+
+
+def _check_extent(mesh: trimesh.Trimesh, path: Path) -> None:
+    """Refuse a mesh whose coordinates the pipeline cannot draw or scale (one line naming the file)."""
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    reach = float(np.abs(v).max())
+    if reach > MAX_COORDINATE:
+        far = int((np.abs(v) > MAX_COORDINATE).any(axis=1).sum())
+        raise ObjectLoadError(
+            f"{path}: {far} vertex/vertices lie {reach:.3g} units from the origin; expected coordinates within "
+            f"+-{MAX_COORDINATE:.0e} (metres or millimetres); remove the stray vertices or rescale the mesh"
+        )
+    ext = v.max(0) - v.min(0)
+    longest, positive = float(ext.max()), ext[ext > 0]
+    if len(positive) and longest > MAX_ASPECT * float(positive.min()):
+        raise ObjectLoadError(
+            f"{path}: the mesh is {longest:.3g} units long but only {float(positive.min()):.3g} across; expected an "
+            f"object at most {MAX_ASPECT:.0e} times longer than it is wide (a stray vertex far from the rest?)"
+        )
+
+
 def load_object(
     spec: str, detail: str = "render", height: float | None = DEFAULT_HEIGHT, up: str = "y"
 ) -> trimesh.Trimesh:
@@ -204,6 +231,7 @@ def load_object(
                 f"{path}: {int(bad.sum())} vertex/vertices with non-finite coordinates (NaN or inf), used by "
                 f"{faces} face(s); fix or re-export the mesh"
             )
+        _check_extent(loaded, path)  # before processing: trimesh's vertex merge overflows on such coordinates
         loaded.process()  # what trimesh.load(process=True) does: merge duplicate vertices, drop degenerate faces
     if isinstance(loaded, trimesh.Scene):
         if not loaded.geometry:
@@ -218,11 +246,15 @@ def load_object(
         raise ObjectLoadError(f"{path}: holds no triangles (a point cloud or empty mesh?)")
     if not np.all(np.isfinite(mesh.vertices)):
         raise ObjectLoadError(f"{path}: has non-finite vertex coordinates")
+    _check_extent(mesh, path)
     if up == "z":
         mesh.apply_transform(_Z_UP_TO_Y_UP)
     elif up != "y":
         raise ObjectLoadError(f"up must be 'y' or 'z', got {up!r}")
-    return normalise(mesh, height)
+    try:
+        return normalise(mesh, height)
+    except ObjectLoadError as e:
+        raise ObjectLoadError(f"{path}: {e} (all its vertices at one height along its up axis '{up}')") from None
 
 
 def _cluster(mesh: trimesh.Trimesh, cell: float) -> trimesh.Trimesh:
