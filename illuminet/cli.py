@@ -44,8 +44,18 @@ COMMAND_MODULES: list[str] = [
 log = logging.getLogger("illuminet")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse, with the fix named when a flag's value starts with '-' (``--exposure -5,100``:
+    argparse reads ``-5,100`` as another flag and says only that the value is missing)."""
+
+    def error(self, message: str):
+        if message.endswith("expected one argument"):
+            message += "; if the value starts with '-', join it to the flag with '=' (e.g. --exposure=-5,100)"
+        super().error(message)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="illuminet",
         description="IllumiNet-edge: light a virtual object by the real room it is placed in.",
     )

@@ -306,3 +306,12 @@ def test_global_options_are_also_taken_after_the_command(tmp_path, capsys):
     assert "rate_hz = 7.0" in out and "search_every = 3" in out
     assert main(["config", "--set", "light.rate_hz=abc"]) == 2
     assert "[light] rate_hz" in capsys.readouterr().err
+
+
+def test_a_flag_value_starting_with_a_dash_gets_the_fix(capsys):
+    """``--exposure -5,100``: argparse takes ``-5,100`` for a flag and said only "expected one argument"."""
+    with pytest.raises(SystemExit) as e:
+        main(["relight", "--exposure", "-5,100"])
+    assert e.value.code == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "argument --exposure: expected one argument" in last and "--exposure=-5,100" in last, last
