@@ -388,6 +388,14 @@ SCHEMA: dict[str, dict[str, Field]] = {
             min=1,
             max=8,
         ),
+        "trim_memory_s": _f(
+            float,
+            30.0,
+            "every this many seconds hand the C heap's free pages back to the system (glibc malloc_trim; "
+            "keeps a long stream's memory flat; 0 = never; docs/runtime.md)",
+            min=0,
+            max=86400,
+        ),
     },
     "logging": {
         "level": _f(str, "info", "log level", choices=("debug", "info", "warning", "error")),

@@ -389,3 +389,37 @@ def test_signal_to_a_recording_subprocess_finalises_it(tmp_path, sig):
     src = list(SessionReader(tmp_path / "src"))
     for f in r:  # what was recorded is what the source gave (the loop restarts with seq + 10)
         assert np.array_equal(f.color, src[f.seq % 10].color)
+
+
+class Fragmenter(Stage):
+    """Leaves the C heap full of holes: 64 KB blocks (inside glibc's heap, under its mmap threshold),
+    every other one freed, the rest kept until close."""
+
+    name = "fragment"
+
+    def __init__(self):
+        self.kept = []
+
+    def process(self, frame):
+        blocks = [bytearray(64 * 1024) for _ in range(200)]
+        self.kept.extend(blocks[::2])
+        time.sleep(0.02)
+        return frame
+
+    def close(self):
+        self.kept.clear()
+
+
+def test_the_heap_trimmer_hands_free_pages_back_between_frames(session):
+    from illuminet.runtime.stream import memtrim
+
+    if memtrim._MALLOC_TRIM is None:
+        pytest.skip("not glibc: there is no malloc_trim to call")
+    st = run_loop(_asap(session), [Fragmenter()], [NullSink()], trim_memory_s=0.05)
+    mt = st.to_dict()["memory_trim"]
+    assert mt["available"] and mt["calls"] >= 2, mt
+    # 10 frames x 100 freed 64 KB blocks: tens of MB of whole free pages between the kept blocks
+    assert mt["released_mb"] > 10, mt
+    assert "memory trim:" in st.format_stats()
+    off = run_loop(_asap(session), [Fragmenter()], [NullSink()])  # the API's default: never
+    assert off.to_dict()["memory_trim"]["calls"] == 0

@@ -230,7 +230,15 @@ def run(args: argparse.Namespace, cfg) -> dict:
     )
     sys.stdout.flush()
     try:
-        run_loop(source, stages, [sink], stop_event=stop, stats=stats, install_signals=False)
+        run_loop(
+            source,
+            stages,
+            [sink],
+            stop_event=stop,
+            stats=stats,
+            install_signals=False,
+            trim_memory_s=float(cfg.loop.trim_memory_s),
+        )
     finally:
         stop.set()
         sink.close()

@@ -450,6 +450,7 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
             stats_interval_s=0.5,
             pipeline=cfg.loop.pipeline,
             depth=cfg.loop.depth,
+            trim_memory_s=cfg.loop.trim_memory_s,
         )
     except (SourceError, SinkError, OSError) as e:
         status.close()

@@ -206,6 +206,7 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
             stats_interval_s=0.5,
             pipeline=cfg.loop.pipeline,
             depth=cfg.loop.depth,
+            trim_memory_s=cfg.loop.trim_memory_s,
         )
     except IllumiNetError as e:  # these messages say it all; no traceback
         status.close()

@@ -62,6 +62,7 @@ import numpy as np
 
 from illuminet.runtime.frame import Frame
 from illuminet.runtime.stage import EndOfStream, Sink, Source, Stage, StageChain
+from illuminet.runtime.stream.memtrim import HeapTrimmer
 from illuminet.runtime.stream.timing import Samples
 
 log = logging.getLogger(__name__)
@@ -96,6 +97,8 @@ class LoopStats:
         stage costs, without the waits its wall time includes). Work a stage hands to its own
         threads (the light estimate's worker, a decoder pool, the GL driver) is counted by the stage
         that owns it, if at all (the light stage's ``cpu_ms`` in its stats; the replay's ``decode_cpu_ms``).
+    memory_trim : dict
+        The heap trimmer's counters (``[loop] trim_memory_s``; :class:`~illuminet.runtime.stream.memtrim.HeapTrimmer`).
     """
 
     def __init__(self) -> None:
@@ -119,6 +122,7 @@ class LoopStats:
         self._cpu_start: float | None = None
         self._cpu_end: float | None = None
         self.stage_cpu_s: dict[str, float] = {}
+        self.memory_trim: dict[str, Any] = {}
 
     # -- recording (called by the loop)
 
@@ -180,6 +184,10 @@ class LoopStats:
     def set_source_stats(self, d: dict[str, Any]) -> None:
         with self._lock:
             self.source_stats = dict(d)
+
+    def set_memory_trim(self, d: dict[str, Any]) -> None:
+        with self._lock:
+            self.memory_trim = dict(d)
 
     # -- reading
 
@@ -264,6 +272,7 @@ class LoopStats:
                 "pipeline": self.pipeline,
                 "depth": self.depth,
                 "in_flight_max": self.in_flight_max,
+                "memory_trim": dict(self.memory_trim),
                 "stage_cpu_ms_per_frame": {
                     k: v / self.frames * 1e3 if self.frames else 0.0 for k, v in self.stage_cpu_s.items()
                 },
@@ -299,6 +308,12 @@ class LoopStats:
         )
         for k, n in sorted(d["failures"].items()):
             rows.append(f"  failure {k}: {n}x")
+        mt = d["memory_trim"]
+        if mt.get("calls"):
+            rows.append(
+                f"  memory trim: {mt['calls']} calls (every {mt['interval_s']:g} s), median {mt['median_ms']:.1f} ms, "
+                f"max {mt['max_ms']:.1f} ms, gave back {mt['released_mb']:.1f} MB"
+            )
         if d["source"]:
             rows.append("  source: " + ", ".join(f"{k}={v}" for k, v in d["source"].items()))
         return "\n".join(rows)
@@ -555,6 +570,7 @@ class _Loop:
         stats_interval_s: float,
         pipeline: str = "serial",
         depth: int = 1,
+        trim_memory_s: float = 0.0,
     ) -> None:
         self.source = source
         self.stages = list(stages)
@@ -583,6 +599,7 @@ class _Loop:
         self.current: Frame | None = None  # the frame being processed, for messages
         self.reason = "end of stream"
         self.next_report = time.perf_counter() + stats_interval_s
+        self.trimmer = HeapTrimmer(trim_memory_s)
         # pacing of a live source's front thread (:meth:`_pace`): recent durations of both halves
         self._t_back_start: float | None = None
         self._ema_back = 0.0
@@ -797,6 +814,7 @@ class _Loop:
         self.stats.frame_done()
 
     def _maybe_report(self) -> None:
+        self.trimmer.maybe()  # between frames, on the loop thread (memtrim.py)
         if time.perf_counter() >= self.next_report:
             self.report()
             self.next_report = time.perf_counter() + self.stats_interval_s
@@ -843,6 +861,7 @@ class _Loop:
         """Refresh the source's counters and the drops, and hand a snapshot to ``on_stats``."""
         try:
             self.stats.set_source_stats(self.source.stats())
+            self.stats.set_memory_trim(self.trimmer.stats())
             if self.slot is not None:
                 self.stats.set_dropped(self.slot.dropped)
             if self.on_stats is not None:
@@ -871,6 +890,7 @@ def run_loop(
     install_signals: bool = True,
     pipeline: str = "serial",
     depth: int = 1,
+    trim_memory_s: float = 0.0,
 ) -> LoopStats:
     """Run ``source`` through ``stages`` into ``sinks`` until the stream ends or a stop is requested.
 
@@ -903,6 +923,9 @@ def run_loop(
         or more CPUs. The output is the same either way.
     depth : int
         Pipelined: most frames finished by the worker and waiting for the loop thread (``[loop] depth``).
+    trim_memory_s : float
+        ``[loop] trim_memory_s``: every this many seconds, between frames, hand the C heap's free
+        pages back to the system (:mod:`~illuminet.runtime.stream.memtrim`; 0 = never).
 
     Returns
     -------
@@ -928,6 +951,7 @@ def run_loop(
         stats_interval_s=stats_interval_s,
         pipeline=pipeline,
         depth=depth,
+        trim_memory_s=trim_memory_s,
     )
     # signal handlers stay installed until everything is closed: a SIGTERM during finalisation must
     # not kill the process with the default handler half-way through closing a recording
