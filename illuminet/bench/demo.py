@@ -15,7 +15,10 @@ rounds so that both see the same machine load, and prints per mode:
   composite handed to the sinks, median and p99, against p99 <= 33 ms (one frame of a 30 fps camera);
 * **CPU time per frame** of the whole process (every thread: the replay's decoders, the GL driver's,
   the light estimate's worker) against <= 12 ms, and the part the replay's JPEG/PNG decoding takes
-  (a camera delivers pixels: that part is the source's, not the pipeline's);
+  (a camera delivers pixels: that part is the source's, not the pipeline's), and by where: each
+  stage's thread time, the light worker, the decoding, Mesa's software rasteriser threads
+  (``llvmpipe-N``: with a GPU that work is the GPU's) and the rest (the loop, the GL driver's own
+  thread time outside the stages);
 * peak resident memory of the process (``ru_maxrss``) against the 600 MB target.
 
 ``--size WxH`` runs another output size: the default session resized (colour INTER_AREA, depth
@@ -35,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from illuminet.runtime.config import ConfigError, apply_overrides
+from illuminet.runtime.stage import Sink
 
 #: frames per second end to end by output size (issue 14); other sizes: the 1280x800 target
 FPS_TARGETS = {(1280, 800): 90.0, (640, 400): 120.0}
@@ -94,6 +98,57 @@ def resized_session(size: tuple[int, int], out: Path) -> Path:
     return out
 
 
+#: the thread names of Mesa's software rasteriser (llvmpipe-0, llvmpipe-1, ...): on a board with a GPU
+#: this work is the GPU's, not the CPU's
+GL_THREAD_PREFIX = "llvmpipe-"
+
+
+def _gl_thread_cpu_s() -> dict[str, float]:
+    """Thread id -> CPU seconds of the live software-rasteriser threads of this process (Linux /proc;
+    empty elsewhere or with a hardware GL driver)."""
+    import os
+
+    out: dict[str, float] = {}
+    tick = os.sysconf("SC_CLK_TCK")
+    try:
+        tids = os.listdir("/proc/self/task")
+    except OSError:
+        return out
+    for tid in tids:
+        try:
+            with open(f"/proc/self/task/{tid}/comm") as f:
+                if not f.read().startswith(GL_THREAD_PREFIX):
+                    continue
+            with open(f"/proc/self/task/{tid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+            out[tid] = (int(fields[11]) + int(fields[12])) / tick  # utime + stime
+        except (OSError, IndexError, ValueError):
+            continue
+    return out
+
+
+class GlThreadsCpu(Sink):
+    """A sink that writes nothing: at close (sinks close before the stages, so the renderer's GL context
+    and its rasteriser threads still live) it reads the CPU the GL driver's threads spent during the
+    run (threads that existed at open count from their time then)."""
+
+    name = "gl_threads"
+
+    def __init__(self) -> None:
+        self.cpu_s = 0.0
+        self._before: dict[str, float] = {}
+
+    def open(self) -> None:
+        self._before = _gl_thread_cpu_s()
+
+    def write(self, frame) -> None:
+        pass
+
+    def close(self) -> None:
+        now = _gl_thread_cpu_s()
+        self.cpu_s = sum(max(0.0, t - self._before.get(tid, 0.0)) for tid, t in now.items())
+
+
 def _samples(stats, step: str) -> list[float]:
     s = stats.samples.get(step)
     return list(s.values) if s is not None else []
@@ -108,21 +163,24 @@ def measure(url: str, cfg, modes: list[str], frames: int, rounds: int, depth: in
     runs: dict[str, list] = {m: [] for m in modes}
     # the light estimate's worker thread, per mode: its CPU is not inside any stage's process()
     worker_cpu: dict[str, float] = {m: 0.0 for m in modes}
+    gl_cpu: dict[str, float] = {m: 0.0 for m in modes}  # the software rasteriser's threads
     probes: dict[str, StillSink] = {}
     for _ in range(rounds):
         for mode in modes:
             probe = StillSink(None, index=-1)
+            gl = GlThreadsCpu()
             stages = demo_stages(cfg)
             stats = run_loop(
                 open_source(url, cfg),
                 stages,
-                [probe],
+                [probe, gl],
                 max_frames=frames,
                 install_signals=False,
                 pipeline=mode,
                 depth=depth,
             )
             worker_cpu[mode] += sum(float(getattr(st, "worker_cpu_s", 0.0)) for st in stages)
+            gl_cpu[mode] += gl.cpu_s
             runs[mode].append(stats)
             probes[mode] = probe
     out = {}
@@ -154,6 +212,7 @@ def measure(url: str, cfg, modes: list[str], frames: int, rounds: int, depth: in
             # thread CPU time per frame by where it was spent (the rest: GL driver threads, the loop)
             "stage_cpu_ms_per_frame": {k: v / n * 1e3 for k, v in stage_cpu.items()} if n else {},
             "light_worker_cpu_ms_per_frame": worker / n * 1e3 if n else 0.0,
+            "gl_threads_cpu_ms_per_frame": gl_cpu[mode] / n * 1e3 if n else 0.0,
             "failed_frames": sum(st.failed_frames for st in stats_list),
             "in_flight_max": max(st.in_flight_max for st in stats_list),
             "steps": {
@@ -226,6 +285,7 @@ def run(args, cfg) -> dict:
         parts = dict(r["stage_cpu_ms_per_frame"])
         parts["light worker"] = r["light_worker_cpu_ms_per_frame"]
         parts["decoding"] = r["decode_cpu_ms_per_frame"]
+        parts["GL rasteriser threads"] = r["gl_threads_cpu_ms_per_frame"]
         parts["rest"] = r["cpu_ms_per_frame"] - sum(parts.values())
         print(
             "          CPU by where (thread time, ms a frame): " + ", ".join(f"{k} {v:.2f}" for k, v in parts.items())
