@@ -37,7 +37,9 @@ records a white Lambertian object at the frame's own exposure ``k``):
     an oracle is never worse than its fitted baseline on it.
 ``angle``
     degrees between the method's dominant-light direction and the true one (the luminance-weighted
-    vector irradiance of the direct lights at the object's centre, scene occlusion included).
+    vector irradiance of the direct lights at the object's centre, scene occlusion included). For
+    ``ours`` the estimate's primary light, or, when it has none, the direction of its ambient SH's
+    linear band (the ambient's vector irradiance, as for the oracles).
 ``angle_primary``
     ``angle``'s median over only the scenes whose primary light carries at least
     :data:`PRIMARY_SHARE_MIN` of the object's light (issue 11's target: where a dominant light exists
@@ -343,7 +345,7 @@ class CameraEval:
             u += f"&hdr={self.hdr_maps[(i + seed) % len(self.hdr_maps)]}"
         return u
 
-    def scene_case(self, suite: str, i: int, seed: int = 0, frames: int = 6) -> dict | None:
+    def scene_case(self, suite: str, i: int, seed: int = 0, frames: int = 30) -> dict | None:
         """Every method's metrics on one scene (None when no real plane was found under the object)."""
         from illuminet.hw.synthetic import open_url
         from illuminet.runtime.groundtruth import baselines as BL
@@ -357,6 +359,9 @@ class CameraEval:
         T0 = sc.default_anchor(0, position=pos)
         pin = [("anchor", "mode", "point"), ("anchor", "point", [float(x) for x in T0[:3, 3]])]
         frames_in = [src.read() for _ in range(frames)]
+        # the metrics use the last frame and the flicker the second half (after the estimate settled):
+        # the baselines (one RGB-D SH fit per regulariser a frame) are computed on that half only
+        settle = frames // 2
         src.close()
         per_frame: dict[str, list] = {}  # method -> [(irradiance (V, 3), raw, direction)] per frame
         last = {}
@@ -367,18 +372,20 @@ class CameraEval:
                 st.open()
             chain = StageChain(stages, source=src)
             try:
-                for f in frames_in:
+                for j, f in enumerate(frames_in):
                     out = chain(f)
                     sh, light = out.results.get(SHADING.name), out.results.get(LIGHT.name)
                     d = None
                     if light is not None and light.primary_dir is not None:
                         d = light.primary_dir
+                    elif light is not None:  # no primary light: the ambient's own gradient (its vector irradiance)
+                        d = sh_direction(light.sh9)
                     elif sh is not None:
                         d = sh.dominant_dir
                     drawn = None if sh is None else self._render(sh.on_render_mesh(_as_is))
                     per_frame.setdefault(v.name, []).append(None if drawn is None else (drawn, None, d))
                     last[v.name] = out
-                    if model is None:
+                    if model is None or j < settle:  # the baselines count on the second half only
                         continue
                     pl = out.results.get(PLANE_LIGHT.name)
                     ms = None
@@ -394,6 +401,8 @@ class CameraEval:
             finally:
                 for st in stages + ([model] if model else []):
                     st.close()
+        for seq in per_frame.values():  # the baselines' first half: not computed
+            seq[:0] = [None] * (frames - len(seq))
         out = last["ours"]
         anchor = out.results.get(ANCHOR.name)
         if anchor is None or anchor.synthetic or per_frame["ours"][-1] is None:
@@ -430,7 +439,6 @@ class CameraEval:
         )
         res["indirect_share"] = float(1 - (direct @ LUMA).sum() / max((true_e @ LUMA).sum(), 1e-12))
         res["primary_share"] = primary_share(sc, self.mesh, T, fi, self.centre, self.points, self.normals, true_e)
-        settle = frames // 2
         for m, seq in list(per_frame.items()) + [(m, [p]) for m, p in oracles.items()]:
             if seq[-1] is None:
                 continue
@@ -480,7 +488,7 @@ class CameraEval:
         for m, v in entries.items():
             per_frame.setdefault(m, []).append(v)
 
-    def run(self, suites=SUITES, scenes: int = 8, frames: int = 6, seed: int = 0, progress=None) -> dict:
+    def run(self, suites=SUITES, scenes: int = 8, frames: int = 30, seed: int = 0, progress=None) -> dict:
         """Every suite: per method the mean (mae, rmse, mae_abs, rmse_lin, flicker) and median
         (angle, chroma) over scenes; the RGB-D SH baselines at their best regulariser per suite."""
         self.check(suites, frames)
