@@ -35,7 +35,7 @@ def test_registered_and_reads_until_end():
         ("synthetic://indoor?sed=1", "unknown parameter 'sed'; known: seed, size"),
         ("synthetic://indoor?seed=x", "seed='x': expected an integer in 0..2147483647"),
         ("synthetic://indoor?size=640", "WIDTHxHEIGHT"),
-        ("synthetic://indoor?path=fly", "path='fly': expected one of static, orbit"),
+        ("synthetic://indoor?path=fly", "path='fly': expected one of static, orbit, look"),
         ("synthetic://indoor?hdr=/x.hdr", "outdoor scene only"),
         ("synthetic://outdoor?hdr=/nonexistent/x.hdr", "HDR map not found: /nonexistent/x.hdr"),
         ("synthetic://indoor?table=2", "table='2': expected 0/1"),
@@ -190,6 +190,20 @@ def test_orbit_moves_the_camera_inside_the_room():
     assert np.ptp(eyes[:, 0]) + np.ptp(eyes[:, 2]) > 0.3
     lo, hi = src.scene.room
     assert np.all(eyes > lo) and np.all(eyes < hi)
+
+
+def test_look_turns_once_at_the_horizon_and_comes_back_to_the_object():
+    src = open_url("synthetic://outdoor?seed=3&path=look&frames=100&size=160x100")
+    poses = src.scene.poses
+    static = open_url("synthetic://outdoor?seed=3&frames=100&size=160x100").scene.poses[0]
+    assert np.allclose(poses[0], static) and np.allclose(poses[99], static)
+    eyes = np.array([T[:3, 3] for T in poses])
+    assert np.ptp(eyes, axis=0).max() < 1e-9  # turning in place
+    fwd = np.array([T[:3, 2] for T in poses])
+    mid = fwd[30:70]  # the turn: at the horizon, every side seen
+    assert np.all(np.abs(np.degrees(np.arcsin(mid[:, 1])) - 5.0) < 0.5)
+    yaw = np.unwrap(np.arctan2(mid[:, 0], mid[:, 2]))
+    assert np.degrees(np.ptp(yaw)) > 300
 
 
 def test_every_scene_renders():

@@ -1,7 +1,7 @@
 """``synthetic://`` — a simulated RGB-D camera in a lit scene, with ground truth for evaluation.
 
 URL
-    ``synthetic://SCENE?seed=N&size=WxH&frames=N&path=static|orbit[&hdr=PATH][&table=0|1][&lights=N][&bounce=N][&boxes=N][&position=K]``
+    ``synthetic://SCENE?seed=N&size=WxH&frames=N&path=static|orbit|look[&hdr=PATH][&table=0|1][&lights=N][&bounce=N][&boxes=N][&position=K]``
     (``width=W&height=H`` is accepted for ``size``)
 
     SCENE
@@ -19,8 +19,11 @@ URL
     size      ``640x400`` (default) or ``1280x800`` (OAK-D mono-like: fx = fy = 800 at 1280x800),
               other sizes scale the same intrinsics
     frames    frames before the end of the stream (default 60)
-    path      ``static`` (default: a fixed camera, frames differ only by noise) or ``orbit``
-              (the camera swings +-25 deg around the object and bobs 5 cm, one period per run)
+    path      ``static`` (default: a fixed camera, frames differ only by noise), ``orbit``
+              (the camera swings +-25 deg around the object and bobs 5 cm, one period per run) or
+              ``look`` (a user looking around once: 15 % of the frames at the object, the view raised
+              to 5 deg above the horizon, one full turn in place over half the frames, lowered, back
+              at the object; docs/eval.md has what the odometry and the estimate make of it)
     boxes     ``N`` boxes (0-12; default 2-4 in ``cluttered``, else 0) standing on the floor 0.5-1.8 m
               around the object, in view,
               never hiding it: real objects casting shadows (``scene.info["boxes"]`` lists them)

@@ -16,7 +16,7 @@ from illuminet.runtime.scene import Plane
 from illuminet.runtime.stages.odometry import invert
 
 SCENES = ("indoor", "outdoor", "lamp", "spatial", "cluttered")
-PATHS = ("static", "orbit")
+PATHS = ("static", "orbit", "look")
 #: diffuse inter-reflections baked into a scene unless the URL says otherwise (``bounce=N``)
 DEFAULT_BOUNCES = 8
 MAX_BOUNCES = 16
@@ -540,6 +540,8 @@ class CameraPath(Sequence):
     def _pose(self, i: int) -> np.ndarray:
         if self.path == "static":
             return self._static.copy()
+        if self.path == "look":
+            return self._look(i)
         target, dist, h, room = self.target, self.dist, self.h, self.room
         ph = 2 * np.pi * i / self.n
         a = self.az + np.deg2rad(25.0) * np.sin(ph)
@@ -547,6 +549,37 @@ class CameraPath(Sequence):
         if room is not None:
             e[[0, 2]] = np.clip(e[[0, 2]], room[0][[0, 2]] + 0.2, room[1][[0, 2]] - 0.2)
         return _look_at(e, target + np.array([-0.35 * np.sin(a), 0.05, -0.35 * np.cos(a)]))
+
+    #: the ``look`` path's phases, as shares of the frames: at the object, raising the view to the
+    #: horizon, one full turn in place, lowering it, at the object again
+    LOOK_PHASES = (0.15, 0.1, 0.5, 0.1)
+
+    def _look(self, i: int) -> np.ndarray:
+        """A user looking around once: from the object up to the horizon, a full turn, back down."""
+        t = (i + 0.5) / self.n
+        a0, a1, a2, a3 = np.cumsum(self.LOOK_PHASES)
+
+        def smooth(u):
+            u = min(max(u, 0.0), 1.0)
+            return u * u * (3 - 2 * u)
+
+        fwd = self._static[:3, 2]  # the static view's forward axis in the world (T_world_cam's third column)
+        pitch0 = float(np.arcsin(np.clip(fwd[1], -1, 1)))
+        yaw0 = float(np.arctan2(fwd[0], fwd[2]))
+        if t < a0 or t >= a3:
+            return self._static.copy()
+        if t < a1:
+            pitch, yaw = pitch0 + (LOOK_PITCH - pitch0) * smooth((t - a0) / (a1 - a0)), yaw0
+        elif t < a2:
+            pitch, yaw = LOOK_PITCH, yaw0 + 2 * np.pi * smooth((t - a1) / (a2 - a1))
+        else:
+            pitch, yaw = LOOK_PITCH + (pitch0 - LOOK_PITCH) * smooth((t - a2) / (a3 - a2)), yaw0
+        d = np.array([np.cos(pitch) * np.sin(yaw), np.sin(pitch), np.cos(pitch) * np.cos(yaw)])
+        return _look_at(self.eye, self.eye + d)
+
+
+#: the ``look`` path's view during the turn: this far above the horizon (radians)
+LOOK_PITCH = np.deg2rad(5.0)
 
 
 def _lamp_lights(rng):
