@@ -252,6 +252,14 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "smoothness": _f(
             float, 0.02, "Laplacian penalty on the ambient SH bands (keeps unseen directions smooth)", min=0, max=1e6
         ),
+        "unseen_illuminant": _f(
+            float,
+            1.0,
+            "directions the camera has not seen take the scene illuminant's colour, with this weight against a "
+            "seen one (0 = they take the seen surfaces' colour; docs/lighting.md)",
+            min=0,
+            max=100,
+        ),
     },
     "model": {
         "bundle": _f(str, "builtin:vase", "object bundle: builtin:NAME or a bundle folder"),

@@ -356,3 +356,30 @@ def test_grid_pairs_are_observed_neighbours():
     assert len(a) == 24 - 4  # 24 neighbour pairs, 4 of them touch the unobserved cell
     assert not np.isin(5, a) and not np.isin(5, b)
     assert set(np.abs(b - a)) == {1, 4}
+
+
+def test_unseen_directions_take_the_illuminants_colour_not_the_seen_surfaces():
+    """Outdoors the camera sees a lawn below and no sky: the smoothness penalty filled the sky from the
+    lawn's green bins, and the object came out green under a neutral daylight (eval: outdoor light colour
+    5.5 deg off). With ``[light] unseen_illuminant`` the unseen directions take the illuminant's colour."""
+    from illuminet.runtime.stages.light_estimate import BIN_DIRS, LightEstimateStage
+
+    def sky_chroma(weight):
+        stage = LightEstimateStage(apply_overrides(defaults(), [("light", "unseen_illuminant", weight)]))
+        below = BIN_DIRS[:, 1] < -0.1
+        stage.env.weight[below] = 10.0
+        stage.env.radiance[below] = [0.2, 0.5, 0.1]  # a sunlit lawn's green bounce
+        wall = (np.abs(BIN_DIRS[:, 1]) < 0.3) & (BIN_DIRS[:, 2] > 0.5)
+        stage.env.weight[wall] = 10.0
+        stage.env.radiance[wall] = [0.8, 0.35, 0.25]  # a brick facade on one side
+        none = np.zeros((0, 3))  # the map alone (no plane rows): what fills the sky is the prior
+        L, _ = stage._solve(none, none, none, np.zeros(0), None, None, np.array([1.0, 1.0, 1.0]))
+        from illuminet.runtime.sh import sh9
+
+        sky = np.maximum(sh9(BIN_DIRS[BIN_DIRS[:, 1] > 0.3]) @ L, 0).mean(0)
+        return sky / sky.sum()
+
+    off, on = sky_chroma(0.0), sky_chroma(1.0)
+    neutral = np.full(3, 1 / 3)
+    assert np.abs(off - neutral).max() > 0.1, off  # the lawn and the bricks extrapolated into the sky
+    assert np.abs(on - neutral).max() < 0.03, on

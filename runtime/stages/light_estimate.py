@@ -590,6 +590,7 @@ class LightEstimateStage(Stage):
         self.search_every = max(1, int(c.search_every))
         self.near_gradient = bool(c.near_gradient)
         self.lam = float(c.smoothness)
+        self.unseen_w = float(c.unseen_illuminant)
         self.albedo = float(cfg.plane_light.assumed_albedo)
         if not 0 < self.albedo <= 1:
             raise ValueError(f"[plane_light] assumed_albedo: expected a number in (0, 1], got {self.albedo!r}")
@@ -762,7 +763,7 @@ class LightEstimateStage(Stage):
             if wb > FLOOR_WEIGHT_MAX * wg:
                 ws = np.where(beyond, ws * (FLOOR_WEIGHT_MAX * wg / max(wb, 1e-12)), ws)
             ws = self._distant_weight(xs, es, ws, gs)
-        L_rad, E_p = self._solve(xs, ns, es, ws, primary_dir, primary_pos)
+        L_rad, E_p = self._solve(xs, ns, es, ws, primary_dir, primary_pos, illum)
         conf_dir = 0.0
         if primary_dir is None:
             d, directional = _sh_extract_primary(L_rad)
@@ -770,7 +771,7 @@ class LightEstimateStage(Stage):
                 # move the directional part of the ambient into a primary light (it casts the shadow)
                 primary_dir = d
                 cues.append("sh_gradient")
-                L_rad, E_p = self._solve(xs, ns, es, ws, primary_dir, None)
+                L_rad, E_p = self._solve(xs, ns, es, ws, primary_dir, None, illum)
                 conf_dir = 0.5 * directional
         else:
             conf_dir = {
@@ -1088,8 +1089,25 @@ class LightEstimateStage(Stage):
             return None
         return np.asarray(cue.direction, np.float64), float(cue.confidence)
 
-    def _solve(self, xs, ns, es, ws, primary_dir, primary_pos) -> tuple[np.ndarray, np.ndarray]:
-        """Ambient radiance SH (9, 3) and primary RGB irradiance (3,) by one weighted least squares."""
+    def _solve(self, xs, ns, es, ws, primary_dir, primary_pos, illum=None) -> tuple[np.ndarray, np.ndarray]:
+        """Ambient radiance SH (9, 3) and primary RGB irradiance (3,) by weighted least squares.
+
+        The directions the environment map has not seen (the sky above a lawn, a ceiling out of view)
+        are otherwise filled by the smoothness penalty from the seen surfaces, so they took the lawn's
+        green or the bricks' red; a second solve gives them the scene illuminant's colour at the
+        luminance the first solve gives them, each weighing ``[light] unseen_illuminant`` times a seen
+        direction of the same solid angle (docs/lighting.md)."""
+        L_rad, E_p = self._solve_once(xs, ns, es, ws, primary_dir, primary_pos, None)
+        if illum is None or self.unseen_w <= 0 or not (self.use_env and self.env.seen.any()):
+            return L_rad, E_p
+        unseen = ~self.env.seen
+        if not unseen.any():
+            return L_rad, E_p
+        lum = np.maximum(sh9(BIN_DIRS[unseen]) @ L_rad @ LUMA, 0.0)
+        chroma = np.asarray(illum, float) / max(float(np.asarray(illum) @ LUMA), 1e-12)
+        return self._solve_once(xs, ns, es, ws, primary_dir, primary_pos, (unseen, lum[:, None] * chroma[None]))
+
+    def _solve_once(self, xs, ns, es, ws, primary_dir, primary_pos, unseen_rows) -> tuple[np.ndarray, np.ndarray]:
         rows, rhs, wts = [], [], []
         has_p = primary_dir is not None
         ncol = 10 if has_p else 9
@@ -1108,6 +1126,13 @@ class LightEstimateStage(Stage):
             rhs.append(L)
             wts.append(BIN_OMEGA[seen] / (4 * np.pi) * 4.0)
             env_scale = max(float(np.median(L @ LUMA)), 1e-9)
+        if unseen_rows is not None:
+            unseen, target = unseen_rows
+            A = np.zeros((int(unseen.sum()), ncol))
+            A[:, :9] = sh9(BIN_DIRS[unseen])
+            rows.append(A)
+            rhs.append(target)
+            wts.append(BIN_OMEGA[unseen] / (4 * np.pi) * 4.0 * self.unseen_w)
         if len(xs) and self.use_planes:
             B = sh9(ns) * SH_A_HAT[None, :]
             A = np.zeros((len(xs), ncol))
