@@ -1097,24 +1097,35 @@ class LightEstimateStage(Stage):
         green or the bricks' red; a second solve gives them the scene illuminant's colour at the
         luminance the first solve gives them, each weighing ``[light] unseen_illuminant`` times a seen
         direction of the same solid angle (docs/lighting.md)."""
-        L_rad, E_p = self._solve_once(xs, ns, es, ws, primary_dir, primary_pos, None)
+        ne = self._normal_equations(xs, ns, es, ws, primary_dir, primary_pos)
+        if ne is None:
+            return np.zeros((9, 3)), np.zeros(3)
+        L_rad, E_p = self._finish(*ne)
         if illum is None or self.unseen_w <= 0 or not (self.use_env and self.env.seen.any()):
             return L_rad, E_p
         unseen = ~self.env.seen
         if not unseen.any():
             return L_rad, E_p
-        lum = np.maximum(sh9(BIN_DIRS[unseen]) @ L_rad @ LUMA, 0.0)
+        # the unseen bins' rows added to the same normal equations (the seen rows are not built again)
+        G, Ab, ncol, has_p, env_scale = ne
+        Y = _NONNEG_Y[unseen]
+        lum = np.maximum(Y @ L_rad @ LUMA, 0.0)
         chroma = np.asarray(illum, float) / max(float(np.asarray(illum) @ LUMA), 1e-12)
-        return self._solve_once(xs, ns, es, ws, primary_dir, primary_pos, (unseen, lum[:, None] * chroma[None]))
+        w = np.sqrt(BIN_OMEGA[unseen] / (4 * np.pi) * 4.0 * self.unseen_w)[:, None]
+        Aw = np.zeros((len(Y), ncol))
+        Aw[:, :9] = Y * w
+        return self._finish(G + Aw.T @ Aw, Ab + Aw.T @ (lum[:, None] * chroma[None] * w), ncol, has_p, env_scale)
 
-    def _solve_once(self, xs, ns, es, ws, primary_dir, primary_pos, unseen_rows) -> tuple[np.ndarray, np.ndarray]:
+    def _normal_equations(self, xs, ns, es, ws, primary_dir, primary_pos):
+        """The weighted normal equations ``(G, A^T W b, ncol, has_p, env_scale)`` of the map's seen bins
+        and the plane rows (None without any row)."""
         rows, rhs, wts = [], [], []
         has_p = primary_dir is not None
         ncol = 10 if has_p else 9
         env_scale = 1.0
         if self.use_env and self.env.seen.any():
             seen = self.env.seen
-            B = sh9(BIN_DIRS[seen])
+            B = _NONNEG_Y[seen]
             L = self.env.radiance[seen].copy()
             if has_p:  # the emitter itself is the primary light, not ambient
                 lum = L @ LUMA
@@ -1126,13 +1137,6 @@ class LightEstimateStage(Stage):
             rhs.append(L)
             wts.append(BIN_OMEGA[seen] / (4 * np.pi) * 4.0)
             env_scale = max(float(np.median(L @ LUMA)), 1e-9)
-        if unseen_rows is not None:
-            unseen, target = unseen_rows
-            A = np.zeros((int(unseen.sum()), ncol))
-            A[:, :9] = sh9(BIN_DIRS[unseen])
-            rows.append(A)
-            rhs.append(target)
-            wts.append(BIN_OMEGA[unseen] / (4 * np.pi) * 4.0 * self.unseen_w)
         if len(xs) and self.use_planes:
             B = sh9(ns) * SH_A_HAT[None, :]
             A = np.zeros((len(xs), ncol))
@@ -1146,19 +1150,22 @@ class LightEstimateStage(Stage):
             rhs.append(es / np.pi)
             wts.append(ws / max(ws.sum(), 1e-12))
         if not rows:
-            return np.zeros((9, 3)), np.zeros(3)
+            return None
         A = np.concatenate(rows)
         b = np.concatenate(rhs)
         w = np.sqrt(np.concatenate(wts))[:, None]
         Aw, bw = A * w, b * w
-        G = Aw.T @ Aw
+        return Aw.T @ Aw, Aw.T @ bw, ncol, has_p, env_scale
+
+    def _finish(self, G, Ab, ncol, has_p, env_scale) -> tuple[np.ndarray, np.ndarray]:
+        """The regularised, non-negative solve of the normal equations: (ambient radiance SH, primary RGB)."""
         reg = np.zeros(ncol)
         reg[:9] = (self.lam * (SH_BAND * (SH_BAND + 1.0)) ** 2 + 1e-6) * (np.trace(G[:9, :9]) / 9 + 1e-12)
         reg[9:] = 1e-6 * (np.trace(G) / ncol + 1e-12)
         # a weak prior towards uniform light at the map's level keeps a barely observed scene sane
         prior = np.zeros((ncol, 3))
         prior[0] = env_scale / 0.282095 if self.env.seen.any() else 0.0
-        sol = _solve_nonnegative(G + np.diag(reg), Aw.T @ bw + reg[:, None] * prior)
+        sol = _solve_nonnegative(G + np.diag(reg), Ab + reg[:, None] * prior)
         L_rad = sol[:9]
         E_p = np.maximum(sol[9], 0.0) if has_p else np.zeros(3)
         return L_rad, E_p
