@@ -13,6 +13,21 @@ os.environ.setdefault("DEPTHAI_TELEMETRY", "0")
 REPO = Path(__file__).resolve().parent.parent
 
 
+def relight_argv(tmp_path: Path, change: dict) -> list[str]:
+    """``illuminet relight`` on the small 64x48 inputs (``c.png``, ``d.png`` in ``tmp_path``) with the
+    flags in ``change`` (``{"--flag": value}``) replaced or added; ``{tmp}`` in a value is ``tmp_path``.
+    Written ``--flag=value``: values such as "-5,100" or "" would read as flags otherwise."""
+    opts = {
+        "--color": "{tmp}/c.png",
+        "--depth": "{tmp}/d.png",
+        "--intrinsics": "60,60,32,24",
+        "--anchor": "32,40",
+        "--out": "{tmp}/r.npz",
+        **change,
+    }
+    return ["relight"] + [f"{k}={v}".replace("{tmp}", str(tmp_path)) for k, v in opts.items()]
+
+
 def _shared_data_dir() -> Path:
     """../shared/data beside the checkout; ILLUMINET_SHARED_DATA overrides (e.g. for git worktrees)."""
     env = os.environ.get("ILLUMINET_SHARED_DATA")

@@ -22,7 +22,7 @@ from illuminet.runtime.stream.session import SessionReader
 
 from . import _sessions
 from ._sessions import make_session
-from .conftest import REPO
+from .conftest import REPO, relight_argv
 
 # (argv, exit status, text the one line must contain); paths under "{tmp}" are made per test
 BAD_INPUTS = [
@@ -524,16 +524,7 @@ BAD_RELIGHT = [
 @pytest.mark.parametrize("change,expect", BAD_RELIGHT, ids=[e for _, e in BAD_RELIGHT])
 def test_bad_relight_inputs_are_one_line_each(tmp_path, capsys, change, expect):
     _relight_inputs(tmp_path)
-    opts = {
-        "--color": "{tmp}/c.png",
-        "--depth": "{tmp}/d.png",
-        "--intrinsics": "60,60,32,24",
-        "--anchor": "32,40",
-        "--out": "{tmp}/r.npz",
-        **change,
-    }
-    # --flag=value: values such as "-5,100" or "" would read as flags otherwise
-    argv = ["relight"] + [f"{k}={v}".replace("{tmp}", str(tmp_path)) for k, v in opts.items()]
+    argv = relight_argv(tmp_path, change)
     t0 = time.monotonic()
     assert main(argv) == 2
     assert time.monotonic() - t0 < 10  # refused from the header, not after decoding 400 Mpx

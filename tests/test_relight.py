@@ -14,6 +14,7 @@ from illuminet.runtime.frame import depth_to_mm
 from illuminet.runtime.relight import relight
 
 from ._learn_helpers import floor_rgbd
+from .conftest import relight_argv
 
 NPZ_KEYS = {
     "vertices",
@@ -208,15 +209,7 @@ def _small_inputs(tmp_path):
 
 
 def _small_argv(tmp_path, **change):
-    opts = {
-        "--color": "{tmp}/c.png",
-        "--depth": "{tmp}/d.png",
-        "--intrinsics": "60,60,32,24",
-        "--anchor": "32,40",
-        "--out": "{tmp}/r.npz",
-        **{"--" + k: v for k, v in change.items()},
-    }
-    return ["relight"] + [f"{k}={v}".replace("{tmp}", str(tmp_path)) for k, v in opts.items()]
+    return relight_argv(tmp_path, {"--" + k: v for k, v in change.items()})
 
 
 def test_relight_cli_accepts_upper_case_npy_proportional_intrinsics_and_exposure(tmp_path, capsys):

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import ctypes
-import ctypes.util
 import http.client
 import math
 import resource
@@ -43,6 +42,7 @@ import numpy as np
 
 from illuminet.runtime.config import apply_overrides
 from illuminet.runtime.errors import ConfigError
+from illuminet.runtime.stream.memtrim import glibc_function
 
 SLOPE_TARGET_MB_PER_MIN = 0.1
 DEFAULT_MINUTES = 30.0
@@ -83,20 +83,8 @@ class _MallInfo2(ctypes.Structure):
     ]
 
 
-def _mallinfo2():
-    """glibc's ``mallinfo2`` function, or None (another C library, or glibc < 2.33)."""
-    try:
-        name = ctypes.util.find_library("c")
-        fn = ctypes.CDLL(name).mallinfo2 if name else None
-    except (OSError, AttributeError):
-        return None
-    if fn is not None:
-        fn.restype = _MallInfo2
-        fn.argtypes = []
-    return fn
-
-
-_MALLINFO2 = _mallinfo2()
+#: glibc's ``mallinfo2`` function, or None (another C library, or glibc < 2.33)
+_MALLINFO2 = glibc_function("mallinfo2", _MallInfo2, [])
 
 
 def heap_mb() -> tuple[float, float, float] | None:

@@ -26,20 +26,21 @@ import time
 log = logging.getLogger(__name__)
 
 
-def _malloc_trim():
-    """glibc's ``malloc_trim``, or None (another C library)."""
+def glibc_function(name: str, restype, argtypes: list):
+    """The C library's function ``name`` with its types set, or None (another C library, an older
+    glibc without it). Used here for ``malloc_trim`` and by ``illuminet bench soak`` for ``mallinfo2``."""
     try:
-        name = ctypes.util.find_library("c")
-        fn = ctypes.CDLL(name).malloc_trim if name else None
+        lib = ctypes.util.find_library("c")
+        fn = getattr(ctypes.CDLL(lib), name) if lib else None
     except (OSError, AttributeError):
         return None
     if fn is not None:
-        fn.argtypes = [ctypes.c_size_t]
-        fn.restype = ctypes.c_int
+        fn.restype = restype
+        fn.argtypes = argtypes
     return fn
 
 
-_MALLOC_TRIM = _malloc_trim()
+_MALLOC_TRIM = glibc_function("malloc_trim", ctypes.c_int, [ctypes.c_size_t])
 try:
     _PAGE = os.sysconf("SC_PAGE_SIZE")
 except (AttributeError, ValueError, OSError):  # pragma: no cover - not POSIX
