@@ -427,3 +427,66 @@ def test_a_looped_replay_puts_the_object_in_the_same_place_every_lap():
     assert an.lap_restarts == 4 and an.stats()["replay_lap_restarts"] == 4
     for lap, pos, tol in ((2, 0, 5e-4), (4, 0, 5e-4), (4, 20, 5e-4), (3, 2, 1.5e-3)):
         assert np.linalg.norm(at[lap, pos] - at[1, pos]) < tol, (lap, pos, at[lap, pos], at[1, pos])
+
+
+# ------------------------------------------------------------------------------------ a turn in place
+
+
+def _turned(frame, R: np.ndarray, depth_rows: int):
+    """The frame as the camera would see it turned in place by ``R`` (``x_new = R @ x_old``).
+
+    A turn in place maps pixels by the homography ``K R K^-1`` whatever their depth, so warping a real
+    frame is exact. The depth is kept only in the bottom ``depth_rows`` rows: the view of a sky or a
+    far field, too little to lift landmarks but not a dropout.
+    """
+    import cv2
+
+    i = frame.intrinsics
+    K = np.array([[i.fx, 0, i.cx], [0, i.fy, i.cy], [0, 0, 1.0]])
+    H = K @ R @ np.linalg.inv(K)
+    h, w = frame.depth.shape
+    color = cv2.warpPerspective(np.ascontiguousarray(frame.color), H, (w, h), borderMode=cv2.BORDER_REFLECT)
+    depth = cv2.warpPerspective(frame.depth, H, (w, h), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_REFLECT)
+    depth[: h - depth_rows] = np.nan
+    return frame.replace(color=color, depth=depth)
+
+
+def _yaw(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    return np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+
+
+def test_a_turn_in_place_without_depth_is_tracked_by_the_bearings(static):
+    """Looking away from everything with depth (a sky, a far field), the landmarks cannot be lifted: the
+    rotation is fitted to the tracks' bearings with the camera centre held, not lost."""
+    f0 = static[0]
+    od = Odometry(still_px=0)
+    assert od.update(f0).state == "ok"
+    # 1.5 degrees a frame of yaw and a little pitch: 45 deg/s at 30 fps, a user looking around
+    R = np.eye(3)
+    step = _yaw(1.5) @ np.array([[1, 0, 0], [0, np.cos(0.004), -np.sin(0.004)], [0, np.sin(0.004), np.cos(0.004)]])
+    results = []
+    for _ in range(10):
+        R = step @ R
+        results.append(od.update(_turned(f0, R, depth_rows=12)))
+    assert [r.state for r in results] == ["ok"] * 10, [r.reason for r in results]
+    assert all(r.rotation_only for r in results)
+    last = results[-1].T_cam_world
+    err = np.degrees(np.arccos(np.clip((np.trace(last[:3, :3].T @ R) - 1) / 2, -1, 1)))
+    assert err < 0.3, f"rotation off by {err:.2f} deg after a {15:.0f} deg turn"
+    assert np.linalg.norm(-last[:3, :3].T @ last[:3, 3]) < 1e-9  # the centre is held
+    assert od.stats()["rotation_frames"] == 10
+    # the same turn with no depth at all is a dropout: lost, the pose held
+    r = od.update(f0.replace(depth=np.full_like(f0.depth, np.nan)))
+    assert r.state == "lost" and r.reason == "no valid depth" and np.array_equal(r.T_cam_world, last)
+
+
+def test_a_turn_with_too_few_agreeing_tracks_is_lost_not_guessed(static):
+    """Garbage pictures with a trickle of depth are not a turn: the bearings do not agree, the frame is lost."""
+    f0 = static[0]
+    od = Odometry(still_px=0)
+    od.update(f0)
+    rng = np.random.default_rng(1)
+    noise = rng.integers(0, 255, f0.color.shape, dtype=np.uint8)
+    r = od.update(_turned(f0.replace(color=noise), np.eye(3), depth_rows=12))
+    assert r.state == "lost" and not r.rotation_only and np.array_equal(r.T_cam_world, np.eye(4))

@@ -34,13 +34,26 @@ What this module owns
          (averages stereo noise); outliers are dropped; when fewer than ``MIN_FEATURES`` remain,
          new corners are detected away from the tracked ones.
 
+    7. **A turn in place with too little depth** (a user looking around outdoors: sky, far grass, a
+       window; the view holds only a few pixels in the depth range): the 3D fit has too few
+       landmarks with depth, so the camera's rotation since the last tracked image is fitted to the
+       tracks' bearings there and here (Wahba's problem: RANSAC over pairs, Huber refits; at least
+       ``MIN_INLIER_SHARE`` of the 2D tracks must agree) and the camera centre is held. Frame to
+       frame a turn moves every track by the same rotation whatever its depth, so near and far
+       tracks both count, and a centre that drifted does not bend them. Corners with no depth at all
+       (all 5 samples missing or beyond ``Z_MAX``; not depth edges) are tracked as *direction*
+       landmarks (at most :data:`MAX_BEARINGS`, beside the point landmarks) so that they are in
+       place when the depth runs out. The result says ``rotation_only``. A frame with no valid depth
+       at all is a dropout (a glitch, a covered stereo pair) and is lost as before, not a turn.
+
     * **A still camera** (a tripod, a board on a desk) costs almost nothing: before tracking, the
       frame is compared with the last tracked one (:class:`~illuminet.runtime.stages.still.StillTest`,
       on the tracking image downscaled 4x more); when it moved less than ``still_px`` colour pixels
       the pose is held and nothing else runs (once :data:`HOLD_AFTER_TRACKS` frames have been tracked
       since tracking started: the landmarks' positions have then been averaged).
     * Tracking state: ``"ok"``, or ``"lost"`` when the frame is unusable (no colour or depth, a
-      (nearly) black or flat image, almost no valid depth) or too few inliers support a pose.
+      (nearly) black or flat image, no valid depth at all, or under 5 % with nothing to track a turn
+      from) or too few inliers support a pose (nor a turn in place, step 7).
       While lost the last pose is held (the camera is assumed still) and the last good image and
       its landmarks are kept, so the next good frame is tracked from them (a single bad frame
       costs nothing). After ``RESET_AFTER`` good-but-untrackable frames in a row, tracking
@@ -102,6 +115,15 @@ HUBER_PX = 1.0
 WEIGHT_POWER = 2
 #: Depth range accepted (metres).
 Z_MIN, Z_MAX = 0.2, 8.0
+#: a turn in place (a user looking around; the view on sky, far grass or a window) leaves too few
+#: landmarks with depth for the 3D fit: the rotation is then fitted to the tracks' bearings from the
+#: held camera centre (module docstring, step 7)
+ROTATION_FALLBACK = True
+#: a bearing agrees with a rotation when it lands within this many colour-image pixels
+ROTATION_INLIER_PX = 3.0
+#: at most this many direction landmarks (corners with no depth at all: sky, far fields), tracked
+#: beside the point landmarks so that a turn away from everything with depth finds them in place
+MAX_BEARINGS = 60
 _LK = dict(winSize=(11, 11), maxLevel=3, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 10, 0.03))
 
 
@@ -125,6 +147,9 @@ class OdometryResult:
         Whether the anchor plane pinned roll, pitch and height.
     reason : str
         Why the frame is lost ("" when ok).
+    rotation_only : bool
+        The pose was fitted to the tracks' bearings with the camera centre held (a turn in place with
+        too little depth for the 3D fit; module docstring, step 7).
     """
 
     T_cam_world: np.ndarray
@@ -134,6 +159,7 @@ class OdometryResult:
     landmarks: int = 0
     plane_constrained: bool = False
     reason: str = ""
+    rotation_only: bool = False
 
     @property
     def T_world_cam(self) -> np.ndarray:
@@ -194,6 +220,23 @@ def kabsch(P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None) -> tuple[n
     R = np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
     t = qc - np.einsum("...ij,...j->...i", R, pc)
     return R, t
+
+
+def wahba(P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """Weighted rotation of directions (Wahba's problem): R minimising ``sum w |R p - q|^2``.
+
+    ``P`` and ``Q`` are (..., N, 3) unit vectors; batched over leading axes like :func:`kabsch`.
+    """
+    if w is None:
+        w = np.ones(P.shape[:-1])
+    Hm = np.einsum("...ni,...nj->...ij", P * w[..., None], Q)
+    U, _, Vt = np.linalg.svd(Hm)
+    d = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
+    D = np.zeros(Hm.shape)
+    D[..., 0, 0] = 1.0
+    D[..., 1, 1] = 1.0
+    D[..., 2, 2] = np.where(d == 0, 1.0, d)
+    return np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
 
 
 def _irls(refit, m: np.ndarray, w: np.ndarray, thr: np.ndarray, k_min: int, iters: int = 2):
@@ -306,10 +349,12 @@ class Odometry:
         self._pts = np.zeros((0, 2), np.float32)  # landmark pixels in it (downscaled coords)
         self._lm = np.zeros((0, 3))  # landmark world positions
         self._nobs = np.zeros(0, np.int32)
+        self._inf = np.zeros(0, bool)  # landmark is a direction (a bearing with no depth), not a point
         self.state = "init"
         self.frames = 0
         self.lost_frames = 0
         self.resets = 0
+        self.rotation_frames = 0  # frames whose pose is a rotation of the tracks' bearings (step 7)
         self._bad_run = 0
         self._velocity: np.ndarray | None = None  # T_cam_world(k) @ inv(T_cam_world(k-1))
         self._tracked = 0
@@ -323,6 +368,7 @@ class Odometry:
         self._pts = np.zeros((0, 2), np.float32)
         self._lm = np.zeros((0, 3))
         self._nobs = np.zeros(0, np.int32)
+        self._inf = np.zeros(0, bool)
         if pose is not None:
             self.T_cam_world = np.array(pose, np.float64)
         elif not keep_pose:
@@ -356,6 +402,7 @@ class Odometry:
         grey, depth, why = self._inputs(frame)
         if grey is None:
             return self._lose(why)
+        low_depth = why  # too little depth to lift landmarks: only a turn in place can be tracked
         W, H = frame.size
         intr = frame.intrinsics
         if (intr.width, intr.height) != (W, H):
@@ -372,6 +419,8 @@ class Odometry:
             )
             self.resets += 1
             self._grey = None
+        if low_depth and not (ROTATION_FALLBACK and self._grey is not None and len(self._pts) >= MIN_INLIERS):
+            return self._lose(low_depth)
         if self._grey is None or len(self._pts) < 3:
             self._start(grey, depth, intr)
             self.still.reset()
@@ -387,11 +436,14 @@ class Odometry:
         p1, good = self._track(grey, intr)
         # 2. lift to 3D with this frame's depth and fit the pose to the landmarks
         X, valid = self._lift(p1, depth, intr)
-        use = good & valid
+        use = good & valid & ~self._inf
         n_track = int(use.sum())
         constrained = plane_cam is not None and plane_world is not None
         fit = self._fit(self._lm[use], X[use], plane_cam, plane_world) if n_track >= MIN_INLIERS else None
         if fit is None or fit[2].sum() < max(MIN_INLIERS, MIN_INLIER_SHARE * n_track):
+            rot = self._fit_rotation(p1, good, intr) if ROTATION_FALLBACK else None
+            if rot is not None:
+                return self._turned(grey, depth, intr, p1, good, n_track, *rot)
             return self._not_tied(grey, depth, intr, 0 if fit is None else int(fit[2].sum()), n_track)
         R, t, inl = fit
         if REPROJ_REFINE:
@@ -413,7 +465,7 @@ class Odometry:
         self._keep_landmarks(p1, X, good, np.nonzero(use)[0], inl, R, t)
         self._grey = grey
         self.still.processed()
-        if len(self._pts) < MIN_FEATURES:
+        if len(self._pts) - int(self._inf.sum()) < MIN_FEATURES:
             self._detect(grey, depth, intr)
         return self._result("ok", int(inl.sum()), n_track, constrained)
 
@@ -493,16 +545,84 @@ class Odometry:
         self._nobs[inlier_idx] += 1
         keep = good.copy()
         keep[outlier_idx] = False
+        self._filter(p1, keep)
+
+    def _filter(self, p1: np.ndarray, keep: np.ndarray) -> None:
+        """Keep the landmarks marked ``keep``, at their tracked pixels ``p1``."""
         self._pts = p1[keep].astype(np.float32)
         self._lm = self._lm[keep]
         self._nobs = self._nobs[keep]
+        self._inf = self._inf[keep]
+
+    def _fit_rotation(self, p1: np.ndarray, good: np.ndarray, intr) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """Step 7: the camera's rotation since the last tracked image, from its tracks' bearings there and
+        here: (R, idx, inliers) or None, ``R`` the new ``R_cam_world`` with the centre held.
+
+        Frame to frame, a turn in place moves every track by the same rotation whatever its depth (the
+        few millimetres a hand-held camera shifts between frames make no parallax worth a pixel); the
+        landmarks' world positions are not used, so a centre that drifted a few centimetres does not
+        bend the bearings of near points. RANSAC over pairs (Wahba's problem, batched), then
+        Huber-weighted refits on the inliers. At least half of the 2D tracks must agree: a camera that
+        moved (parallax) or garbage tracks do not.
+        """
+        idx = np.nonzero(good)[0]
+        if len(idx) < MIN_INLIERS:
+            return None
+
+        def bearings(px):
+            uv = (px.astype(np.float64) + 0.5) * DOWNSCALE - 0.5
+            b = np.stack([(uv[:, 0] - intr.cx) / intr.fx, (uv[:, 1] - intr.cy) / intr.fy, np.ones(len(uv))], axis=1)
+            return b / np.linalg.norm(b, axis=1, keepdims=True)
+
+        b = bearings(p1[idx])
+        d = bearings(self._pts[idx])
+        thr = np.full(len(idx), ROTATION_INLIER_PX / max(intr.fx, intr.fy))  # a chord: the angle, in radians
+        s = self._samples(len(idx), 2, RANSAC_ITERS)
+        R = wahba(d[s], b[s])
+        res = np.linalg.norm(d[None] @ np.swapaxes(R, 1, 2) - b[None], axis=2)
+        inl = res < thr[None]
+        m = inl[int(np.argmax(inl.sum(axis=1)))]
+
+        def refit(ww):
+            R_ = wahba(d, b, ww)
+            return R_, np.linalg.norm(d @ R_.T - b, axis=1)
+
+        out = _irls(refit, m, np.ones(len(idx)), thr, 2)
+        if out is None or out[1].sum() < max(MIN_INLIERS, MIN_INLIER_SHARE * len(idx)):
+            return None
+        return out[0] @ self.T_cam_world[:3, :3], idx, out[1]
+
+    def _turned(
+        self, grey, depth, intr, p1: np.ndarray, good: np.ndarray, n_track: int, R: np.ndarray, idx, inl
+    ) -> OdometryResult:
+        """Step 7 accepted: the pose is rotation ``R`` about the held centre; outlier tracks are dropped
+        and new corners without depth join as directions."""
+        centre = -self.T_cam_world[:3, :3].T @ self.T_cam_world[:3, 3]
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, -R @ centre
+        held = self.still.run > 0
+        self._bad_run = 0
+        self._tracked += 1
+        self._velocity = T @ invert(self.T_cam_world) if self.state == "ok" and not held else None
+        self.T_cam_world = T
+        keep = good.copy()
+        keep[idx[~inl]] = False
+        self._filter(p1, keep)
+        self._grey = grey
+        self.still.processed()
+        self.rotation_frames += 1
+        if self.state != "ok" or not (self.last and self.last.rotation_only):
+            log.info("odometry: too little depth to tie the view (%d tracks with depth); tracking the turn", n_track)
+        if len(self._pts) - int(self._inf.sum()) < MIN_FEATURES:
+            self._detect(grey, depth, intr)
+        return self._result("ok", int(inl.sum()), n_track, False, rotation_only=True)
 
     def _predict(self, intr, shape) -> np.ndarray | None:
         """Landmark pixels (downscaled) under a constant-velocity pose, or None without a velocity."""
         if self._velocity is None or len(self._lm) == 0:
             return None
         T = self._velocity @ self.T_cam_world
-        X = self._lm @ T[:3, :3].T + T[:3, 3]
+        X = self._lm @ T[:3, :3].T + np.where(self._inf[:, None], 0.0, T[:3, 3])
         Z = X[:, 2]
         ok = Z > Z_MIN
         Zs = np.where(ok, Z, 1.0)
@@ -520,6 +640,7 @@ class Odometry:
             "frames": self.frames,
             "lost_frames": self.lost_frames,
             "resets": self.resets,
+            "rotation_frames": self.rotation_frames,
             "still_frames": self.still.still_frames,
             "inliers": last.inliers if last else 0,
             "landmarks": len(self._lm),
@@ -527,7 +648,9 @@ class Odometry:
         }
 
     # -- internals
-    def _result(self, state: str, inliers: int, tracked: int, constrained: bool, reason: str = "") -> OdometryResult:
+    def _result(
+        self, state: str, inliers: int, tracked: int, constrained: bool, reason: str = "", rotation_only: bool = False
+    ) -> OdometryResult:
         self.state = state
         self.last = OdometryResult(
             T_cam_world=self.T_cam_world.copy(),
@@ -537,6 +660,7 @@ class Odometry:
             landmarks=len(self._lm),
             plane_constrained=constrained,
             reason=reason,
+            rotation_only=rotation_only,
         )
         return self.last
 
@@ -568,18 +692,26 @@ class Odometry:
         ds = d[::8, ::8]
         with np.errstate(invalid="ignore"):
             frac = float(np.mean((ds > Z_MIN) & (ds < Z_MAX)))
-        if frac < 0.05:
-            return None, None, f"only {100 * frac:.0f} % valid depth"
+        if frac == 0.0:  # a depth dropout (a glitch, a covered stereo pair), not a view of the sky
+            return None, None, "no valid depth"
+        if frac < 0.05:  # too little to lift landmarks; a turn in place may still be tracked (step 7)
+            return g, d, f"only {100 * frac:.0f} % valid depth"
         return g, d, ""
 
-    def _lift(self, pts: np.ndarray, depth: np.ndarray, intr) -> tuple[np.ndarray, np.ndarray]:
-        """Camera points of downscaled pixels ``pts`` (N, 2) and whether their depth is usable."""
+    @staticmethod
+    def _depth_samples(pts: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Full-resolution pixels (u, v) of downscaled pixels ``pts`` and their 5 depth samples (5, N)."""
         H, W = depth.shape
         u = (pts[:, 0] + 0.5) * DOWNSCALE - 0.5
         v = (pts[:, 1] + 0.5) * DOWNSCALE - 0.5
         ui = np.clip(np.round(u).astype(np.int64), 2, W - 3)
         vi = np.clip(np.round(v).astype(np.int64), 2, H - 3)
         z = np.stack([depth[vi, ui], depth[vi, ui - 2], depth[vi, ui + 2], depth[vi - 2, ui], depth[vi + 2, ui]])
+        return u, v, z
+
+    def _lift(self, pts: np.ndarray, depth: np.ndarray, intr) -> tuple[np.ndarray, np.ndarray]:
+        """Camera points of downscaled pixels ``pts`` (N, 2) and whether their depth is usable."""
+        u, v, z = self._depth_samples(pts, depth)
         with np.errstate(invalid="ignore"):
             # the median of the 5 samples: stereo depth jumps by whole disparity steps at random (the
             # middle of the sorted five: np.median's bits where all five are finite, the only case
@@ -596,6 +728,7 @@ class Odometry:
         self._pts = np.zeros((0, 2), np.float32)
         self._lm = np.zeros((0, 3))
         self._nobs = np.zeros(0, np.int32)
+        self._inf = np.zeros(0, bool)
         self._grey = grey
         self._bad_run = 0
         self._velocity = None
@@ -603,25 +736,42 @@ class Odometry:
         self._detect(grey, depth, intr)
 
     def _detect(self, grey: np.ndarray, depth: np.ndarray, intr) -> None:
-        """Add corners away from the tracked ones (with valid depth) as landmarks at the current pose."""
-        want = MAX_FEATURES - len(self._pts)
-        if want <= 0:
+        """Add corners away from the tracked ones as landmarks at the current pose: points where the depth
+        is valid, directions (step 7) where there is no depth at all (sky, far fields; not depth edges)."""
+        n_inf = int(self._inf.sum())
+        want = MAX_FEATURES - (len(self._pts) - n_inf)
+        want_b = MAX_BEARINGS - n_inf if ROTATION_FALLBACK else 0
+        if want <= 0 and want_b <= 0:
             return
+        want, want_b = max(want, 0), max(want_b, 0)
         mask = np.full(grey.shape, 255, np.uint8)
         for x, y in self._pts:
             cv2.circle(mask, (int(x), int(y)), 6, 0, -1)
         c = cv2.goodFeaturesToTrack(
-            grey, maxCorners=want + want // 2, qualityLevel=0.01, minDistance=7, mask=mask, blockSize=5
+            grey, maxCorners=(want + want_b) * 3 // 2, qualityLevel=0.01, minDistance=7, mask=mask, blockSize=5
         )
         if c is None:
             return
         c = c.reshape(-1, 2).astype(np.float32)
         X, ok = self._lift(c, depth, intr)
+        cb = c[~ok]
         c, X = c[ok][:want], X[ok][:want]
         R, t = self.T_cam_world[:3, :3], self.T_cam_world[:3, 3]
+        lm = (X - t) @ R
+        inf = np.zeros(len(c), bool)
+        if want_b > 0 and len(cb):
+            u, v, z = self._depth_samples(cb, depth)
+            with np.errstate(invalid="ignore"):
+                none = np.all(~(z > Z_MIN) | (z >= Z_MAX), axis=0)  # no depth, or beyond the range, all 5
+            cb, u, v = cb[none][:want_b], u[none][:want_b], v[none][:want_b]
+            dc = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones(len(cb))], axis=1)
+            dc /= np.linalg.norm(dc, axis=1, keepdims=True)
+            c, lm = np.concatenate([c, cb]), np.concatenate([lm, dc @ R])
+            inf = np.concatenate([inf, np.ones(len(cb), bool)])
         self._pts = np.concatenate([self._pts, c])
-        self._lm = np.concatenate([self._lm, (X - t) @ R])
+        self._lm = np.concatenate([self._lm, lm])
         self._nobs = np.concatenate([self._nobs, np.ones(len(c), np.int32)])
+        self._inf = np.concatenate([self._inf, inf])
 
     def _fit(
         self, Pw: np.ndarray, Qc: np.ndarray, plane_cam, plane_world
