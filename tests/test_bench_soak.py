@@ -65,3 +65,12 @@ def test_soak_refuses_a_bad_duration(capsys):
         assert main(["bench", "soak", "--minutes", bad]) == 2
         lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
         assert len(lines) == 1 and "--minutes" in lines[0], lines
+
+
+def test_bench_refuses_bad_counts_in_one_line_before_running(capsys):
+    """`bench demo --frames -3` once crashed with a traceback in the table printer; `--rounds 0` was
+    silently the default. Each is refused at once, naming the flag."""
+    for argv in (["demo", "--frames", "-3"], ["demo", "--rounds", "0"], ["odometry", "--look", "-1"]):
+        assert main(["bench", *argv]) == 2, argv
+        err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+        assert len(err) == 1 and argv[1] in err[0] and "expected" in err[0], (argv, err)

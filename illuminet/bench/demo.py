@@ -238,8 +238,12 @@ def run(args, cfg) -> dict:
     for m in modes:
         if m not in ("serial", "threads", "auto"):
             raise ConfigError(f"--pipeline: expected serial, threads or auto (comma-separated), got {m!r}")
-    n = int(getattr(args, "frames", None) or (30 if quick else 150))
-    rounds = int(getattr(args, "rounds", None) or (1 if quick else 2))
+    n, rounds = getattr(args, "frames", None), getattr(args, "rounds", None)
+    for flag, v in (("--frames", n), ("--rounds", rounds)):
+        if v is not None and v < 1:
+            raise ConfigError(f"{flag}: expected a whole number >= 1, got {v}; leave it out for the default")
+    n = int(n or (30 if quick else 150))
+    rounds = int(rounds or (1 if quick else 2))
     cfg = apply_overrides(cfg, [("source", "timing", "asap")])
     tmp = None
     try:

@@ -12,6 +12,12 @@ Prints
     * the drift of the world-locked anchor against the ground-truth camera poses over the path:
       the largest distance (cm) and yaw change (degrees) of the object's world pose from where it was
       placed, and the same for ``lock = "camera"`` for comparison.
+    * with ``--look N``: a user looking around outdoors (``synthetic://outdoor?path=look``: at the object,
+      the view raised to the horizon, one full turn in place, back down; 300 frames, 150 with
+      ``--quick``) on the evaluation's first N outdoor scenes with their held-out HDR maps (the sky and
+      the far grass have no depth: the turn is tracked by the bearings, docs/planes.md): per scene the
+      object's distance and yaw from where it was placed at the end and at most, lost frames and the
+      frames tracked as a turn in place. Needs the HDR maps (``../shared/data/hdri``).
 """
 
 from __future__ import annotations
@@ -21,7 +27,7 @@ import time
 
 import numpy as np
 
-from illuminet.runtime.config import Config, apply_overrides
+from illuminet.runtime.config import Config, ConfigError, apply_overrides
 from illuminet.runtime.scene import ODOMETRY
 from illuminet.runtime.stream.timing import Samples
 
@@ -54,13 +60,14 @@ def anchor_drift(frames, cfg: Config) -> dict:
         # yaw: the object's +Z (which lies in the floor) against where it pointed when placed
         yaw.append(float(np.degrees(np.arccos(np.clip(z0 @ z1 / (np.linalg.norm(z0) * np.linalg.norm(z1)), -1, 1)))))
         o = f.results.get(ODOMETRY.name)
-        states.append(o.state if o is not None else "-")
+        states.append(("turn" if o.rotation_only else o.state) if o is not None else "-")
     return {
         "max_drift_m": max(dist),
         "final_drift_m": dist[-1],
         "max_yaw_deg": max(yaw),
         "final_yaw_deg": yaw[-1],
         "lost_frames": states.count("lost"),
+        "rotation_frames": states.count("turn"),
         "stage": t_wall.summary(),
         "stage_cpu": t_cpu.summary(),
         "stats": an.stats(),
@@ -82,6 +89,9 @@ def run(args: argparse.Namespace, cfg: Config) -> dict:
     from illuminet.runtime.stages.odometry import Odometry
 
     quick = bool(getattr(args, "quick", False))
+    look = int(getattr(args, "look", 0) or 0)
+    if look < 0:
+        raise ConfigError(f"--look: expected a number of scenes >= 0, got {look}")
     frames = load_frames(cfg)
     path = frames + frames[-2:0:-1]  # forwards then backwards: a continuous camera path
     reps = 1 if quick else 4
@@ -116,7 +126,35 @@ def run(args: argparse.Namespace, cfg: Config) -> dict:
             f"(CPU {d['stage_cpu']['median_ms']:.2f} ms)  drift over the orbit: max {100 * d['max_drift_m']:.2f} cm, "
             f"yaw max {d['max_yaw_deg']:.2f} deg  (world-lock target <= 2 cm, <= 2 deg)  lost {d['lost_frames']}"
         )
+    if look > 0:
+        out["look"] = look_around(cfg, look, 150 if quick else 300)
     return out
+
+
+def look_around(cfg: Config, scenes: int, frames: int) -> list[dict] | None:
+    """The world-locked anchor over a look-around on the evaluation's first ``scenes`` outdoor scenes
+    (module docstring); None (and a line saying why) without the held-out HDR maps."""
+    from illuminet.commands.train import DEFAULT_HDR
+    from illuminet.models.camera_eval import SEED_BASE
+    from illuminet.models.datagen import hdr_maps
+
+    maps = hdr_maps(str(DEFAULT_HDR), "test") if DEFAULT_HDR.is_dir() else []
+    if not maps:
+        print(f"look-around: skipped (no held-out HDR maps in {DEFAULT_HDR}: the outdoor sky comes from them)")
+        return None
+    rows = []
+    for i in range(scenes):
+        url = f"synthetic://outdoor?seed={SEED_BASE + i}&frames={frames}&path=look&hdr={maps[i % len(maps)]}"
+        d = anchor_drift(load_frames(cfg, url), apply_overrides(cfg, [("anchor", "lock", "world")]))
+        row = {"url": url, **{k: v for k, v in d.items() if k not in ("stats", "stage", "stage_cpu")}}
+        rows.append(row)
+        print(
+            f"look-around scene {i} ({frames} frames, one full turn): object {100 * d['final_drift_m']:.1f} cm and "
+            f"{d['final_yaw_deg']:.1f} deg from where it was placed at the end (max {100 * d['max_drift_m']:.1f} cm, "
+            f"{d['max_yaw_deg']:.1f} deg); lost {d['lost_frames']}, turn in place {d['rotation_frames']}",
+            flush=True,
+        )
+    return rows
 
 
 if __name__ == "__main__":  # pragma: no cover - `illuminet bench odometry` is the entry point

@@ -63,6 +63,13 @@ def register(sub) -> None:
     p.add_argument("--rounds", type=int, metavar="N", help="demo: runs per mode, alternating (default 2; --quick 1)")
     p.add_argument("--fps", metavar="LIST", help="live: camera frame rates, comma-separated (default 60,120)")
     p.add_argument("--seconds", type=float, metavar="S", help="live: seconds per camera rate (default 10; --quick 3)")
+    p.add_argument(
+        "--look",
+        type=int,
+        metavar="N",
+        help="odometry: also a look-around (one full turn in place) on the evaluation's first N outdoor scenes "
+        "(needs the held-out HDR maps; default 0)",
+    )
     p.add_argument("--minutes", type=float, metavar="N", help="soak: how long to stream (default 30; with --quick 0.5)")
     p.set_defaults(func=run)
 
