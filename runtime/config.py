@@ -252,6 +252,12 @@ SCHEMA: dict[str, dict[str, Field]] = {
         "smoothness": _f(
             float, 0.02, "Laplacian penalty on the ambient SH bands (keeps unseen directions smooth)", min=0, max=1e6
         ),
+        "emitter_measured": _f(
+            bool,
+            True,
+            "a seen emitter's irradiance is what the map measured of it (clipped: at least that, in the scene "
+            "illuminant's colour), not a free fit to the planes (docs/lighting.md)",
+        ),
         "unseen_illuminant": _f(
             float,
             1.0,

@@ -383,3 +383,59 @@ def test_unseen_directions_take_the_illuminants_colour_not_the_seen_surfaces():
     neutral = np.full(3, 1 / 3)
     assert np.abs(off - neutral).max() > 0.1, off  # the lawn and the bricks extrapolated into the sky
     assert np.abs(on - neutral).max() < 0.03, on
+
+
+def _emitter_stage(hot_dirs, radiance, clipped=0.0, measured=True):
+    """A light estimate whose map saw a dim lawn below the horizon and bright bins at ``hot_dirs``."""
+    from illuminet.runtime.stages.light_estimate import BIN_DIRS, LightEstimateStage, bin_index
+
+    stage = LightEstimateStage(apply_overrides(defaults(), [("light", "emitter_measured", measured)]))
+    below = BIN_DIRS[:, 1] < 0.0
+    stage.env.weight[below] = 10.0
+    stage.env.radiance[below] = [0.2, 0.3, 0.15]
+    hot = np.unique(bin_index(np.asarray(hot_dirs, float)))
+    stage.env.weight[hot] = 10.0
+    stage.env.radiance[hot] = radiance
+    stage.env.saturated[hot] = clipped
+    return stage, hot
+
+
+def test_a_seen_emitter_is_as_bright_as_the_map_measured_it_in_its_own_colour():
+    """Looking around, the free per-channel fit of the primary to the planes gave a seen patch of sky
+    no red at all (rgb 0, 22, 47) and a window at the horizon more light than the room. An unclipped
+    emitter's irradiance is its radiance x solid angle; a clipped one is at least that, in the scene
+    illuminant's colour (the clip's white is not the light's)."""
+    from illuminet.runtime.stages.light_estimate import BIN_OMEGA, LUMA
+
+    d = np.array([[0.6, 0.3, 0.74]])
+    stage, hot = _emitter_stage(d, [40.0, 30.0, 20.0])
+    direction, n = stage._emitter()
+    assert n == len(hot) and direction @ (d[0] / np.linalg.norm(d[0])) > 0.97
+    seen = np.array([40.0, 30.0, 20.0]) * BIN_OMEGA[hot].sum()
+    fit = np.array([0.0, 22.0, 47.0])  # what the free fit made of it
+    assert np.allclose(stage._emitter_rgb(fit, np.ones(3)), seen)
+    # clipped: at least what was seen, at the fit's level when higher, in the illuminant's colour
+    stage, _ = _emitter_stage(d, [40.0, 30.0, 20.0], clipped=1.0)
+    stage._emitter()
+    warm = np.array([1.2, 1.0, 0.7])
+    for fit_lum in (0.1, 100.0):
+        rgb = stage._emitter_rgb(fit * fit_lum / float(fit @ LUMA), warm)
+        assert np.isclose(float(rgb @ LUMA), max(fit_lum, float(seen @ LUMA)))
+        assert _chroma_deg(rgb, warm) < 1e-6
+    # the ambient is solved around the fixed primary, which comes back unchanged
+    none = np.zeros((0, 3))
+    L, E = stage._solve(none, none, none, np.zeros(0), direction, None, np.ones(3), primary_rgb=seen)
+    assert np.array_equal(E, seen) and np.all(np.isfinite(L))
+
+
+def test_a_wide_bright_patch_is_ambient_light_not_an_emitter():
+    """A bright sky seen over ~40 deg while looking around is not one light with one direction."""
+    from illuminet.runtime.stages.light_estimate import BIN_DIRS
+
+    sky = BIN_DIRS[(BIN_DIRS[:, 1] > 0.2) & (BIN_DIRS[:, 1] < 0.8) & (BIN_DIRS[:, 2] > 0.6)]
+    assert len(sky) >= 6
+    stage, _ = _emitter_stage(sky, [40.0, 40.0, 45.0])
+    direction, n = stage._emitter()
+    assert direction is None and n >= 6
+    stage, _ = _emitter_stage(sky[:1], [40.0, 40.0, 45.0])  # one bin of it is a compact emitter
+    assert stage._emitter()[0] is not None

@@ -102,6 +102,12 @@ LOCUS_NORMAL = np.array([0.804, 0.594])
 LOCUS_SIGMA = 0.2
 #: a surface votes for the light's colour with at least this many pixel samples near the locus
 SURFACE_MIN_VOTES = 5.0
+#: a seen emitter whose bins are clipped this much (luminance-weighted share of clipped pixels) is only
+#: a lower bound on its light, in the clip's colour (:meth:`LightEstimateStage._emitter_rgb`)
+EMITTER_CLIPPED = 0.3
+#: the emitter cue needs its bright bins gathered: the length of their luminance-weighted mean direction
+#: at least this (0.95: within ~18 deg of their centre on average; a lamp, a window, the sun's bins)
+EMITTER_COMPACT = 0.95
 #: the neutral prior's weight against the share of pixels that voted (0.1: a tenth of the view on the locus
 #: already gives half the measured colour)
 LOCUS_PRIOR = 0.1
@@ -591,6 +597,7 @@ class LightEstimateStage(Stage):
         self.near_gradient = bool(c.near_gradient)
         self.lam = float(c.smoothness)
         self.unseen_w = float(c.unseen_illuminant)
+        self.emitter_measured = bool(c.emitter_measured)
         self.albedo = float(cfg.plane_light.assumed_albedo)
         if not 0 < self.albedo <= 1:
             raise ValueError(f"[plane_light] assumed_albedo: expected a number in (0, 1], got {self.albedo!r}")
@@ -764,6 +771,10 @@ class LightEstimateStage(Stage):
                 ws = np.where(beyond, ws * (FLOOR_WEIGHT_MAX * wg / max(wb, 1e-12)), ws)
             ws = self._distant_weight(xs, es, ws, gs)
         L_rad, E_p = self._solve(xs, ns, es, ws, primary_dir, primary_pos, illum)
+        if cues and cues[-1] == "emitter" and self.emitter_measured:
+            L_rad, E_p = self._solve(
+                xs, ns, es, ws, primary_dir, None, illum, primary_rgb=self._emitter_rgb(E_p, illum)
+            )
         conf_dir = 0.0
         if primary_dir is None:
             d, directional = _sh_extract_primary(L_rad)
@@ -1063,7 +1074,36 @@ class LightEstimateStage(Stage):
         w = lum[hot] * BIN_OMEGA[hot]
         d = (BIN_DIRS[hot] * w[:, None]).sum(0)
         nd = float(np.linalg.norm(d))
+        if nd < EMITTER_COMPACT * float(w.sum()):
+            # spread over a wide patch (a bright sky seen while looking around): that is ambient light,
+            # which the map's own bins already carry, not one light with one direction
+            return None, int(hot.sum())
+        # what the map saw of it: its irradiance on a surface facing it (radiance x solid angle), and
+        # how much of it was clipped (then that is only a lower bound, and its colour is the clip's)
+        self._emitter_seen = (
+            (self.env.radiance[hot] * BIN_OMEGA[hot, None]).sum(0),
+            float((self.env.saturated[hot] * w).sum() / max(float(w.sum()), 1e-12)),
+        )
         return (d / nd if nd > 0 else None), int(hot.sum())
+
+    def _emitter_rgb(self, E_p: np.ndarray, illum: np.ndarray | None) -> np.ndarray:
+        """The primary irradiance of a seen emitter: what the map measured of it, not a free fit.
+
+        A free per-channel fit of the primary to the planes gave a seen patch of sky a primary with no
+        red at all, and a window at the horizon one brighter than the room (look-around, docs/eval.md):
+        the fit explains the planes' residuals with whatever the direction allows. An unclipped emitter's
+        irradiance is measured (radiance x solid angle over its bins, in the map's units); a clipped one
+        (the sun in an 8-bit picture) is at least that bright, with the fit's intensity if higher, and
+        the scene illuminant's colour (the clip's white is not the light's colour)."""
+        seen_rgb, clipped = self._emitter_seen
+        lum_seen = float(seen_rgb @ LUMA)
+        if lum_seen <= 0:
+            return E_p
+        if clipped < EMITTER_CLIPPED:
+            return np.asarray(seen_rgb, np.float64)
+        chroma = np.ones(3) if illum is None else np.asarray(illum, np.float64)
+        chroma = chroma / max(float(chroma @ LUMA), 1e-12)
+        return max(float(E_p @ LUMA), lum_seen) * chroma
 
     def _shadow_cue(self, frame: Frame, anchor: Anchor, planes: tuple) -> tuple[np.ndarray, float] | None:
         """Direction and confidence from real cast shadows (:mod:`~illuminet.runtime.stages.shadow_cue`):
@@ -1089,17 +1129,32 @@ class LightEstimateStage(Stage):
             return None
         return np.asarray(cue.direction, np.float64), float(cue.confidence)
 
-    def _solve(self, xs, ns, es, ws, primary_dir, primary_pos, illum=None) -> tuple[np.ndarray, np.ndarray]:
+    def _solve(
+        self, xs, ns, es, ws, primary_dir, primary_pos, illum=None, primary_rgb=None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Ambient radiance SH (9, 3) and primary RGB irradiance (3,) by weighted least squares.
 
         The directions the environment map has not seen (the sky above a lawn, a ceiling out of view)
         are otherwise filled by the smoothness penalty from the seen surfaces, so they took the lawn's
         green or the bricks' red; a second solve gives them the scene illuminant's colour at the
         luminance the first solve gives them, each weighing ``[light] unseen_illuminant`` times a seen
-        direction of the same solid angle (docs/lighting.md)."""
+        direction of the same solid angle (docs/lighting.md).
+
+        ``primary_rgb`` fixes the primary's irradiance (a seen emitter's, :meth:`_emitter_rgb`): only the
+        ambient is solved, with the primary's share moved to the right-hand side."""
         ne = self._normal_equations(xs, ns, es, ws, primary_dir, primary_pos)
         if ne is None:
             return np.zeros((9, 3)), np.zeros(3)
+        if primary_rgb is not None and ne[3]:
+            G, Ab, _, _, env_scale = ne
+            fixed = np.asarray(primary_rgb, np.float64)
+            ne = (G[:9, :9], Ab[:9] - G[:9, 9][:, None] * fixed[None, :], 9, False, env_scale)
+            L_rad, E_p = self._solve_rest(ne, illum)
+            return L_rad, fixed
+        return self._solve_rest(ne, illum)
+
+    def _solve_rest(self, ne, illum) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_solve` from its normal equations: the solve, then the unseen directions' second pass."""
         L_rad, E_p = self._finish(*ne)
         if illum is None or self.unseen_w <= 0 or not (self.use_env and self.env.seen.any()):
             return L_rad, E_p
