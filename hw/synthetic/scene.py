@@ -363,6 +363,7 @@ class SyntheticScene:
 
         The indirect light's share is its vector irradiance ``integral L(w) w dw`` (so that the OI's
         dot with the normal is still the irradiance)."""
+        T_cam_obj = self.rest_on_support(mesh, T_cam_obj, frame)
         pts, nrm, lights, vis = self._object_terms(mesh, T_cam_obj, visibility, frame, points, normals)
         oi = L.oi_point_lights(pts, nrm, lights, vis)
         if indirect and self.bounces > 0:
@@ -400,6 +401,7 @@ class SyntheticScene:
             bounce of it (:func:`~illuminet.hw.synthetic.bounce.object_gather`): a white vase's
             inside and the underside of its lip are lit by the vase too
         """
+        T_cam_obj = self.rest_on_support(mesh, T_cam_obj, frame)
         pts, nrm, lights, vis = self._object_terms(mesh, T_cam_obj, visibility, frame, points, normals)
         e = L.irradiance(pts, nrm, lights, vis)
         if indirect and self.bounces > 0:
@@ -413,6 +415,31 @@ class SyntheticScene:
             e_mesh = e if on_mesh else self.true_object_shading(mesh, T_cam_obj, frame=frame, indirect=indirect)
             e = e + B.object_light(mesh, pts, nrm, e_mesh, object_albedo, on_mesh=on_mesh)
         return e
+
+    def rest_on_support(self, mesh, T_cam_obj: np.ndarray, frame: int = 0) -> np.ndarray:
+        """``T_cam_obj`` lifted onto the plane the object stands on when its mesh sinks into it.
+
+        A placement a fraction of a millimetre low (the tracked plane's noise; a tilt of 0.1 deg lowers
+        the edge of a 10 cm base by 0.2 mm) put the base under the floor, where the down-facing
+        vertices' rays started below the floor, left the room downwards and gathered the sky under it:
+        the base of a vase on an outdoor scene went from 0 to ~300 units of irradiance, and the PRT
+        oracle's MAE from 0.027 to 0.037-0.050, for 0.1 mm. A real object rests on the floor. The
+        support is the up-facing plane within 2 cm of the object's origin that contains it (as for its
+        cast shadow); an object above it, or on none, is left where it is."""
+        if mesh is None:
+            return T_cam_obj
+        T_cw = self.poses[frame % len(self.poses)]
+        T_wo = T_cw @ np.asarray(T_cam_obj, float)
+        origin = T_wo[:3, 3]
+        for p in self.planes:
+            if p.axis == 1 and p.sign > 0 and abs(p.coord - origin[1]) < 0.02 and bool(p.contains(origin[None])[0]):
+                low = float((np.asarray(mesh.vertices, float) @ T_wo[1, :3] + T_wo[1, 3]).min())
+                if low < p.coord - 1e-7:  # not float rounding of an object placed exactly on it
+                    T_wo = T_wo.copy()
+                    T_wo[1, 3] += p.coord - low + 1e-6
+                    return invert(T_cw) @ T_wo
+                break
+        return T_cam_obj
 
     def _object_terms(self, mesh, T_cam_obj, visibility, frame, points, normals):
         from illuminet.runtime.groundtruth.visibility import exact_visibility
