@@ -12,7 +12,11 @@ frames through chains built from other configurations: the ablation of each cue.
 
 Suites (:data:`SUITES`): ``indoor``, ``outdoor`` (the held-out HDR maps, every 4th; the analytic sky
 when no maps are found), ``lamp`` (a near lamp), ``spatial`` (several object positions) and
-``cluttered`` (boxes that shadow the floor and sometimes the object).
+``cluttered`` (boxes that shadow the floor and sometimes the object). Not run by default:
+``outdoor_look`` (:data:`LOOK_SUITES`), the ``outdoor`` suite's scenes, seeds and maps seen by a user
+who looks around once before looking back at the object (``path=look``: the view raised to the
+horizon, one full turn in place; at least :data:`LOOK_FRAMES` frames, so the turn is one a camera
+can follow), scored on the last frame as the others.
 
 Methods side by side: the variants, the learned transfer (``[model] shading = "model"`` on the same
 plane light), the constant prior, ambient, SH fitted to every valid RGB-D pixel (the regularised
@@ -80,6 +84,14 @@ def _as_is(values: np.ndarray) -> np.ndarray:
 
 
 SUITES = ("indoor", "outdoor", "lamp", "spatial", "cluttered")
+#: suites that are another suite's scenes seen by a user looking around (``path=look``)
+LOOK_SUITES = {"outdoor_look": "outdoor"}
+#: a look-around suite runs at least this many frames a scene (the turn in place takes half of them:
+#: 300 frames is 10 s at 30 fps, at most ~3.6 deg a frame; 100 frames lost the turn)
+LOOK_FRAMES = 300
+#: the baselines and the flicker are computed on the last frames only (at most this many): half of a
+#: 30-frame scene, the last half second of a longer one
+TAIL_FRAMES = 15
 #: regularisers tried for the RGB-D SH baseline; the best per suite is reported (its fairest setting)
 SH_LAMBDAS = (0.0, 1e-2, 0.1)
 LUMA = np.array([0.2126, 0.7152, 0.0722])
@@ -338,10 +350,13 @@ class CameraEval:
         return v[self.sel]
 
     def url(self, suite: str, i: int, seed: int, frames: int) -> str:
-        u = f"synthetic://{suite}?seed={SEED_BASE + 31 * seed + i}&frames={frames}"
-        if suite == "spatial":  # the camera frames the position evaluated (scene_case: i % count)
+        kind = LOOK_SUITES.get(suite, suite)
+        u = f"synthetic://{kind}?seed={SEED_BASE + 31 * seed + i}&frames={frames}"
+        if suite in LOOK_SUITES:
+            u += "&path=look"
+        if kind == "spatial":  # the camera frames the position evaluated (scene_case: i % count)
             u += f"&position={i}"
-        if suite == "outdoor" and self.hdr_maps:
+        if kind == "outdoor" and self.hdr_maps:
             u += f"&hdr={self.hdr_maps[(i + seed) % len(self.hdr_maps)]}"
         return u
 
@@ -352,6 +367,8 @@ class CameraEval:
         from illuminet.runtime.physics import linearize
         from illuminet.runtime.stages.shading import ShadingStage, preprocess_plane
 
+        if suite in LOOK_SUITES:
+            frames = max(frames, LOOK_FRAMES)
         src = open_url(self.url(suite, i, seed, frames))
         src.open()
         sc = src.scene
@@ -361,7 +378,7 @@ class CameraEval:
         frames_in = [src.read() for _ in range(frames)]
         # the metrics use the last frame and the flicker the second half (after the estimate settled):
         # the baselines (one RGB-D SH fit per regulariser a frame) are computed on that half only
-        settle = frames // 2
+        settle = frames - min(frames // 2, TAIL_FRAMES)
         src.close()
         per_frame: dict[str, list] = {}  # method -> [(irradiance (V, 3), raw, direction)] per frame
         last = {}
@@ -506,9 +523,10 @@ class CameraEval:
 
     @staticmethod
     def check(suites, frames: int) -> None:
-        bad = [s for s in suites if s not in SUITES]
+        known = SUITES + tuple(LOOK_SUITES)
+        bad = [s for s in suites if s not in known]
         if bad:
-            raise ValueError(f"unknown camera suite(s) {', '.join(bad)}; known: {', '.join(SUITES)}")
+            raise ValueError(f"unknown camera suite(s) {', '.join(bad)}; known: {', '.join(known)}")
         if frames < 2:
             raise ValueError(f"camera frames must be >= 2 (flicker needs two), got {frames}")
 
@@ -605,8 +623,14 @@ def markdown(report: dict) -> str:
         "",
         "## End to end on the synthetic camera",
         "",
-        f"Bundle `{report['bundle']}`, {report['scenes']} scene(s) per suite, {report['frames']} frames each, "
-        f"{report['vertices']} render vertices; ground truth with indirect light"
+        f"Bundle `{report['bundle']}`, {report['scenes']} scene(s) per suite, {report['frames']} frames each"
+        + (
+            f" ({', '.join(s for s in report['suites'] if s in LOOK_SUITES)}: a look around first, "
+            f"{max(report['frames'], LOOK_FRAMES)} frames)"
+            if any(s in LOOK_SUITES for s in report.get("suites", {}))
+            else ""
+        )
+        + f", {report['vertices']} render vertices; ground truth with indirect light"
         + (
             f" and the object's light onto itself (albedo {report['object_albedo']:g})"
             if report.get("object_albedo")

@@ -168,3 +168,18 @@ def test_primary_share_is_the_direct_share_of_the_strongest_light():
     # the lamp dominates a dim set of room lights: most, not all, of the direct light is the lamp's
     assert len(sc.object_lights(T, 0).positions) > 1
     assert 0.4 < share < direct_share <= 1.0 + 1e-9
+
+
+def test_the_look_around_suite_is_the_outdoor_scenes_after_a_turn_and_runs_when_named(capsys):
+    from illuminet.models.camera_eval import LOOK_SUITES, CameraEval
+    from illuminet.pipeline import build_stages
+    from illuminet.runtime.config import defaults
+
+    ev = CameraEval(defaults(), build_stages, "builtin:bowl")
+    for i in (0, 3):  # the same scenes, seeds (and maps) as the outdoor suite, seen after a look around
+        assert ev.url("outdoor_look", i, 0, 300) == ev.url("outdoor", i, 0, 300) + "&path=look"
+    CameraEval.check(["outdoor_look"], 3)
+    assert "outdoor_look" in LOOK_SUITES and "outdoor_look" not in SUITES  # not in the default run
+    assert main(["eval", "--cases", "0", "--camera-scenes", "1", "--camera-suites", "outdoor_looks"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "unknown camera suite(s) outdoor_looks" in err[0] and "outdoor_look" in err[0]

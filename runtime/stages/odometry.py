@@ -612,7 +612,13 @@ class Odometry:
         self.still.processed()
         self.rotation_frames += 1
         if self.state != "ok" or not (self.last and self.last.rotation_only):
-            log.info("odometry: too little depth to tie the view (%d tracks with depth); tracking the turn", n_track)
+            # once at INFO (a look around enters and leaves the turn every few seconds), then DEBUG
+            log.log(
+                logging.DEBUG if self.rotation_frames > 1 else logging.INFO,
+                "odometry: too little depth to tie the view (%d tracks with depth); tracking the turn in place "
+                "(further turns: debug log; stats()['rotation_frames'] counts them)",
+                n_track,
+            )
         if len(self._pts) - int(self._inf.sum()) < MIN_FEATURES:
             self._detect(grey, depth, intr)
         return self._result("ok", int(inl.sum()), n_track, False, rotation_only=True)
