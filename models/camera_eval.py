@@ -378,7 +378,7 @@ class CameraEval:
         frames_in = [src.read() for _ in range(frames)]
         # the metrics use the last frame and the flicker the second half (after the estimate settled):
         # the baselines (one RGB-D SH fit per regulariser a frame) are computed on that half only
-        settle = frames - min(frames // 2, TAIL_FRAMES)
+        settle = frames - min(frames - frames // 2, TAIL_FRAMES)  # = frames // 2 up to 30 frames
         src.close()
         per_frame: dict[str, list] = {}  # method -> [(irradiance (V, 3), raw, direction)] per frame
         last = {}
