@@ -598,6 +598,7 @@ class LightEstimateStage(Stage):
         self.lam = float(c.smoothness)
         self.unseen_w = float(c.unseen_illuminant)
         self.emitter_measured = bool(c.emitter_measured)
+        self._emitter_seen = (np.zeros(3), 0.0)  # what the map measured of the last emitter (_emitter)
         self.albedo = float(cfg.plane_light.assumed_albedo)
         if not 0 < self.albedo <= 1:
             raise ValueError(f"[plane_light] assumed_albedo: expected a number in (0, 1], got {self.albedo!r}")
@@ -1149,8 +1150,7 @@ class LightEstimateStage(Stage):
             G, Ab, _, _, env_scale = ne
             fixed = np.asarray(primary_rgb, np.float64)
             ne = (G[:9, :9], Ab[:9] - G[:9, 9][:, None] * fixed[None, :], 9, False, env_scale)
-            L_rad, E_p = self._solve_rest(ne, illum)
-            return L_rad, fixed
+            return self._solve_rest(ne, illum)[0], fixed
         return self._solve_rest(ne, illum)
 
     def _solve_rest(self, ne, illum) -> tuple[np.ndarray, np.ndarray]:

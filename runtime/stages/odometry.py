@@ -562,8 +562,9 @@ class Odometry:
         few millimetres a hand-held camera shifts between frames make no parallax worth a pixel); the
         landmarks' world positions are not used, so a centre that drifted a few centimetres does not
         bend the bearings of near points. RANSAC over pairs (Wahba's problem, batched), then
-        Huber-weighted refits on the inliers. At least half of the 2D tracks must agree: a camera that
-        moved (parallax) or garbage tracks do not.
+        Huber-weighted refits on the inliers (within :data:`ROTATION_INLIER_PX`). At least
+        :data:`MIN_INLIERS` and :data:`MIN_INLIER_SHARE` of the 2D tracks must agree, as for the 3D fit:
+        garbage tracks do not, and a camera that moved far enough to make parallax rarely does.
         """
         idx = np.nonzero(good)[0]
         if len(idx) < MIN_INLIERS:
