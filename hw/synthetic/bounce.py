@@ -280,11 +280,7 @@ def support_shadow(
     from illuminet.runtime.groundtruth.visibility import exact_visibility
 
     origin = T_world_obj[:3, 3]
-    support = None
-    for j, p in enumerate(scene.planes):
-        if p.axis == 1 and p.sign > 0 and abs(p.coord - origin[1]) < 0.02 and bool(p.contains(origin[None])[0]):
-            support = j
-            break
+    support = scene.support_plane(origin)
     if support is None:
         return None
     p = scene.planes[support]

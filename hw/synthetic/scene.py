@@ -430,16 +430,25 @@ class SyntheticScene:
             return T_cam_obj
         T_cw = self.poses[frame % len(self.poses)]
         T_wo = T_cw @ np.asarray(T_cam_obj, float)
-        origin = T_wo[:3, 3]
-        for p in self.planes:
-            if p.axis == 1 and p.sign > 0 and abs(p.coord - origin[1]) < 0.02 and bool(p.contains(origin[None])[0]):
-                low = float((np.asarray(mesh.vertices, float) @ T_wo[1, :3] + T_wo[1, 3]).min())
-                if low < p.coord - 1e-7:  # not float rounding of an object placed exactly on it
-                    T_wo = T_wo.copy()
-                    T_wo[1, 3] += p.coord - low + 1e-6
-                    return invert(T_cw) @ T_wo
-                break
-        return T_cam_obj
+        j = self.support_plane(T_wo[:3, 3])
+        if j is None:
+            return T_cam_obj
+        coord = self.planes[j].coord
+        low = float((np.asarray(mesh.vertices, float) @ T_wo[1, :3] + T_wo[1, 3]).min())
+        if low >= coord - 1e-7:  # on it (up to float rounding of an object placed exactly on it) or above
+            return T_cam_obj
+        T_wo = T_wo.copy()
+        T_wo[1, 3] += coord - low + 1e-6
+        return invert(T_cw) @ T_wo
+
+    def support_plane(self, origin_world: np.ndarray) -> int | None:
+        """Index of the plane an object with its origin at ``origin_world`` stands on: the up-facing
+        plane within 2 cm of it that contains it (None: it stands on none)."""
+        o = np.asarray(origin_world, float)
+        for j, p in enumerate(self.planes):
+            if p.axis == 1 and p.sign > 0 and abs(p.coord - o[1]) < 0.02 and bool(p.contains(o[None])[0]):
+                return j
+        return None
 
     def _object_terms(self, mesh, T_cam_obj, visibility, frame, points, normals):
         from illuminet.runtime.groundtruth.visibility import exact_visibility

@@ -210,14 +210,7 @@ def kabsch(P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None) -> tuple[n
     w = w / np.sum(w, axis=-1, keepdims=True)
     pc = np.sum(P * w[..., None], axis=-2)
     qc = np.sum(Q * w[..., None], axis=-2)
-    Hm = np.einsum("...ni,...nj->...ij", (P - pc[..., None, :]) * w[..., None], Q - qc[..., None, :])
-    U, _, Vt = np.linalg.svd(Hm)
-    d = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
-    D = np.zeros(Hm.shape)
-    D[..., 0, 0] = 1.0
-    D[..., 1, 1] = 1.0
-    D[..., 2, 2] = np.where(d == 0, 1.0, d)
-    R = np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
+    R = wahba(P - pc[..., None, :], Q - qc[..., None, :], w)  # the rotation of the centred points
     t = qc - np.einsum("...ij,...j->...i", R, pc)
     return R, t
 
@@ -225,7 +218,8 @@ def kabsch(P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None) -> tuple[n
 def wahba(P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
     """Weighted rotation of directions (Wahba's problem): R minimising ``sum w |R p - q|^2``.
 
-    ``P`` and ``Q`` are (..., N, 3) unit vectors; batched over leading axes like :func:`kabsch`.
+    ``P`` and ``Q`` are (..., N, 3) (unit vectors, or the centred points of :func:`kabsch`); batched
+    over leading axes, one SVD per batch element.
     """
     if w is None:
         w = np.ones(P.shape[:-1])
