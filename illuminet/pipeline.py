@@ -74,10 +74,25 @@ _OUTPUT_DIRS = (
 )
 
 
-def check_output_paths(cfg: Config, reads: Path | None = None) -> None:
+def session_root(path: Path) -> Path | None:
+    """The recorded session folder ``path`` is (or is inside), else None: the nearest folder, from
+    ``path`` up, holding a ``manifest.json`` and an index (``frames.jsonl``) or a ``frames/`` folder.
+
+    Not the manifest's contents: a session whose manifest a crash left torn is still a recording."""
+    for d in (path, *path.parents):
+        if (d / "manifest.json").is_file() and ((d / "frames.jsonl").exists() or (d / "frames").is_dir()):
+            return d
+    return None
+
+
+def check_output_paths(cfg: Config, reads: Path | None = None, also: tuple[tuple[str, str], ...] = ()) -> None:
     """Refuse, before anything is opened, every configured output that could not be written, or that
-    would write into ``reads`` (the session folder a replay reads: an estimates or statistics file
-    named like one of its own files replaced the recording's).
+    would write into a recording: ``reads`` (the session folder a replay reads), any other recorded
+    session on disk (:func:`session_root`), or the session this run records (``[output] record``).
+    An estimates or statistics file named like one of a session's own files replaced its index or
+    manifest, and PNGs were added to its frames.
+
+    ``also``: more output files as (what the user typed, path), e.g. ``("--still", "out/x.png")``.
 
     A statistics file is written only at the end of a run, so a typo in its folder would otherwise
     lose the whole run's statistics; a video or estimates file in a missing folder fails only after
@@ -90,15 +105,28 @@ def check_output_paths(cfg: Config, reads: Path | None = None) -> None:
         One line naming the key, the path and the fix.
     """
     inside = reads.resolve() if reads is not None else None
-    for section, key, _ in _OUTPUT_FILES + _OUTPUT_DIRS:
-        value = cfg[section][key]
-        if not value or (key == "estimates" and value == "-") or inside is None:
+    record = Path(cfg.output.record).resolve() if cfg.output.record else None
+    named = [(f"[{section}] {key}", key, cfg[section][key]) for section, key, _ in _OUTPUT_FILES + _OUTPUT_DIRS]
+    for label, key, value in named + [(flag, "also", value) for flag, value in also]:
+        if not value or (key == "estimates" and value == "-"):
             continue
         p = Path(value).resolve()
-        if p == inside or inside in p.parents:
+        if inside is not None and (p == inside or inside in p.parents):
             raise OutputPathError(
-                f"[{section}] {key}: {value} is inside the session being replayed ({reads}); writing there "
+                f"{label}: {value} is inside the session being replayed ({reads}); writing there "
                 "would change the recording: choose a path outside it"
+            )
+        if key != "record" and record is not None and (p == record or record in p.parents):
+            raise OutputPathError(
+                f"{label}: {value} is inside the session this run records ({cfg.output.record}); "
+                "it would mix with the recording's own files: choose a path outside it"
+            )
+        root = session_root(p)
+        # the record folder itself may be an existing session: the recorder refuses it with its own line
+        if root is not None and not (key == "record" and root == p):
+            raise OutputPathError(
+                f"{label}: {value} is inside the recorded session {root}; writing there would damage the "
+                "recording: choose a path outside it"
             )
     for section, key, what in _OUTPUT_FILES:
         value = cfg[section][key]

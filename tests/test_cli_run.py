@@ -228,6 +228,54 @@ def test_replay_outputs_never_write_into_the_session_being_replayed(tmp_path, ca
     assert {p.relative_to(s): p.read_bytes() for p in s.rglob("*") if p.is_file()} == before
 
 
+@pytest.mark.parametrize(
+    "flag, name",
+    [("--estimates", "frames.jsonl"), ("--stats-json", "manifest.json"), ("--png-dir", "frames"), ("--video", "x.mp4")],
+)
+def test_outputs_never_write_into_another_recorded_session(tmp_path, capsys, flag, name):
+    """Only the replayed session was protected: `run SRC --estimates OTHER/frames.jsonl` replaced another
+    recording's index ("no intact frame" after), `--stats-json OTHER/manifest.json` its manifest, and
+    `--png-dir OTHER/frames` added PNGs among its frames. The demo had no check at all."""
+    s = tmp_path / "other"
+    make_session(s, 2)
+    before = {p.relative_to(s): p.read_bytes() for p in s.rglob("*") if p.is_file()}
+    src = "synthetic://indoor?frames=2&size=64x48"
+    for cmd in (["run", src, "--timing", "asap"], ["demo", "--source", src, "--frames", "2", "--no-video"]):
+        if cmd[0] == "demo" and flag == "--video":
+            cmd, flag_used = cmd[:-1], "--out"  # the demo's video flag
+        else:
+            flag_used = flag
+        assert main([*cmd, flag_used, str(s / name)]) == 2
+        err = capsys.readouterr().err
+        assert f"{s / name} is inside the recorded session {s}; writing there would damage the recording" in err, err
+        assert "Traceback" not in err
+    assert {p.relative_to(s): p.read_bytes() for p in s.rglob("*") if p.is_file()} == before
+
+
+def test_outputs_never_write_into_the_session_being_recorded(tmp_path, capsys):
+    """`run SRC --record R --estimates R/frames.jsonl` gave rc 0 and a session whose index had an
+    estimate line in it (`--check`: "missing key 'i'"); the same with `--stats-json R/manifest.json`."""
+    r = tmp_path / "r"
+    src = "synthetic://indoor?frames=2&size=64x48"
+    for flag, name in (("--estimates", "frames.jsonl"), ("--stats-json", "manifest.json")):
+        assert main(["run", src, "--timing", "asap", "--record", str(r), flag, str(r / name)]) == 2
+        err = capsys.readouterr().err
+        assert f"{r / name} is inside the session this run records ({r})" in err, err
+    assert not r.exists()  # refused before anything was written
+
+
+def test_estimates_to_stdout_are_the_only_thing_on_stdout(capsys):
+    """`--estimates -` is documented as stdout, but the run's report (timing table, statistics) and the
+    demo's "demo: source" line went there too: a JSON reader downstream broke on the first of them."""
+    src = "synthetic://lamp?frames=3&size=64x48"
+    for cmd in (["run", src, "--timing", "asap"], ["demo", "--source", src, "--frames", "3", "--no-video"]):
+        assert main([*cmd, "--estimates", "-"]) == 0
+        out, err = capsys.readouterr()
+        lines = out.splitlines()
+        assert lines and all(json.loads(x)["schema"] == "illuminet-light-estimate" for x in lines), out[:300]
+        assert "total" in err  # the report is still shown, on stderr
+
+
 def test_a_response_curve_that_cannot_be_read_is_one_line(tmp_path, capsys):
     """[source] response_curve missing or not a table: a ValueError traceback from run and replay."""
     bad = tmp_path / "c.png"
@@ -315,3 +363,13 @@ def test_a_flag_value_starting_with_a_dash_gets_the_fix(capsys):
     assert e.value.code == 2
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert "argument --exposure: expected one argument" in last and "--exposure=-5,100" in last, last
+
+
+def test_demo_with_an_unknown_built_in_object_says_one_thing(capsys):
+    """`demo --set model.bundle="builtin:teapot"` printed "the SH baseline drives the shading", then
+    failed on the unknown object: two lines that contradict each other."""
+    rc = main(["demo", "--set", 'model.bundle="builtin:teapot"', "--frames", "2", "--no-video"])
+    out, err = capsys.readouterr()
+    assert rc == 1 and "SH baseline" not in out + err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "unknown built-in object 'teapot'" in lines[0], lines

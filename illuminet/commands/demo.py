@@ -325,8 +325,9 @@ def demo_stages(cfg: Config) -> list[Stage]:
         from illuminet.runtime.assets.objects import load_object
         from illuminet.runtime.render.mesh import load_render_mesh
 
-        print(f"demo: the learned model is not available ({e}); the SH baseline drives the shading")
+        # the object first: an unknown one fails with its own line, not after "the SH baseline drives it"
         normals = load_render_mesh(load_object(spec)).normals
+        print(f"demo: the learned model is not available ({e}); the SH baseline drives the shading")
         stages = [SHFallbackShading(cfg, normals) if st.name == "shading" else st for st in stages]
     return stages
 
@@ -390,8 +391,11 @@ def demo_config(args: argparse.Namespace, cfg: Config) -> Config:
 
 
 def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
+    from illuminet.commands.run import report_stream
     from illuminet.hw import SourceError, open_source
-    from illuminet.pipeline import build_sinks
+    from illuminet.hw.replay import session_folder
+    from illuminet.pipeline import build_sinks, check_output_paths, session_root
+    from illuminet.runtime.errors import OutputPathError
     from illuminet.runtime.stream.loop import LoopStats, run_loop
     from illuminet.runtime.stream.sinks import SinkError
 
@@ -423,17 +427,23 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
             return 2
     probe = StillSink(still, index=(frames or 90) // 2)
     stats = LoopStats()
+    report = report_stream(cfg)
     try:
-        if cfg.output.video:
+        if cfg.output.video and session_root(Path(cfg.output.video).resolve().parent) is None:
             # the default out/demo.mp4 must work in a fresh checkout: the video sink does not make folders
             Path(cfg.output.video).parent.mkdir(parents=True, exist_ok=True)
+        # before the source opens: no output inside a recording, every output's folder writable
+        check_output_paths(cfg, reads=session_folder(url), also=(("--still", still),) if still else ())
         source = open_source(url, cfg)
         stages = demo_stages(cfg)
         sinks = build_sinks(cfg, stats=stats.snapshot, source_url=url) + [probe]
+    except OutputPathError as e:
+        print(f"illuminet demo: {e}", file=sys.stderr)
+        return 2
     except (SourceError, SinkError, ValueError, OSError) as e:
         print(f"illuminet demo: {e}", file=sys.stderr)
         return 1
-    print(f"demo: source {url}")
+    print(f"demo: source {url}", file=report)
     rc = 0
     from illuminet.progress import StatusLine
 
@@ -461,7 +471,7 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
     finally:
         status.close()
         if rc == 0 or stats.frames:  # a source that failed to open leaves its one line, not a report of nothing
-            _print_report(stats, stages, probe, cfg, rc)
+            _print_report(stats, stages, probe, cfg, rc, report)
     if stats.end_reason.startswith("source error"):
         rc = 1
     return rc
@@ -505,26 +515,33 @@ def _still_path(args: argparse.Namespace) -> str:
     return "out/demo_still.png"
 
 
-def _print_report(stats, stages, probe: StillSink, cfg: Config, rc: int) -> None:
-    """The end-of-run report: timing table, stage statistics, shading used, outputs, peak memory."""
-    print(stats.format_stats())
+def _print_report(stats, stages, probe: StillSink, cfg: Config, rc: int, out=None) -> None:
+    """The end-of-run report: timing table, stage statistics, shading used, outputs, peak memory
+    (to ``out``, default stdout)."""
+    out = out or sys.stdout
+    print(stats.format_stats(), file=out)
     for st in stages:
         s = st.stats()
         if s:
-            print(f"  {st.name}: " + ", ".join(f"{k}={v}" for k, v in s.items()))
-    print(f"shading: {describe_shading(probe.methods, cfg)}")
+            print(f"  {st.name}: " + ", ".join(f"{k}={v}" for k, v in s.items()), file=out)
+    print(f"shading: {describe_shading(probe.methods, cfg)}", file=out)
     if cfg.output.video and rc == 0:
-        print(f"video: {cfg.output.video}")
+        print(f"video: {cfg.output.video}", file=out)
     if probe.written is not None:
         early = probe.written_frame < probe.index
         print(
             f"still: {probe.written}"
-            + (f" (the last frame, {probe.written_frame}: the source ended first)" if early else "")
+            + (f" (the last frame, {probe.written_frame}: the source ended first)" if early else ""),
+            file=out,
         )
     rss = peak_rss_mb()
     print(
         f"peak resident memory: {rss:.0f} MB (target <= {RSS_TARGET_MB:.0f} MB)"
-        + ("" if rss <= RSS_TARGET_MB else "  ** over target **")
+        + ("" if rss <= RSS_TARGET_MB else "  ** over target **"),
+        file=out,
     )
     if cfg.logging.stats_json:
-        Path(cfg.logging.stats_json).write_text(stats.to_json() + "\n")
+        try:
+            Path(cfg.logging.stats_json).write_text(stats.to_json() + "\n")
+        except OSError as e:  # checked before the start; the folder went away during the run
+            print(f"illuminet demo: --stats-json: cannot write {cfg.logging.stats_json}: {e}", file=sys.stderr)

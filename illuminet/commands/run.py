@@ -174,6 +174,12 @@ def config_with_flags(args: argparse.Namespace, cfg: Config) -> Config:
     return apply_overrides(cfg, overrides)
 
 
+def report_stream(cfg: Config):
+    """Where a run's report goes: stdout, or stderr when ``--estimates -`` streams JSON lines to stdout
+    (a report mixed into them broke every JSON reader downstream)."""
+    return sys.stderr if cfg.output.estimates == "-" else sys.stdout
+
+
 def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
     from illuminet.hw import open_source
     from illuminet.hw.replay import session_folder
@@ -223,11 +229,11 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
     finally:
         status.close()
         if stats.frames or stats.end_reason:
-            print(stats.format_stats())
+            print(stats.format_stats(), file=report_stream(cfg))
         if cfg.logging.stats_json:
             try:
                 Path(cfg.logging.stats_json).write_text(stats.to_json() + "\n")
-                print(f"statistics written to {cfg.logging.stats_json}")
+                print(f"statistics written to {cfg.logging.stats_json}", file=report_stream(cfg))
             except OSError as e:  # checked before the start; the folder went away during the run
                 print(f"illuminet: [logging] stats_json: cannot write {cfg.logging.stats_json}: {e}", file=sys.stderr)
                 rc = 1
