@@ -74,3 +74,14 @@ def test_bench_refuses_bad_counts_in_one_line_before_running(capsys):
         assert main(["bench", *argv]) == 2, argv
         err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
         assert len(err) == 1 and argv[1] in err[0] and "expected" in err[0], (argv, err)
+
+
+def test_bench_refuses_a_json_path_it_cannot_write_before_running(tmp_path, capsys):
+    """`bench transfer --json /missing/x.json` ran the benchmark, printed its figures, then ended in a
+    FileNotFoundError traceback (a folder: IsADirectoryError), losing the JSON. Refused at the start now."""
+    for target, says in ((tmp_path / "missing" / "x.json", "does not exist"), (tmp_path, "it is a folder")):
+        assert main(["bench", "transfer", "--quick", "--json", str(target)]) == 2
+        out, err = capsys.readouterr()
+        assert "# machine" not in out  # nothing ran
+        err = [ln for ln in err.splitlines() if ln.strip()]
+        assert len(err) == 1 and "--json" in err[0] and says in err[0], err

@@ -183,3 +183,11 @@ def test_the_look_around_suite_is_the_outdoor_scenes_after_a_turn_and_runs_when_
     assert main(["eval", "--cases", "0", "--camera-scenes", "1", "--camera-suites", "outdoor_looks"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "unknown camera suite(s) outdoor_looks" in err[0] and "outdoor_look" in err[0]
+
+
+def test_eval_with_nothing_to_evaluate_is_refused(tmp_path, capsys):
+    """`eval --bundle /nope --cases 0 --camera-scenes 0` returned 0 and wrote a report with a title only."""
+    rc = main(["eval", "--bundle", "/nope", "--cases", "0", "--camera-scenes", "0", "--out", str(tmp_path / "ev")])
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert rc == 2 and len(err) == 1 and "nothing to evaluate" in err[0] and "--camera-scenes N" in err[0], err
+    assert not (tmp_path / "ev").exists()

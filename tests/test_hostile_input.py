@@ -518,6 +518,8 @@ BAD_RELIGHT = [
     ({"--depth": "{tmp}/inf.npy"}, "(3072 infinite)"),
     ({"--intrinsics": "1e30,1e30,32,24"}, "--intrinsics 1e30,1e30,32,24: fx=1e+30 pixels for an image 64 px wide"),
     ({"--intrinsics": "1e-9,1e-9,32,24"}, "--intrinsics 1e-9,1e-9,32,24: fx=1e-09 pixels"),
+    # a missing intrinsics file was "expected 4 comma-separated numbers, got 'nope.json'"
+    ({"--intrinsics": "{tmp}/nope.json"}, "--intrinsics {tmp}/nope.json: no such file; expected a JSON file"),
 ]
 
 

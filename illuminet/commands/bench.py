@@ -13,6 +13,7 @@ import json
 import os
 import platform
 import sys
+from pathlib import Path
 
 #: benchmark name -> one-line description (module illuminet.bench.<name>)
 BENCHES: dict[str, str] = {
@@ -83,13 +84,36 @@ def run(args: argparse.Namespace, cfg) -> int:
             file=sys.stderr,
         )
         return 2
+    if args.json:
+        # checked before the benchmarks run: a bad path found at the end lost their figures' JSON
+        out = Path(args.json)
+        parent = out.parent if str(out.parent) else Path(".")
+        why = (
+            "it is a folder"
+            if out.is_dir()
+            else f"folder {parent} does not exist"
+            if not parent.is_dir()
+            else f"folder {parent} is not writable"
+            if not os.access(parent, os.W_OK)
+            else ""
+        )
+        if why:
+            print(
+                f"illuminet bench: --json {args.json}: {why}; expected a file path in an existing folder",
+                file=sys.stderr,
+            )
+            return 2
     print(f"# machine: {platform.machine()} {os.cpu_count()} cores, python {platform.python_version()}")
     results = {}
     for n in names:
         print(f"\n== {n}: {BENCHES[n]}")
         results[n] = importlib.import_module(f"illuminet.bench.{n}").run(args, cfg)
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(results, f, indent=2)
+        try:
+            with open(args.json, "w") as f:
+                json.dump(results, f, indent=2)
+        except OSError as e:  # checked at the start; the folder went away during the run
+            print(f"illuminet bench: --json {args.json}: cannot write: {e.strerror or e}", file=sys.stderr)
+            return 1
         print(f"\nwrote {args.json}")
     return 0

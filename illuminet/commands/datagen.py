@@ -37,6 +37,8 @@ KINDS = ("indoor", "outdoor", "spatial")  # spelled here so that --help needs no
 
 
 def register(sub) -> None:
+    from illuminet.commands.train import hdr_help_default
+
     p = sub.add_parser(
         "datagen",
         help="generate training data for an object (one process or sharded on Ray)",
@@ -61,7 +63,7 @@ def register(sub) -> None:
         metavar="DIR",
         default=None,
         help="folder of .hdr maps whose training split (3 of every 4) is mixed in; default: "
-        "../shared/data/hdri when present, '' = none",
+        f"{hdr_help_default()} (shared/data/hdri beside the checkout) when present, '' = none",
     )
     p.add_argument("--hdr-share", type=float, default=0.25, help="share of HDR-lit samples (default 0.25)")
     p.add_argument(

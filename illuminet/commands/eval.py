@@ -53,6 +53,8 @@ CROSSCHECK_SCENES = ("lamp_room", "area_lamp_boxes", "indoor_table", "outdoor_hd
 
 
 def register(sub) -> None:
+    from illuminet.commands.train import hdr_help_default
+
     p = sub.add_parser(
         "eval",
         help="evaluate a bundle against ground truth and baselines",
@@ -68,7 +70,7 @@ def register(sub) -> None:
         metavar="DIR",
         default=None,
         help="folder of .hdr maps for the real-lighting suite (held-out maps only); default: "
-        "../shared/data/hdri when present",
+        f"{hdr_help_default()} (shared/data/hdri beside the checkout) when present",
     )
     p.add_argument("--out", metavar="DIR", default=None, help="report folder (default: eval/<bundle name>)")
     p.add_argument("--ablation", action="store_true", help="also run the loss ablation (retrains the GAN stage)")
@@ -245,6 +247,13 @@ def check_eval_arguments(args: argparse.Namespace) -> None:
         from illuminet.hw.synthetic.scene import MAX_BOUNCES
 
         check_count("--crosscheck-bounces", args.crosscheck_bounces, 0, MAX_BOUNCES, note=" (0 = direct light only)")
+    if args.cases == 0 and args.camera_scenes == 0 and not args.crosscheck:
+        # both suites skipped: the run wrote a report with a title only and exit code 0 (and never
+        # looked at --bundle, so a missing bundle went unnoticed)
+        raise _usage(
+            "nothing to evaluate: --cases 0 and --camera-scenes 0 skip both the lighting and the camera suites; "
+            "give --cases N or --camera-scenes N"
+        )
     check_seed(args.seed)
     if args.object_albedo is not None and not 0.0 <= args.object_albedo < 1.0:  # NaN fails it too
         raise _usage(f"--object-albedo: expected a number in [0, 1), got {args.object_albedo!r} (0 = a black object)")

@@ -212,6 +212,12 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
         check_intrinsics(K, f"--intrinsics {intr}")
         K = fit_intrinsics(K, w, h, f"--intrinsics {intr}")  # proportional size: scaled; else refused
     else:
+        if intr.lower().endswith(".json") or ("," not in intr and Path(intr).suffix):
+            # a file name that is not there: "expected 4 comma-separated numbers" sent users looking in the wrong place
+            what = "is a folder" if Path(intr).is_dir() else "no such file"
+            raise ValueError(
+                f"--intrinsics {intr}: {what}; expected a JSON file with fx, fy, cx, cy or four numbers FX,FY,CX,CY"
+            )
         fx, fy, cx, cy = _floats(intr, 4, "--intrinsics")
         K = Intrinsics(fx, fy, cx, cy, w, h)
         check_intrinsics(K, f"--intrinsics {intr}")
@@ -249,7 +255,7 @@ def run(args: argparse.Namespace, cfg) -> int:
     print(
         f"wrote {out}: {len(res.vertices)} vertices, method {res.method}, "
         f"{res.plane_observed:.0%} of the plane grid observed, mean radiance "
-        f"{np.round(res.radiance.mean(0), 4).tolist()}"
+        f"{[round(float(x), 4) for x in res.radiance.mean(0)]}"  # (np.round of float32 printed 0.37700000405311584)
     )
     if args.preview:
         import cv2

@@ -40,6 +40,12 @@ MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".stl", ".off")
 DEFAULT_HDR = Path(__file__).resolve().parents[3] / "shared" / "data" / "hdri"
 
 
+def hdr_help_default() -> str:
+    """:data:`DEFAULT_HDR` for an argparse help text (the commands' help printed ``../shared/data/hdri``,
+    relative to whatever folder the user was in)."""
+    return str(DEFAULT_HDR).replace("%", "%%")
+
+
 def register(sub) -> None:
     p = sub.add_parser(
         "train",
