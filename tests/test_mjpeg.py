@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import http.client
 import json
+import logging
 import socket
+import struct
 import threading
 import time
 
@@ -225,6 +227,131 @@ def test_encoding_rate_is_capped_and_uncapped_follows_the_loop():
         assert sink.status()["sink"]["encoded"] >= 10
     with pytest.raises(ValueError, match="max_fps"):
         MjpegSink(max_fps=-1)
+
+
+def _status(port: int, path: str = "/stats.json") -> int:
+    """The status code of one GET on a fresh connection (503 from the refusing thread included)."""
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=5)
+    try:
+        conn.request("GET", path)
+        return conn.getresponse().status
+    finally:
+        conn.close()
+
+
+def _wait_for(cond, timeout: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+def test_a_client_that_resets_its_connection_is_no_traceback(capsys, caplog):
+    """A client going away (RST right after its request) is normal: at most a debug line, never a traceback."""
+    caplog.set_level(logging.DEBUG, logger="illuminet.runtime.stream.mjpeg")
+    with MjpegSink(port=0) as sink:
+        for _ in range(32):
+            s = socket.create_connection(("127.0.0.1", sink.port), timeout=5)
+            s.sendall(b"GET /stats.json HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # close = RST
+            s.close()
+        assert _wait_for(lambda: sink.connections == 0)  # every handler thread has finished
+        assert _status(sink.port) == 200  # and the server still answers
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "Exception occurred" not in err, err[-2000:]
+    assert "Traceback" not in caplog.text and not any(r.exc_info for r in caplog.records)
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.text
+
+
+def test_a_bug_in_a_handler_is_one_line_with_its_type(capsys, caplog):
+    """A real bug in a request handler is logged once, as one line naming the exception type."""
+    caplog.set_level(logging.DEBUG, logger="illuminet.runtime.stream.mjpeg")
+    with MjpegSink(port=0) as sink:
+        sink.status = lambda: {"x": _Unserialisable()}  # json.dumps fails inside the handler
+        for _ in range(2):
+            with pytest.raises((http.client.HTTPException, ConnectionError)):
+                _status(sink.port)
+        assert _wait_for(lambda: sink.connections == 0)
+    assert "Traceback" not in capsys.readouterr().err
+    assert not any(r.exc_info for r in caplog.records if r.levelno > logging.DEBUG)
+    lines = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(lines) == 1 and "_BadJson" in lines[0], lines  # logged once, naming the exception type
+
+
+class _BadJson(Exception):
+    pass
+
+
+class _Unserialisable:
+    def __str__(self):  # json.dumps(default=str) calls this
+        raise _BadJson("cannot be shown")
+
+
+def test_a_slow_request_head_is_dropped_at_the_deadline_and_frees_its_slot():
+    """Slowloris: clients trickling header lines hold every slot only until the head deadline."""
+    with MjpegSink(port=0, max_clients=2, head_timeout_s=1.0) as sink:
+        p = sink.port
+        slow = [socket.create_connection(("127.0.0.1", p), timeout=5) for _ in range(2)]
+        t0 = time.monotonic()
+        for s in slow:
+            s.sendall(b"GET /stats.json HTTP/1.1\r\n")
+        stop = threading.Event()
+
+        def trickle():  # one header line per 0.2 s: each read is quick, only the whole head is slow
+            while not stop.wait(0.2):
+                for s in slow:
+                    try:
+                        s.sendall(b"X-Slow: 1\r\n")
+                    except OSError:
+                        pass
+
+        t = threading.Thread(target=trickle, daemon=True)
+        t.start()
+        try:
+            assert _wait_for(lambda: sink.connections == 2)
+            assert _status(p) == 503  # every slot is taken while they trickle
+            for s in slow:
+                data = b""
+                try:
+                    while chunk := s.recv(4096):
+                        data += chunk
+                except ConnectionResetError:  # the 408 may be lost to a header line the server never read
+                    pass
+                dt = time.monotonic() - t0
+                assert 0.8 < dt < 1.0 + 1.5, dt  # dropped at the deadline, although it is still sending
+                assert data == b"" or data.startswith(b"HTTP/1.1 408"), data[:80]
+            assert _wait_for(lambda: sink.connections == 0)
+            assert _status(p) == 200  # the freed slots serve a normal client while the trickle goes on
+        finally:
+            stop.set()
+            t.join(2)
+            for s in slow:
+                s.close()
+    with pytest.raises(ValueError, match="head_timeout_s"):
+        MjpegSink(head_timeout_s=0)
+
+
+def test_the_head_deadline_spares_streams_and_idle_keep_alive():
+    """The deadline covers reading a request head only: not a stream's life, not the wait between requests."""
+    with MjpegSink(port=0, head_timeout_s=0.5) as sink:
+        with _Feeder(sink):
+            conn = http.client.HTTPConnection("127.0.0.1", sink.port, timeout=5)
+            conn.request("GET", "/stats.json")
+            assert conn.getresponse().read()
+            time.sleep(0.8)  # idle longer than the head deadline (the keep-alive timeout is 30 s)
+            conn.request("GET", "/stats.json")
+            assert conn.getresponse().status == 200
+            conn.close()
+            events = socket.create_connection(("127.0.0.1", sink.port), timeout=5)
+            events.sendall(b"GET /estimates HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+            assert events.recv(12) == b"HTTP/1.1 200"
+            t0 = time.monotonic()
+            parts = _read_parts(sink.port, 40)  # the stream outlives the head deadline
+            assert len(parts) == 40 and time.monotonic() - t0 > 0.5
+            assert sink.status()["sink"]["estimate_clients"] == 1  # the event stream is still open
+            events.close()
 
 
 @pytest.mark.slow

@@ -57,19 +57,30 @@ Hardening (what a hostile page or client meets):
   one more gets ``503 Service Unavailable`` with ``Retry-After`` from a single refusing thread and is
   closed at once, so a flood of connections cannot exhaust threads. The listen backlog is
   :data:`LISTEN_BACKLOG` (the standard library's default is 5, which drops connections under bursts).
+* **Request head deadline (slowloris).** The request line and headers must arrive within
+  ``head_timeout_s`` (:data:`HEAD_TIMEOUT_S`) in all, counted from the connection's start (from the
+  first byte for a later request on a kept-alive connection); a client that is still sending them
+  then gets ``408`` and is closed, freeing its slot. The per-read timeout alone cannot do this: a
+  client sending one header line every few seconds never lets a read time out. Once the head is
+  read the deadline no longer applies, so streams (MJPEG, events) run as long as their clients read.
 * Idle keep-alive connections close after 30 s; a stream client that accepts nothing for
   ``client_timeout_s`` is dropped. The server serves no files other than its packaged pages.
+* **Clients going away.** A client that resets or closes its connection mid-answer is normal (a
+  closed tab, a reloaded page): a debug line, never a traceback. Any other error in a handler is a
+  bug: logged once, as one line naming the exception type (the traceback at debug level).
 """
 
 from __future__ import annotations
 
 import collections
+import io
 import ipaddress
 import json
 import logging
 import queue
 import select
 import socket
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -98,6 +109,18 @@ LISTEN_BACKLOG = 128
 REFUSE_QUEUE = 64
 #: how long the refusing thread waits for a refused client's request before answering it, seconds
 REFUSE_READ_S = 0.5
+#: default total time a client has to send its request line and headers, seconds. The per-read
+#: timeout (30 s, for idle keep-alive) does not bound a client that trickles one header line every
+#: few seconds, and max_clients such clients would lock everyone else out (503) for as long as they
+#: trickle. A real client sends its head in one packet; 10 s leaves room for a slow network.
+HEAD_TIMEOUT_S = 10.0
+#: how long the 408 for a head past its deadline may take to send before the connection is closed
+REQUEST_TIMEOUT_SEND_S = 0.5
+_REQUEST_TIMEOUT_BODY = b"the request head took too long to arrive; the connection is closed\n"
+_REQUEST_TIMEOUT_MSG = (
+    b"HTTP/1.1 408 Request Timeout\r\nContent-Type: text/plain; charset=utf-8\r\n"
+    b"Content-Length: %d\r\nConnection: close\r\n\r\n%s" % (len(_REQUEST_TIMEOUT_BODY), _REQUEST_TIMEOUT_BODY)
+)
 
 
 def host_name_of(header: str) -> str | None:
@@ -337,6 +360,59 @@ class _EstimateBox:
             self.cond.notify_all()
 
 
+class _HeadReader(io.RawIOBase):
+    """A connection's socket as the handler's raw input, with a total deadline for the request head.
+
+    The handler's ``rfile`` buffers this. Before each ``recv`` the socket timeout is set to the
+    smaller of the per-read timeout and what is left of the deadline, so a client trickling bytes
+    (or header lines) cannot stretch the head beyond the deadline however often it sends. Outside a
+    head (:meth:`stop`) it is a plain reader with the per-read timeout.
+    """
+
+    def __init__(self, sock: socket.socket, read_timeout_s: float, head_timeout_s: float):
+        super().__init__()
+        self.sock = sock
+        self.read_timeout_s = read_timeout_s
+        self.head_timeout_s = head_timeout_s
+        self.deadline: float | None = None
+        self.arm_on_data = False  # start the deadline with the first byte that arrives
+        self.expired = False  # the head's deadline passed (rather than a per-read timeout)
+        self.received = 0  # bytes received for this head
+
+    def readable(self) -> bool:
+        return True
+
+    def start(self, now: bool) -> None:
+        """A request head begins: its deadline starts now, or (a kept-alive connection, whose idle wait
+        for the next request is the per-read timeout's business) with its first byte."""
+        self.expired, self.received = False, 0
+        self.deadline = time.monotonic() + self.head_timeout_s if now else None
+        self.arm_on_data = not now
+
+    def stop(self) -> None:
+        """The head is read: the deadline no longer applies (a stream may run for hours)."""
+        self.deadline, self.arm_on_data = None, False
+
+    def readinto(self, b) -> int:
+        limited = False
+        if self.deadline is not None:
+            left = self.deadline - time.monotonic()
+            if left <= 0:
+                self.expired = True
+                raise TimeoutError("request head deadline passed")
+            limited = left < self.read_timeout_s
+            self.sock.settimeout(min(self.read_timeout_s, left))
+        try:
+            n = self.sock.recv_into(b)
+        except TimeoutError:
+            self.expired = limited
+            raise
+        if n and self.arm_on_data:
+            self.deadline, self.arm_on_data = time.monotonic() + self.head_timeout_s, False
+        self.received += n
+        return n
+
+
 def _make_handler(sink: MjpegSink):
     box = sink._estimates
 
@@ -347,6 +423,44 @@ def _make_handler(sink: MjpegSink):
 
         def log_message(self, fmt: str, *args: Any) -> None:  # route to logging, not stderr
             log.debug("MJPEG %s: " + fmt, self.address_string(), *args)
+
+        def setup(self) -> None:
+            super().setup()
+            # read through the head deadline (module docstring); a fresh connection's first head is
+            # timed from now, so one that connects and trickles (or sends nothing) is bounded too
+            self.rfile.close()  # the socket file setup() made: only releases its reference
+            self._head = _HeadReader(self.connection, float(self.timeout), sink.head_timeout_s)
+            self.rfile = io.BufferedReader(self._head)
+            self._first_request = True
+
+        def handle_one_request(self) -> None:
+            self._head.start(now=self._first_request)
+            self._first_request = False
+            super().handle_one_request()  # a timeout ends in its ``except TimeoutError``: closed
+            if self._head.expired:
+                self.close_connection = True
+                with sink._count_lock:
+                    sink.refused_slow += 1
+                sink._log(
+                    "slow head",
+                    f"closed a connection from {self.client_address[0]} that did not send its request head "
+                    f"within {sink.head_timeout_s:g} s (a stalled or deliberately slow client); its slot is free",
+                )
+                if self._head.received:  # a client that sent nothing at all gets no answer, only the close
+                    try:
+                        self.connection.settimeout(REQUEST_TIMEOUT_SEND_S)
+                        self.connection.sendall(_REQUEST_TIMEOUT_MSG)
+                    except OSError:
+                        pass
+
+        def parse_request(self) -> bool:
+            try:
+                return super().parse_request()  # reads the headers
+            finally:
+                # the head is in: what follows (an answer, a stream) is not bound by its deadline, and
+                # writes get the per-read timeout back rather than what was left of the deadline
+                self._head.stop()
+                self.connection.settimeout(self.timeout)
 
         def _send_bytes(
             self,
@@ -581,6 +695,17 @@ class _Server(ThreadingHTTPServer):
             with self.sink._count_lock:
                 self.sink.connections -= 1
 
+    def handle_error(self, request, client_address) -> None:
+        """Called for an exception out of a handler (socketserver's own prints a traceback to stderr)."""
+        exc = sys.exc_info()[1]
+        who = client_address[0] if isinstance(client_address, tuple) and client_address else client_address
+        if isinstance(exc, (ConnectionError, TimeoutError)):  # BrokenPipe, ConnectionReset, ...: it left
+            log.debug("MJPEG %s: the client went away (%s: %s)", who, type(exc).__name__, exc)
+            return
+        # a bug: one line per kind; the connection is closed, the server goes on
+        self.sink._log(f"error {type(exc).__name__}", f"a request from {who} failed: {type(exc).__name__}: {exc}")
+        log.debug("MJPEG %s: request failed", who, exc_info=exc)
+
     def _refuse_loop(self) -> None:
         """One thread answers every refused connection: read its request (briefly), 503, close."""
         body = b"too many connections to this server; try again shortly\n"
@@ -648,6 +773,9 @@ class MjpegSink(Sink):
     allowed_hosts : iterable of str
         ``Host`` names answered besides IP literals, localhost and this machine's name
         (``[output] allowed_hosts``; ``"*"`` = any). See the module docstring.
+    head_timeout_s : float
+        Most seconds a client may take to send its request line and headers (:data:`HEAD_TIMEOUT_S`);
+        then it gets 408 and is closed. See the module docstring.
 
     Attributes
     ----------
@@ -671,6 +799,7 @@ class MjpegSink(Sink):
         object_scale: float = 1.0,
         max_clients: int = 32,
         allowed_hosts: Iterable[str] = (),
+        head_timeout_s: float = HEAD_TIMEOUT_S,
     ):
         if not (1 <= int(quality) <= 100):
             raise ValueError(f"MjpegSink quality must be within 1..100, got {quality!r}")
@@ -682,6 +811,9 @@ class MjpegSink(Sink):
             )
         if int(max_clients) < 1:
             raise ValueError(f"MjpegSink max_clients must be >= 1, got {max_clients!r}")
+        if not float(head_timeout_s) > 0:  # also refuses NaN
+            raise ValueError(f"MjpegSink head_timeout_s must be > 0 seconds, got {head_timeout_s!r}")
+        self.head_timeout_s = float(head_timeout_s)
         self.listen = str(listen).strip()
         self.max_clients = int(max_clients)
         self.allowed_hosts = tuple(str(h) for h in allowed_hosts)
@@ -690,6 +822,7 @@ class MjpegSink(Sink):
         self.connections = 0
         self.refused_busy = 0
         self.refused_host = 0
+        self.refused_slow = 0  # connections closed at the request head deadline
         self._log = LogOnce(log, "MJPEG server")
         self.port = int(port)
         self.stats_fn = stats
@@ -798,10 +931,11 @@ class MjpegSink(Sink):
             sink["estimate_clients"], sink["estimates_sent"] = box.listeners, box.sent
         sink["fps"] = round(hub.fps(), 2)
         with self._count_lock:
-            sink["connections"], sink["refused_busy"], sink["refused_host"] = (
+            sink["connections"], sink["refused_busy"], sink["refused_host"], sink["refused_slow"] = (
                 self.connections,
                 self.refused_busy,
                 self.refused_host,
+                self.refused_slow,
             )
         loop: dict[str, Any] = {}
         if self.stats_fn is not None:
@@ -822,6 +956,7 @@ class MjpegSink(Sink):
             "estimates_sent": self._estimates.sent,
             "refused_busy": self.refused_busy,
             "refused_host": self.refused_host,
+            "refused_slow": self.refused_slow,
         }
 
     def close(self) -> None:
