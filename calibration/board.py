@@ -18,6 +18,7 @@ import math
 import zlib
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -139,10 +140,39 @@ class BoardSpec:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> BoardSpec:
-        """Board from a dict written by :meth:`to_dict` (unknown keys ignored, checks applied)."""
-        keys = ("squares_x", "squares_y", "square_mm", "marker_mm", "dictionary", "legacy", "aspect")
-        return cls(**{k: d[k] for k in keys if k in d})
+    def from_dict(cls, d: Any, where: str = "board") -> BoardSpec:
+        """Board from a dict written by :meth:`to_dict`; keys left out take their defaults.
+
+        Every key's type and range is checked; an unknown key (a typo such as ``square_mn`` would
+        otherwise leave the default size in place) and a dict with none of the keys are refused.
+        ``where`` (the file name) starts every message of the :class:`CalibrationError` raised.
+        """
+        fix = "fix it in the file, or write a new one with `illuminet calibrate board`"
+        keys = ", ".join(_FIELD_KINDS)
+        if not isinstance(d, dict):
+            raise CalibrationError(
+                f"{where}: expected a JSON object with the board keys ({keys}), got {_show(d)}; {fix}"
+            )
+        unknown = sorted(str(k) for k in d if k not in _FIELD_KINDS)
+        if unknown:
+            raise CalibrationError(
+                f"{where}: unknown board key(s) {', '.join(map(repr, unknown))}; expected only {keys}; {fix}"
+            )
+        if not d:
+            raise CalibrationError(f"{where}: no board keys; expected some of {keys}; {fix}")
+        kw: dict[str, Any] = {}
+        for k, v in d.items():
+            kind, what = _FIELD_KINDS[k]
+            if kind is int and isinstance(v, float) and v.is_integer():
+                v = int(v)  # 9.0 from a JSON writer that prints every number as a float
+            ok = isinstance(v, kind) if kind is bool else isinstance(v, kind) and not isinstance(v, bool)
+            if not ok:
+                raise CalibrationError(f"{where}: board.{k}: expected {what}, got {_show(v)}; {fix}")
+            kw[k] = float(v) if isinstance(kind, tuple) else v  # square_mm 20 -> 20.0, as to_dict writes
+        try:
+            return cls(**kw)
+        except CalibrationError as e:  # a range check of __post_init__ ("board: ..."): name the file too
+            raise CalibrationError(f"{where}: {e}; {fix}") from None
 
     def describe(self) -> str:
         """One line for messages: squares, sizes, dictionary, layout."""
@@ -153,9 +183,31 @@ class BoardSpec:
         )
 
 
+#: the keys of a board description: (type, what a message says is expected)
+_FIELD_KINDS: dict[str, tuple[Any, str]] = {
+    "squares_x": (int, "a whole number of squares across, at least 3"),
+    "squares_y": (int, "a whole number of squares down, at least 3"),
+    "square_mm": ((int, float), "a square side in mm, a number above 0"),
+    "marker_mm": ((int, float), "a marker side in mm, a number above 0 and below square_mm"),
+    "dictionary": (str, 'an OpenCV ArUco dictionary name such as "DICT_4X4_1000"'),
+    "legacy": (bool, "true or false"),
+    "aspect": ((int, float), "a square height/width, a number in (0.5, 2)"),
+}
+
+
+def _show(v: Any) -> str:
+    text = repr(v)
+    return f"{type(v).__name__} {text if len(text) <= 60 else text[:57] + '...'}"
+
+
 def _dict_size(name: str) -> int | None:
     tail = name.rsplit("_", 1)[-1]
-    return int(tail) if tail.isdigit() else None
+    if tail.isdigit():
+        return int(tail)
+    try:  # DICT_ARUCO_ORIGINAL, DICT_APRILTAG_36h11 ...: the size is not in the name
+        return int(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)).bytesList.shape[0])
+    except (AttributeError, cv2.error):
+        return None
 
 
 def board_image(spec: BoardSpec, dpi: float = 300.0, margin_mm: float = 0.0) -> np.ndarray:

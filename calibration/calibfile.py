@@ -344,7 +344,9 @@ def _matrix(where: str, key: str, value: Any, shape: tuple[int, ...]) -> np.ndar
 
 def _get(where: str, d: Mapping[str, Any], key: str, prefix: str, types: tuple[type, ...]) -> Any:
     if not isinstance(d, Mapping):
-        raise CalibrationError(f"{where}: {prefix or 'top level'}: expected an object, got {type(d).__name__}")
+        raise CalibrationError(
+            f"{where}: {prefix.rstrip('.') or 'top level'}: expected an object, got {type(d).__name__}"
+        )
     if key not in d:
         raise CalibrationError(f"{where}: missing key {prefix + key!r}")
     v = d[key]
@@ -352,6 +354,19 @@ def _get(where: str, d: Mapping[str, Any], key: str, prefix: str, types: tuple[t
         names = " or ".join(t.__name__ for t in types)
         raise CalibrationError(f"{where}: {prefix + key}: expected {names}, got {type(v).__name__} {v!r}")
     return v
+
+
+def _opt_number(where: str, d: Mapping[str, Any], key: str, prefix: str, what: str) -> float | None:
+    """``d[key]`` as a finite float >= 0, or None when absent or null."""
+    v = d.get(key)
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+        raise CalibrationError(
+            f"{where}: {prefix + key}: expected {what}, a number >= 0 (or null), got {type(v).__name__} {v!r}; "
+            "correct it in the file, or remove the key"
+        )
+    return float(v)
 
 
 def camera_from_dict(d: Mapping[str, Any], where: str = "<calibration>", prefix: str = "") -> CameraCalib:
@@ -376,8 +391,8 @@ def camera_from_dict(d: Mapping[str, Any], where: str = "<calibration>", prefix:
         raise CalibrationError(
             f"{where}: {prefix}dist: model {model!r} takes {DIST_COUNTS[model]} coefficients, got {len(dist)}"
         )
-    rms = d.get("rms_px")
-    return CameraCalib(width=w, height=h, K=K, dist=dist, model=model, rms_px=None if rms is None else float(rms))
+    rms = _opt_number(where, d, "rms_px", prefix, "the reprojection RMS in pixels")
+    return CameraCalib(width=w, height=h, K=K, dist=dist, model=model, rms_px=rms)
 
 
 def calibration_from_dict(d: Mapping[str, Any], where: str = "<calibration>", path: Path | None = None) -> Calibration:
@@ -410,7 +425,8 @@ def calibration_from_dict(d: Mapping[str, Any], where: str = "<calibration>", pa
         T = _matrix(where, "stereo.T", _get(where, s, "T", "stereo.", (list,)), (3,))
         if np.linalg.norm(T) <= 0:
             raise CalibrationError(f"{where}: stereo.T: expected a non-zero translation in metres, got {T.tolist()}")
-        if "baseline_m" in s and not math.isclose(float(s["baseline_m"]), float(np.linalg.norm(T)), rel_tol=1e-3):
+        baseline = _opt_number(where, s, "baseline_m", "stereo.", "the baseline |T| in metres")
+        if baseline is not None and not math.isclose(baseline, float(np.linalg.norm(T)), rel_tol=1e-3):
             raise CalibrationError(
                 f"{where}: stereo.baseline_m {s['baseline_m']} disagrees with |stereo.T| = {np.linalg.norm(T):.6g} m"
             )
@@ -422,9 +438,21 @@ def calibration_from_dict(d: Mapping[str, Any], where: str = "<calibration>", pa
                 k: _matrix(where, f"stereo.rectification.{k}", _get(where, r, k, "stereo.rectification.", (list,)), sh)
                 for k, sh in shapes.items()
             }
-        rms = s.get("rms_px")
-        stereo = StereoCalib(
-            left=left, right=right, R=R, T=T, rms_px=None if rms is None else float(rms), rectification=rect
+        rms = _opt_number(where, s, "rms_px", "stereo.", "the stereo reprojection RMS in pixels")
+        stereo = StereoCalib(left=left, right=right, R=R, T=T, rms_px=rms, rectification=rect)
+    color = d.get("color_camera")
+    if color is not None and not isinstance(color, str):
+        raise CalibrationError(
+            f"{where}: color_camera: expected the name of one of the cameras {sorted(cams)} as a string, got "
+            f"{type(color).__name__} {color!r}; correct it in the file, or remove the key"
+        )
+    meta = d.get("meta")
+    if meta is not None and not isinstance(meta, dict):
+        text = repr(meta)
+        raise CalibrationError(
+            f'{where}: meta: expected an object of notes (such as {{"tool": ...}}) or null, got '
+            f"{type(meta).__name__} {text if len(text) <= 60 else text[:57] + '...'}; correct it in the file, "
+            "or remove the key"
         )
     lut = None
     if d.get("photometric"):
@@ -432,9 +460,9 @@ def calibration_from_dict(d: Mapping[str, Any], where: str = "<calibration>", pa
     return Calibration(
         cameras=cams,
         stereo=stereo,
-        color_camera=str(d.get("color_camera") or ""),
+        color_camera=color or "",
         response_lut=lut,
-        meta=dict(d.get("meta") or {}),
+        meta=dict(meta or {}),
         path=path,
     )
 
@@ -461,6 +489,8 @@ def load_calibration(path: str | Path) -> Calibration:
         data = json.loads(text)
     except json.JSONDecodeError as e:
         raise CalibrationError(f"{path}: not valid JSON: {e}") from None
+    except RecursionError:
+        raise CalibrationError(f"{path}: JSON nested too deeply to be a calibration file") from None
     return calibration_from_dict(data, str(path), path=path)
 
 

@@ -11,7 +11,13 @@ import numpy as np
 import pytest
 
 from illuminet.calibration.board import BoardSpec
-from illuminet.calibration.calibfile import CalibrationError, CameraCalib, load_calibration
+from illuminet.calibration.calibfile import (
+    Calibration,
+    CalibrationError,
+    CameraCalib,
+    StereoCalib,
+    load_calibration,
+)
 from illuminet.calibration.capture import capture_views
 from illuminet.calibration.charuco import detect
 from illuminet.calibration.synthview import board_plane, board_poses, degrade, pixel_rays, render
@@ -234,6 +240,95 @@ def test_board_keeps_a_json_it_did_not_write(tmp_path, capsys):
     for mm in ("20", "25"):
         assert main(["calibrate", "board", "--dpi", "50", "--square-mm", mm, "-o", str(tmp_path / "b.png")]) == 0
     assert json.loads((tmp_path / "b.json").read_text())["board"]["square_mm"] == 25.0
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ('{"board": {"squares_x": "a"}}', "board.squares_x: expected a whole number of squares"),
+        ("[1, 2]", "expected a JSON object with the board keys (squares_x, squares_y"),
+        ('{"board": 5}', "expected a JSON object with the board keys"),
+        ("{}", "no board keys; expected some of squares_x"),  # used to give the default board without a word
+        ('{"board": {}}', "no board keys"),
+        ('{"board": {"square_mn": 30}}', "unknown board key(s) 'square_mn'; expected only squares_x"),
+        ('{"board": {"legacy": 1}}', "board.legacy: expected true or false, got int 1"),
+        ('{"board": {"marker_mm": "x"}}', "board.marker_mm: expected a marker side in mm"),
+        ('{"board": {"squares_x": 2}}', "board: expected at least 3x3 squares, got 2x8"),
+        ('{"board": {"squares_x": 300, "dictionary": "DICT_ARUCO_ORIGINAL"}}', "has only 1024"),
+        ("[" * 100_000, "cannot read board file"),
+    ],
+)
+def test_a_bad_board_file_is_one_line(tmp_path, capsys, text, message):
+    bd = tmp_path / "bd.json"
+    bd.write_text(text)
+    _write_views(tmp_path / "views", 1)
+    for argv in (
+        ["calibrate", "board", "--board", str(bd), "--dpi", "50", "-o", str(tmp_path / "b.png")],
+        ["calibrate", "intrinsics", str(tmp_path / "views"), "--board", str(bd)],
+    ):
+        assert main(argv) == 2, argv
+        err = _one_line(capsys)
+        assert f"{bd}: " in err and message in err, err
+    assert not (tmp_path / "b.png").exists()
+
+
+def test_a_board_file_may_leave_keys_out_or_write_whole_numbers_as_floats(tmp_path, capsys):
+    bd = tmp_path / "bd.json"
+    bd.write_text('{"squares_x": 9.0, "squares_y": 6, "square_mm": 30, "marker_mm": 22, "dictionary": "DICT_4X4_50"}')
+    assert main(["calibrate", "board", "--board", str(bd), "--dpi", "50", "-o", str(tmp_path / "b.png")]) == 0
+    assert BoardSpec.from_dict(json.loads((tmp_path / "b.json").read_text())["board"]) == SPEC
+
+
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (lambda d: d["cameras"]["left"].update(rms_px="abc"), "cameras.left.rms_px: expected"),
+        (lambda d: d.update(meta=[1, 2]), "meta: expected an object"),
+        (lambda d: d["stereo"].update(baseline_m="x"), "stereo.baseline_m: expected"),
+    ],
+)
+def test_a_bad_calibration_file_given_to_a_command_is_one_line(tmp_path, capsys, mutate, message):
+    _write_views(tmp_path / "views", 1)
+    d = Calibration(
+        {"left": CAM, "right": CAM}, StereoCalib("left", "right", np.eye(3), np.array([-0.075, 0, 0]))
+    ).to_dict()
+    mutate(d)
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(d))
+    board = ["--squares", "9x6", "--square-mm", "30", "--marker-mm", "22", "--dictionary", "DICT_4X4_50"]
+    views = str(tmp_path / "views")
+    for argv in (
+        ["calibrate", "intrinsics", views, *board, "--guess", str(bad)],
+        ["calibrate", "stereo", views, views, *board, "--intrinsics", str(bad), "-o", str(tmp_path / "s.json")],
+    ):
+        assert main(argv) == 2, argv
+        err = _one_line(capsys)
+        assert f"{bad}: " in err and message in err and "correct it in the file" in err, err
+    assert not (tmp_path / "s.json").exists()
+
+
+@pytest.mark.parametrize("sub", ["board", "capture", "intrinsics", "stereo", "photometric", "import-depthai"])
+def test_calibrate_subcommands_show_the_global_options(sub, capsys):
+    with pytest.raises(SystemExit):
+        main(["calibrate", sub, "--help"])
+    out = capsys.readouterr().out
+    assert "global options (also accepted before the command)" in out
+    assert "--log-level" in out and "--set" in out and "--config" in out
+
+
+def test_global_options_after_a_calibrate_subcommand(tmp_path, capsys):
+    out = str(tmp_path / "b.png")
+    for opts in (["--log-level", "debug"], ["--set", "light.rate_hz=5"], ["-c", str(tmp_path / "none.toml")]):
+        rc = main(["calibrate", "board", *opts, "--dpi", "50", "-o", out])
+        err = capsys.readouterr().err
+        assert "unrecognized arguments" not in err, err
+        if opts[0] == "-c":  # read, not ignored: the missing file is reported
+            assert rc == 2 and "none.toml" in err, err
+        else:
+            assert rc == 0, err
+    # they take effect: an unknown key is a configuration error, not silently dropped
+    assert main(["calibrate", "board", "--set", "nosuch.key=5", "--dpi", "50", "-o", out]) == 2
+    assert "unknown section [nosuch]" in _one_line(capsys)
 
 
 def test_board_picture_size_is_bounded(tmp_path, capsys):

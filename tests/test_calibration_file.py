@@ -56,6 +56,16 @@ def test_round_trip(tmp_path):
         (lambda d: d["stereo"].update(right="nope"), "stereo.right names camera 'nope'"),
         (lambda d: d["stereo"].update(R=[[1, 0, 0], [0, 1, 0], [0, 0, 2]]), "stereo.R: expected a rotation"),
         (lambda d: d["stereo"].update(baseline_m=0.2), "stereo.baseline_m 0.2 disagrees"),
+        # wrong types used to escape as a bare ValueError/TypeError from float() and dict()
+        (lambda d: d["cameras"]["left"].update(rms_px="abc"), "cameras.left.rms_px: expected the reprojection RMS"),
+        (lambda d: d["cameras"]["left"].update(rms_px=float("nan")), "cameras.left.rms_px: expected"),
+        (lambda d: d["stereo"].update(baseline_m="x"), "stereo.baseline_m: expected the baseline"),
+        (lambda d: d["stereo"].update(rms_px=[1]), "stereo.rms_px: expected"),
+        (lambda d: d.update(meta="ab"), "meta: expected an object"),
+        (lambda d: d.update(meta=[1, 2]), "meta: expected an object"),
+        (lambda d: d.update(meta=[[1, 2]]), "meta: expected an object"),  # dict() would have taken it
+        (lambda d: d.update(color_camera=5), "color_camera: expected the name of one of the cameras"),
+        (lambda d: d.update(stereo=5), "stereo: expected an object, got int"),
     ],
 )
 def test_bad_file_names_key(tmp_path, mutate, message):
@@ -66,6 +76,7 @@ def test_bad_file_names_key(tmp_path, mutate, message):
     with pytest.raises(CalibrationError) as e:
         load_calibration(p)
     assert str(p) in str(e.value) and message in str(e.value)
+    assert "\n" not in str(e.value)
 
 
 def test_not_json_and_missing_and_depthai_hint(tmp_path):

@@ -42,9 +42,10 @@ def _spec(args):
     if getattr(args, "board", None):
         try:
             d = json.loads(Path(args.board).read_text(encoding="utf-8"))
-        except (OSError, ValueError) as e:  # ValueError: not JSON, or not UTF-8 text
+        except (OSError, ValueError, RecursionError) as e:  # not JSON, not UTF-8 text, nested too deeply
             raise CalibrationError(f"{args.board}: cannot read board file: {e}") from None
-        return BoardSpec.from_dict(d.get("board", d))
+        # the file `calibrate board` writes is {"board": {...}}; the bare {...} is accepted too
+        return BoardSpec.from_dict(d["board"] if isinstance(d, dict) and "board" in d else d, args.board)
     try:
         sx, sy = (int(v) for v in args.squares.lower().split("x"))
     except ValueError:
@@ -61,7 +62,7 @@ def _camera_ref(ref: str):
     try:
         text = json.loads(Path(path).read_text(encoding="utf-8"))
         is_dai = isinstance(text, dict) and "cameraData" in text
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         is_dai = False
     calib = import_depthai(path) if is_dai else load_calibration(path)
     return calib, cam or calib.color_camera
@@ -106,7 +107,7 @@ def _check_board_sidecar(side: Path, out: Path) -> None:
         return
     try:
         d = json.loads(side.read_text(encoding="utf-8"))
-    except (OSError, ValueError):  # ValueError: not JSON, or not UTF-8 text
+    except (OSError, ValueError, RecursionError):  # not JSON, not UTF-8 text, nested too deeply
         d = None
     fields = set(BoardSpec.__dataclass_fields__)
     if isinstance(d, dict) and set(d) == {"board"} and isinstance(d["board"], dict) and set(d["board"]) <= fields:
@@ -304,7 +305,10 @@ def register(sub) -> None:
         help="camera calibration: board, capture, intrinsics, stereo, photometric, import-depthai",
         description="Camera calibration with a ChArUco board; see docs/calibration.md.",
     )
-    csub = p.add_subparsers(dest="calibrate_command", metavar="SUBCOMMAND")
+    from illuminet.cli import _global_options_after, _WithGlobalOptions
+
+    # the global options (--config, --set, --log-level) after the subcommand too, as for every command
+    csub = _WithGlobalOptions(p.add_subparsers(dest="calibrate_command", metavar="SUBCOMMAND"), _global_options_after())
     csub.required = True
 
     b = csub.add_parser("board", help="write a printable ChArUco board (PDF or PNG)")
