@@ -97,3 +97,28 @@ def test_wrong_format_version(tmp_path):
     (d / "bundle.json").write_text(json.dumps(meta))
     with pytest.raises(BundleError, match="format 99 is not supported"):
         load_bundle(d)
+
+
+def test_a_bundle_without_faces_is_refused_at_load_and_a_run_says_so_in_one_line(tmp_path, capsys):
+    # mesh.npz with faces (0, 3) and matching checksums loaded, and the render stage's RenderMesh then
+    # raised a bare ValueError: a traceback through runtime/render/mesh.py instead of one line
+    from illuminet.cli import main
+    from illuminet.models.export import finalize_bundle
+    from illuminet.runtime.render.mesh import mesh_from_bundle
+
+    d = _copy(tmp_path)
+    with np.load(d / FILES["mesh"]) as z:
+        arr = {k: z[k] for k in z.files}
+    arr["faces"] = np.zeros((0, 3), np.int32)
+    np.savez_compressed(d / FILES["mesh"], **arr)
+    finalize_bundle(d, json.loads((d / "bundle.json").read_text()))  # checksums agree: only the faces are bad
+    with pytest.raises(BundleError, match=r"mesh\.npz: faces must be \(F, 3\) triangles with F > 0, got \(0, 3\)"):
+        load_bundle(d)
+    assert main(["--set", f"model.bundle={d}", "run", "synthetic://indoor?frames=1"]) == 2
+    err = capsys.readouterr().err
+    assert "illuminet: " in err and "F > 0" in err and "Traceback" not in err, err
+    # a Bundle that skipped the checks still reaches the renderer as a BundleError (printed in one line)
+    b = load_bundle("builtin:vase")
+    b.faces = np.zeros((0, 3), np.int32)
+    with pytest.raises(BundleError, match="F > 0.*remake the bundle"):
+        mesh_from_bundle(b)

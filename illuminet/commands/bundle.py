@@ -25,6 +25,8 @@ from pathlib import Path
 from illuminet.commands.train import check_count, check_number, check_out, check_seed
 from illuminet.runtime.errors import EXIT_USAGE, JobError
 
+#: a mesh file larger than this gets a line saying it is being read (a 2M-face binary PLY is ~38 MiB)
+BIG_FILE_BYTES = 8 * 2**20
 #: most interreflections summed (8 converge at albedo 0.8; each one is a pass over every hit)
 MAX_BOUNCES = 100
 #: most transfer rays or table directions per vertex (16x the default: its tables grow as V x N)
@@ -113,6 +115,39 @@ def _same_object(existing: str, spec: str) -> bool:
     return Path(existing).resolve() == Path(spec).resolve()
 
 
+def _check_writable(out: Path) -> None:
+    """Make ``--out`` (and a probe file in it) before any work, then remove what was made: a folder that
+    cannot be written is one line naming ``--out`` now, not an ``[Errno ...]`` after the PRT."""
+    made: list[Path] = []
+    try:
+        for d in [*reversed(out.parents), out]:
+            if not d.exists():
+                d.mkdir()
+                made.append(d)
+        probe = out / ".illuminet-write-test"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise _usage(
+            f"--out {out}: cannot write a bundle there ({e.strerror or e}{f': {e.filename}' if e.filename else ''}); "
+            "expected a folder you can create and write: choose another --out"
+        ) from None
+    finally:
+        for d in reversed(made):
+            try:
+                d.rmdir()
+            except OSError:
+                pass
+
+
+def _os_error(e: OSError, out: Path) -> JobError:
+    """An OSError as one line, naming ``--out`` when it is about the bundle folder."""
+    name = Path(e.filename) if e.filename else None
+    if name is not None and (name == out or out in name.parents):
+        return _usage(f"--out {out}: cannot write {name} ({e.strerror or e}): choose another --out")
+    return _usage(f"{e.filename or 'a file'}: {e.strerror or e}")
+
+
 def run(args: argparse.Namespace, cfg) -> int:
     if args.height is not None:
         check_number("--height", args.height, 0.001, 1000.0, " of metres", " (the object's height; 0.25 = 25 cm)")
@@ -124,6 +159,7 @@ def run(args: argparse.Namespace, cfg) -> int:
     check_count("--directions", args.directions, 64, MAX_RAYS, note=" (default 4096)")
     check_seed(args.seed)
     check_out("--out", Path(args.out), folder=True)
+    _check_writable(Path(args.out))
     try:
         import scipy  # noqa: F401  (the proxy's nearest neighbours)
     except ImportError:
@@ -143,7 +179,7 @@ def run(args: argparse.Namespace, cfg) -> int:
     from illuminet.models.prt import add_prt, new_bundle
     from illuminet.models.train import Progress
     from illuminet.runtime.assets.bundle import METADATA, BundleError
-    from illuminet.runtime.assets.objects import ObjectLoadError
+    from illuminet.runtime.assets.objects import ObjectLoadError, check_mesh_path
 
     bars: dict[str, Progress] = {}
 
@@ -183,6 +219,15 @@ def run(args: argparse.Namespace, cfg) -> int:
                 raise _usage(
                     f"--out {out} exists and is not a bundle folder (no {METADATA}): choose a new or empty folder"
                 )
+            if not args.object.startswith("builtin:"):
+                check_mesh_path(Path(args.object), f"--object {args.object}")
+                size = Path(args.object).stat().st_size
+                if size > BIG_FILE_BYTES and not args.quiet:  # reading it and choosing the proxy take a while
+                    print(
+                        f"reading {args.object} ({size / 2**20:.0f} MiB) and choosing {args.n_proxy} lighting proxy "
+                        "vertices (several seconds per million faces)",
+                        file=sys.stderr,
+                    )
             path, res = new_bundle(
                 args.object,
                 out,
@@ -198,8 +243,10 @@ def run(args: argparse.Namespace, cfg) -> int:
                 render=args.render_transfer,
                 bounces=args.bounces,
             )
-    except (ObjectLoadError, BundleError, OSError) as e:
+    except (ObjectLoadError, BundleError) as e:
         raise _usage(str(e)) from None
+    except OSError as e:
+        raise _os_error(e, out) from None
     total = sum((path.parent / f).stat().st_size for f in json.loads(path.read_text())["files"]) + path.stat().st_size
     t = res.timings_s
     rt = json.loads(path.read_text()).get("prt", {}).get("render_transfer")

@@ -384,15 +384,19 @@ def _check_finite(b: Bundle, where: Path) -> None:
 def _check_shapes(b: Bundle, where: Path) -> None:
     def need(cond: bool, what: str) -> None:
         if not cond:
-            raise BundleError(f"{where}: {what}")
+            raise BundleError(f"{where}: {what}; remake the bundle (`illuminet bundle` or `illuminet train`)")
 
     R = len(b.vertices)
     V = b.n_proxy
     counts = b.meta["vertices"]
     need(b.vertices.ndim == 2 and b.vertices.shape[1] == 3, f"vertices must be (R, 3), got {b.vertices.shape}")
     need(b.normals.shape == b.vertices.shape, f"normals {b.normals.shape} must match vertices {b.vertices.shape}")
-    need(b.faces.ndim == 2 and b.faces.shape[1] == 3, f"faces must be (F, 3), got {b.faces.shape}")
-    need(b.faces.size == 0 or (b.faces.min() >= 0 and b.faces.max() < R), f"faces index outside 0..{R - 1}")
+    need(R > 0, "vertices is empty: the bundle has no mesh to draw")
+    need(
+        b.faces.ndim == 2 and b.faces.shape[1] == 3 and len(b.faces) > 0,
+        f"faces must be (F, 3) triangles with F > 0, got {b.faces.shape}",
+    )
+    need(b.faces.min() >= 0 and b.faces.max() < R, f"faces index outside 0..{R - 1}")
     need(R == counts.get("render"), f"{R} render vertices, metadata says {counts.get('render')}")
     need(V == counts.get("proxy"), f"{V} proxy vertices, metadata says {counts.get('proxy')}")
     need(

@@ -15,6 +15,11 @@ Built-ins (``builtin:NAME``)
 
 from __future__ import annotations
 
+import errno
+import io
+import os
+import stat
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -184,6 +189,168 @@ def _check_extent(mesh: trimesh.Trimesh, path: Path) -> None:
         )
 
 
+#: file kinds by suffix, for messages
+MESH_KINDS = {".glb": "GLB (binary glTF)", ".gltf": "glTF", ".obj": "OBJ", ".ply": "PLY", ".stl": "STL", ".off": "OFF"}
+#: formats trimesh parses as text (PLY: its header, and its body when ``format ascii``; STL when not binary)
+TEXT_FORMATS = (".obj", ".off", ".ply", ".stl")
+_WANT = "expected builtin:" + "|".join(BUILTIN_OBJECTS) + " or a mesh file path (.glb/.gltf/.obj/.ply/.stl/.off)"
+
+
+def _kind(path: Path) -> str:
+    return MESH_KINDS.get(path.suffix.lower(), (path.suffix[1:].upper() or "mesh"))
+
+
+def _a(kind: str) -> str:
+    return ("an " if kind[:1] in "AEIOS" and kind[:2] != "SO" else "a ") + kind
+
+
+def check_mesh_path(path: Path, label: str | None = None) -> None:
+    """Refuse a mesh path that is not a readable, non-empty file, in one line saying what it is instead.
+
+    ``label`` names it in the message (default ``object 'PATH'``): a directory, a symlink loop, a
+    dangling symlink, a missing file, something that is not a regular file, an empty (0-byte) file.
+    """
+    label = label or f"object {str(path)!r}"
+    try:
+        st = path.stat()  # follows symlinks
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise ObjectLoadError(
+                f"{label}: a symlink loop (the link leads back to itself); {_WANT}: point the link at the mesh file"
+            ) from None
+        if path.is_symlink():
+            raise ObjectLoadError(
+                f"{label}: a broken symlink (to {os.readlink(path)!r}, which does not exist); {_WANT}"
+            ) from None
+        if e.errno in (errno.ENOENT, errno.ENOTDIR):
+            raise ObjectLoadError(f"{label}: no such file ({_WANT})") from None
+        raise ObjectLoadError(f"{label}: cannot open it ({e.strerror or e}); {_WANT}") from None
+    if stat.S_ISDIR(st.st_mode):
+        inside = sorted(p.name for p in path.iterdir() if p.suffix.lower() in MESH_KINDS)[:3]
+        hint = f" (it holds {', '.join(inside)})" if inside else ""
+        raise ObjectLoadError(f"{label}: is a directory{hint}; {_WANT}: give the mesh file inside it")
+    if not stat.S_ISREG(st.st_mode):
+        raise ObjectLoadError(f"{label}: not a regular file (a device or pipe?); {_WANT}")
+    if st.st_size == 0:
+        raise ObjectLoadError(
+            f"{path}: the file is empty (0 bytes), so it holds no geometry; expected {_a(_kind(path))} file: "
+            "export or copy it again"
+        )
+
+
+def _utf8(data: bytes) -> bytes:
+    """``data`` as is when it is UTF-8; else read as Latin-1 (every byte is a character: nothing is lost)
+    and re-encoded as UTF-8, so that trimesh never guesses the encoding (with an optional module)."""
+    try:
+        data.decode("utf-8")
+        return data
+    except UnicodeDecodeError:
+        return data.decode("latin-1").encode("utf-8")
+
+
+def _text_safe(data: bytes, ext: str) -> bytes:
+    """The bytes of a text mesh format with its text parts in UTF-8 (binary parts untouched)."""
+    if ext == ".ply":
+        end = data.find(b"end_header")
+        if end < 0:
+            return data  # not a PLY: trimesh says so
+        end = data.find(b"\n", end) + 1 or len(data)
+        head, body = data[:end], data[end:]
+        if b"format ascii" in head:
+            body = _utf8(body)
+        return _utf8(head) + body
+    if ext == ".stl" and len(data) >= 84 and 84 + 50 * struct.unpack_from("<I", data, 80)[0] == len(data):
+        return data  # binary STL (trimesh's own test): its 80-byte header is not text
+    return _utf8(data)
+
+
+class _TextResolver(trimesh.resolvers.FilePathResolver):
+    """Files an OBJ names, its material libraries (.mtl) decoded like the OBJ itself."""
+
+    def get(self, name: str) -> bytes:
+        data = super().get(name)
+        return _utf8(data) if str(name).lower().endswith(".mtl") else data
+
+
+def _check_glb(path: Path) -> None:
+    """A GLB's 12-byte header: magic ``glTF``, then its total length, which the file must hold."""
+    with open(path, "rb") as f:
+        head = f.read(12)
+    size = path.stat().st_size
+    fix = "export or copy it again"
+    if len(head) < 12:
+        raise ObjectLoadError(f"{path}: truncated GLB file: {size} bytes; expected at least its 12-byte header: {fix}")
+    if head[:4] != b"glTF":
+        raise ObjectLoadError(
+            f"{path}: not a GLB file (it starts with {head[:4]!r}, expected b'glTF'); expected a binary glTF: "
+            "re-export it as .glb, or give it its own suffix (.gltf, .obj, .ply ...)"
+        )
+    declared = struct.unpack_from("<I", head, 8)[0]
+    if size < declared:
+        raise ObjectLoadError(
+            f"{path}: truncated GLB file: {size} bytes, its header declares {declared}; "
+            f"expected the complete file: {fix}"
+        )
+
+
+def _check_binary_stl(path: Path) -> None:
+    """A binary STL (one not starting with ``solid``) must hold the triangles its header counts."""
+    with open(path, "rb") as f:
+        head = f.read(84)
+    if head.lstrip()[:5].lower() == b"solid":
+        return  # ASCII (trimesh parses it and says what is wrong)
+    size = path.stat().st_size
+    fix = "export or copy it again"
+    if len(head) < 84:
+        raise ObjectLoadError(
+            f"{path}: truncated binary STL file: {size} bytes; expected an 84-byte header and its triangles: {fix}"
+        )
+    n = struct.unpack_from("<I", head, 80)[0]
+    if size < 84 + 50 * n:
+        raise ObjectLoadError(
+            f"{path}: truncated binary STL file: {size} bytes, its header's {n} triangles take {84 + 50 * n}; "
+            f"expected the complete file: {fix}"
+        )
+
+
+def read_mesh(path: Path, process: bool = True, label: str | None = None):
+    """``trimesh.load`` of a mesh file with every failure as one :class:`ObjectLoadError` line.
+
+    Text formats (OBJ, OFF, ASCII STL, PLY headers and ASCII bodies) that are not UTF-8 are read as
+    Latin-1: a stray accented byte in a comment is not a broken file. A missing optional module is
+    named only when the file itself is fine (trimesh needs it for that kind of file).
+    """
+    path = Path(path)
+    check_mesh_path(path, label)
+    ext = path.suffix.lower()
+    kind = _kind(path)
+    try:
+        if ext == ".stl":
+            _check_binary_stl(path)
+        if ext in TEXT_FORMATS:
+            data = _text_safe(path.read_bytes(), ext)
+            return trimesh.load(io.BytesIO(data), file_type=ext[1:], resolver=_TextResolver(str(path)), process=process)
+        if ext == ".glb":
+            _check_glb(path)
+        return trimesh.load(str(path), process=process)
+    except ObjectLoadError:
+        raise
+    except ImportError as e:
+        name = e.name or str(e)
+        raise ObjectLoadError(
+            f"{path}: reading {kind} files needs the optional module {name!r}, which is not installed: "
+            f"pip install {name.split('.')[0].replace('_', '-')}"
+        ) from None
+    except OSError as e:  # a file the mesh names (an external glTF buffer, a texture), or the disk
+        where = e.filename or path
+        raise ObjectLoadError(f"{path}: cannot read {where} ({e.strerror or e}); check the file is there") from None
+    except Exception as e:  # trimesh raises many types for broken files
+        raise ObjectLoadError(
+            f"{path}: cannot read as a mesh: not a valid {kind} file, or a truncated one ({type(e).__name__}: {e}); "
+            f"expected a complete {kind} file: export or copy it again"
+        ) from None
+
+
 def load_object(
     spec: str, detail: str = "render", height: float | None = DEFAULT_HEIGHT, up: str = "y"
 ) -> trimesh.Trimesh:
@@ -212,17 +379,10 @@ def load_object(
     if spec.startswith("builtin:"):
         return builtin_object(spec.split(":", 1)[1], detail)
     path = Path(spec)
-    if not path.is_file():
-        raise ObjectLoadError(
-            f"object {spec!r}: no such file (expected builtin:{'|'.join(BUILTIN_OBJECTS)} or a mesh file path)"
-        )
     # single-mesh formats are read unprocessed first: trimesh's processing silently drops the faces of a
     # vertex with NaN or infinite coordinates (a broken export), which the check below then never saw
     single = path.suffix.lower() in (".obj", ".ply", ".stl", ".off")
-    try:
-        loaded = trimesh.load(str(path), process=not single)
-    except Exception as e:  # trimesh raises many types for broken files
-        raise ObjectLoadError(f"{path}: cannot read as a mesh ({type(e).__name__}: {e})") from None
+    loaded = read_mesh(path, process=not single, label=f"object {spec!r}")
     if single and isinstance(loaded, trimesh.Trimesh):
         bad = ~np.all(np.isfinite(loaded.vertices), axis=1)
         if bad.any():

@@ -304,11 +304,22 @@ def _obj_textures(path: Path) -> dict[str, tuple[Path | None, np.ndarray | None]
 
 def _load_obj(path: Path) -> RenderMesh:
     """OBJ through trimesh's parser (geometry, UVs), textures through OpenCV (no Pillow needed)."""
+    import io
+
     import trimesh
     from trimesh.exchange.obj import load_obj
 
-    with open(path, "rb") as f:
-        loaded = load_obj(f, resolver=trimesh.resolvers.FilePathResolver(str(path)), skip_materials=False)
+    from illuminet.runtime.assets.objects import ObjectLoadError, _text_safe, _TextResolver
+
+    # not UTF-8 (a Latin-1 comment): read as Latin-1, not guessed by trimesh with an optional module
+    data = _text_safe(path.read_bytes(), ".obj")
+    try:
+        loaded = load_obj(io.BytesIO(data), resolver=_TextResolver(str(path)), skip_materials=False)
+    except Exception as e:  # trimesh raises many types for broken files
+        raise ObjectLoadError(
+            f"{path}: cannot read as a mesh: not a valid OBJ file, or a truncated one ({type(e).__name__}: {e}); "
+            "expected a complete OBJ file: export or copy it again"
+        ) from None
     mats = _obj_textures(path)
     if not any(t for t, _ in mats.values()):
         # OBJs shipped without an MTL (e.g. Keenan Crane's spot) keep their texture beside them:
@@ -443,20 +454,18 @@ def load_render_mesh(src: Any) -> RenderMesh:
         return src
     if not isinstance(src, (str, os.PathLike)):
         return RenderMesh.from_trimesh(src)
-    import trimesh
+    from illuminet.runtime.assets.objects import check_mesh_path, read_mesh
 
     path = Path(src)
-    if not path.is_file():
+    if not path.exists() and not path.is_symlink():
         raise ValueError(f"{path}: object mesh file not found (expected a .glb, .gltf, .obj or .ply file)")
+    check_mesh_path(path, str(path))  # a directory, a symlink loop, an empty file: one line saying so
     ext = path.suffix.lower()
     if ext == ".obj":
         return _load_obj(path)
     if ext not in (".glb", ".gltf", ".ply", ".stl", ".off"):
         raise ValueError(f"{path}: unknown mesh kind {ext!r}; expected .glb, .gltf, .obj, .ply, .stl or .off")
-    try:
-        loaded = trimesh.load(str(path), process=False)
-    except Exception as e:
-        raise ValueError(f"{path}: cannot be read as a mesh: {e}") from None
+    loaded = read_mesh(path, process=False, label=str(path))  # ObjectLoadError (a ValueError) naming the file
     mesh = RenderMesh.from_trimesh(loaded, source=str(path))
     if ext in (".glb", ".gltf") and mesh.uv is not None and all(p.texture is None for p in mesh.parts):
         texs = _gltf_textures(path)
@@ -474,9 +483,14 @@ def mesh_from_bundle(bundle) -> RenderMesh:
     that is a file whose mesh has the same vertices (texture/UV, vertex colours, base colour);
     built-in objects are plain glazed white (:data:`DEFAULT_ALBEDO`).
     """
-    mesh = RenderMesh(
-        vertices=bundle.vertices, normals=bundle.normals, faces=bundle.faces, source=f"bundle {bundle.name}"
-    )
+    from illuminet.runtime.errors import BundleError
+
+    try:  # load_bundle checks all of this; a Bundle made some other way is still one line, not a traceback
+        mesh = RenderMesh(
+            vertices=bundle.vertices, normals=bundle.normals, faces=bundle.faces, source=f"bundle {bundle.name}"
+        )
+    except ValueError as e:
+        raise BundleError(f"{e}; remake the bundle (`illuminet bundle` or `illuminet train`)") from None
     spec = str(bundle.meta.get("object", "") or "")
     if spec and not spec.startswith("builtin:") and Path(spec).is_file():
         try:
