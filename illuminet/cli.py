@@ -171,8 +171,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         cfg = resolve_config(args)
     except ConfigError as e:
-        return report_error(e, debug=debug)
-    level = getattr(logging, cfg.logging.level.upper())
+        if getattr(args.func, "__module__", "") != "illuminet.commands.doctor":
+            return report_error(e, debug=debug)
+        # the doctor still diagnoses the machine: a broken config.toml is one of its findings, not a
+        # reason to refuse (the checks then use the built-in defaults)
+        args.config_error, cfg = e.one_line(), None
+    level = getattr(logging, (cfg.logging.level if cfg is not None else args.log_level or "info").upper())
     logging.basicConfig(level=level, format="%(asctime)s %(levelname).1s %(name)s: %(message)s")
     if level > logging.DEBUG:
         # JAX probes for a TPU on every machine and logs "Unable to initialize backend 'tpu': ...

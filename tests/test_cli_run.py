@@ -373,3 +373,12 @@ def test_demo_with_an_unknown_built_in_object_says_one_thing(capsys):
     assert rc == 1 and "SH baseline" not in out + err
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1 and "unknown built-in object 'teapot'" in lines[0], lines
+
+
+def test_a_run_without_any_output_says_so(tmp_path, capsys):
+    """`illuminet run SOURCE` alone processed 60 frames and wrote nothing, with no hint why."""
+    src = "synthetic://indoor?frames=2&size=64x48"
+    assert main(["run", src, "--timing", "asap"]) == 0
+    assert "no output was given, so the frames were processed and dropped" in capsys.readouterr().err
+    assert main(["run", src, "--timing", "asap", "--estimates", str(tmp_path / "e.jsonl")]) == 0
+    assert "no output was given" not in capsys.readouterr().err

@@ -56,3 +56,17 @@ def test_exit_code_follows_essentials_only():
     ok = Check("OpenGL (EGL)", OK, "", essential=True)
     assert exit_code([ok, Check("DepthAI (OAK)", NONE, ""), Check("V4L2 cameras", MISSING, "")]) == 0
     assert exit_code([ok, Check("onnxruntime", MISSING, "", essential=True)]) == 1
+
+
+def test_a_broken_config_is_a_finding_not_a_refusal(tmp_path, capsys):
+    """With a config.toml that does not parse, `doctor` refused to run at all: the one tool a user
+    reaches for when something is wrong. It now reports the file as a failed essential and checks the
+    machine with the built-in defaults."""
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[light\nx = 1\n")
+    rc = cli.main(["--config", str(bad), "doctor"])
+    out = capsys.readouterr().out
+    assert rc == 1 and f"[MISSING] configuration: not loaded: {bad}: not valid TOML" in out, out
+    for name in NAMES:
+        assert f"] {name}: " in out  # every other check still ran
+    assert cli.main(["--config", str(bad), "config"]) == 2  # other commands still refuse it

@@ -310,6 +310,17 @@ def run(args: argparse.Namespace, cfg) -> int:
         checks = run_checks(cfg.imu.url, cfg.render.gl_backend, cfg.render.gl_api, cfg.source.oakd_protocol)
     else:
         checks = run_checks()
+    if getattr(args, "config_error", None):  # illuminet.cli.main: the configuration did not load
+        checks.insert(
+            0,
+            Check(
+                "configuration",
+                MISSING,
+                f"not loaded: {args.config_error}",
+                "fix the file or key named (the checks below used the built-in defaults)",
+                essential=True,
+            ),
+        )
     if getattr(args, "json", False):
         print(json.dumps([asdict(c) for c in checks], indent=2))
     else:

@@ -230,6 +230,14 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
         status.close()
         if stats.frames or stats.end_reason:
             print(stats.format_stats(), file=report_stream(cfg))
+        o = cfg.output
+        if stats.frames and not (o.video or o.png_dir or o.record or o.estimates or o.mjpeg or cfg.logging.stats_json):
+            # a first `illuminet run SOURCE` processed its frames and showed only a timing table: say why
+            print(
+                "illuminet: no output was given, so the frames were processed and dropped; add --video FILE, "
+                "--png-dir DIR, --record DIR, --estimates FILE or --mjpeg",
+                file=sys.stderr,
+            )
         if cfg.logging.stats_json:
             try:
                 Path(cfg.logging.stats_json).write_text(stats.to_json() + "\n")

@@ -869,9 +869,10 @@ class MjpegSink(Sink):
         except (OSError, ValueError, UnicodeError) as e:  # in use, no such address, a NUL in the name
             why = getattr(e, "strerror", None) or e
             fix = (
-                "Pick another port ([output] port, or 0 for any free one) or stop what uses it."
+                "Pick another port (--port N or [output] port; 0 for any free one) or stop what uses it."
                 if getattr(e, "errno", None) in (98, 48, 10048)  # EADDRINUSE (Linux, macOS, Windows)
-                else "Check [output] listen: an address of this machine (127.0.0.1, 0.0.0.0 or an interface's)."
+                else "Check --listen / [output] listen: an address of this machine (127.0.0.1, 0.0.0.0 or "
+                "an interface's)."
             )
             raise OSError(f"MJPEG server cannot listen on {self.listen}:{self.port}: {why}. {fix}") from e
         self._server = server
