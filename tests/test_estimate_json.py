@@ -356,8 +356,15 @@ def test_bad_viewer_model_is_refused_before_the_server_starts(tmp_path):
         MjpegSink(port=0, viewer_model="builtin:teapot")
     # files that exist but hold nothing to draw: refused now, not a 500 at the first /model.glb
     (tmp_path / "empty.obj").write_bytes(b"")
-    with pytest.raises(ValueError, match="'.*empty.obj': cannot load it as a mesh"):
+    with pytest.raises(ValueError, match="empty.obj: the file is empty \\(0 bytes\\)"):
         MjpegSink(port=0, viewer_model=str(tmp_path / "empty.obj"))
+    # a folder was "no such file", an empty or cut GLB "index 0 is out of bounds": said as what they are
+    (tmp_path / "models").mkdir()
+    with pytest.raises(ValueError, match="'.*models': is a directory"):
+        MjpegSink(port=0, viewer_model=str(tmp_path / "models"))
+    (tmp_path / "cut.glb").write_bytes(b"glTF\x02\x00\x00\x00\x00\x10\x00\x00" + b"\x00" * 20)
+    with pytest.raises(ValueError, match="cut.glb: truncated GLB file: 32 bytes, its header declares 4096"):
+        MjpegSink(port=0, viewer_model=str(tmp_path / "cut.glb"))
     (tmp_path / "bad.glb").write_bytes(b"glTF\x02\x00\x00\x00\x0c\x00\x00\x00")
     with pytest.raises(ValueError, match="'.*bad.glb': not a readable glTF binary"):
         MjpegSink(port=0, viewer_model=str(tmp_path / "bad.glb"))

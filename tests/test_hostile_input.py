@@ -384,6 +384,30 @@ def test_implausible_session_intrinsics_are_refused(tmp_path, capsys, key, value
     assert len(lines) == 1 and f"intrinsics.{key}" in lines[0], lines
 
 
+def test_session_messages_say_what_is_there(tmp_path):
+    """Three messages that misled: a folder in place of manifest.json was "missing"; a folder named like a
+    frame image was a "truncated frame" of 4096 bytes; width 10^12 in both the manifest and its
+    intrinsics read "1000000000000x800 does not describe the 1000000000000x800 pictures"."""
+    s = tmp_path / "s"
+    make_session(s, 3)
+    (s / "manifest.json").rename(tmp_path / "m.json")
+    (s / "manifest.json").mkdir()
+    with pytest.raises(errors.SessionError, match="manifest.json: is a folder; expected the session's manifest"):
+        SessionReader(s)
+    (s / "manifest.json").rmdir()
+    (tmp_path / "m.json").rename(s / "manifest.json")
+    frame = next(p for p in sorted((s / "frames").iterdir()) if p.name.startswith("000001"))
+    frame.unlink()
+    frame.mkdir()
+    reader = SessionReader(s)  # the other frames still read; the folder is named as one
+    assert any(f"{frame} is a folder; expected the frame's image file" in p for p in reader.problems), reader.problems
+    m = json.loads((s / "manifest.json").read_text())
+    m["width"] = m["intrinsics"]["width"] = 10**12
+    (s / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(errors.SessionError, match="1000000000000x48 is not a camera's image size"):
+        SessionReader(s)
+
+
 @pytest.mark.parametrize(
     "key,value,expect",
     [

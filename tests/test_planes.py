@@ -265,6 +265,9 @@ def test_check_depth_messages():
     assert check_depth(np.full((100, 100), 1.2, np.float32)) is None
     kind, msg = check_depth(np.full((100, 100), 1200.0, np.float32))
     assert kind == "units_mm" and "1200" in msg
+    # a replayed depth PNG of 65535s is read as 65.535 m: not "convert millimetres", which it already is
+    kind, msg = check_depth(np.full((100, 100), 65535, np.uint16) * np.float32(1e-3))
+    assert kind == "units_mm" and "'no depth' seems written as 65535" in msg and "depth_from_mm" not in msg
 
 
 # ---------------------------------------------------------------------------------------- anchor

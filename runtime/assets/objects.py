@@ -272,7 +272,7 @@ class _TextResolver(trimesh.resolvers.FilePathResolver):
         return _utf8(data) if str(name).lower().endswith(".mtl") else data
 
 
-def _check_glb(path: Path) -> None:
+def check_glb(path: Path) -> None:
     """A GLB's 12-byte header: magic ``glTF``, then its total length, which the file must hold."""
     with open(path, "rb") as f:
         head = f.read(12)
@@ -331,7 +331,7 @@ def read_mesh(path: Path, process: bool = True, label: str | None = None):
             data = _text_safe(path.read_bytes(), ext)
             return trimesh.load(io.BytesIO(data), file_type=ext[1:], resolver=_TextResolver(str(path)), process=process)
         if ext == ".glb":
-            _check_glb(path)
+            check_glb(path)
         return trimesh.load(str(path), process=process)
     except ObjectLoadError:
         raise

@@ -95,6 +95,13 @@ def check_depth(depth: np.ndarray | None, sample: np.ndarray | None = None) -> t
         what = f"{n_nan} of {s.size} sampled values are NaN/inf, the rest 0" if n_nan else "all values are 0"
         return "invalid", f"depth map has no valid pixels ({what}); expected metres > 0 with 0 = invalid"
     med = float(np.median(s[valid]))
+    if abs(med - 65.535) < 0.002:
+        # a replay's 16-bit PNG of 65535s is already read as millimetres: the "convert mm" advice below
+        # sent such users looking at a conversion they never wrote
+        return "units_mm", (
+            "depth median is 65.535 m, the largest value 16-bit millimetres can hold: 'no depth' seems written "
+            "as 65535 (a depth PNG or a camera's invalid value); expected 0 for pixels without depth"
+        )
     if med > 50.0:
         return "units_mm", (
             f"depth median is {med:.0f} 'metres': this looks like millimetres (or another x1000 unit); "

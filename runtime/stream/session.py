@@ -44,6 +44,7 @@ import datetime as _dt
 import json
 import logging
 import os
+import stat
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
@@ -566,10 +567,13 @@ def check_intrinsics(intr: Intrinsics, width: int, height: int, where: str) -> N
     if not (0 < iw <= MAX_SIDE and 0 < ih <= MAX_SIDE) or abs(iw * height - ih * width) > 0.01 * ih * width:
         # the stages scale the intrinsics to the picture: 0 divided by zero, a negative width mirrored
         # fx, another aspect ratio stretched one axis
+        if 0 < iw <= MAX_SIDE and 0 < ih <= MAX_SIDE:
+            why = f"{iw}x{ih} does not describe the {width}x{height} pictures"
+        else:  # the same numbers on both sides read "1000000000000x800 does not describe 1000000000000x800"
+            why = f"{iw}x{ih} is not a camera's image size (each side 1..{MAX_SIDE} pixels)"
         raise SessionError(
-            f"{where}: key 'intrinsics.width'/'intrinsics.height': {iw}x{ih} does not describe the "
-            f"{width}x{height} pictures (expected their size, or a size of the same aspect ratio the "
-            "intrinsics were calibrated at)"
+            f"{where}: key 'intrinsics.width'/'intrinsics.height': {why} (expected the pictures' size, or a size "
+            "of the same aspect ratio the intrinsics were calibrated at)"
         )
     side = max(width, height)
     for key in ("fx", "fy"):
@@ -704,6 +708,8 @@ class SessionReader:
         if mpath.is_symlink():
             # like every file a session names: a manifest is never followed out of the folder
             safe_relpath(self.path, MANIFEST, str(mpath))
+        if mpath.is_dir():  # it exists: "missing" sent users looking for a file that is there
+            raise SessionError(f"{mpath}: is a folder; expected the session's manifest file (JSON)")
         if not mpath.is_file():
             raise SessionError(
                 f"{mpath}: missing; not a recorded session, or the recording was killed before its first "
@@ -892,11 +898,15 @@ class SessionReader:
     @staticmethod
     def _check_file(path: Path, expected: int, what: str) -> None:
         try:
-            size = path.stat().st_size
+            st = path.stat()
         except FileNotFoundError:
             raise SessionError(f"{what}: missing file {path}") from None
         except (OSError, ValueError) as e:  # a symlink loop, permissions, a NUL byte
             raise SessionError(f"{what}: cannot read {path}: {getattr(e, 'strerror', None) or e}") from None
+        if not stat.S_ISREG(st.st_mode):  # a folder's 4096 "bytes" were reported as a truncated frame
+            kind = "a folder" if stat.S_ISDIR(st.st_mode) else "not a regular file"
+            raise SessionError(f"{what}: {path} is {kind}; expected the frame's image file")
+        size = st.st_size
         if size != expected:
             kind = "truncated frame" if size < expected else "size mismatch"
             raise SessionError(f"{what}: {kind}: {path} has {size} bytes, the index says {expected}")

@@ -80,12 +80,14 @@ def check_model_spec(spec: str) -> None:
                 f"builtin:{'|'.join(BUILTIN_OBJECTS)} or a mesh file"
             )
         return
+    from illuminet.runtime.assets.objects import ObjectLoadError, check_mesh_path
+
     path = Path(spec)
-    if not path.is_file():
-        raise ValueError(
-            f"[output] viewer_model = {spec!r}: no such file; give a .glb/.gltf/.obj/.ply/.stl/.off "
-            f"file (--viewer-model PATH) or builtin:NAME"
-        )
+    try:
+        # a folder, a symlink loop, a dangling link, an empty file: said as such (a folder was "no such file")
+        check_mesh_path(path, f"[output] viewer_model = {spec!r}")
+    except ObjectLoadError as e:
+        raise ValueError(f"{e} (--viewer-model PATH)") from None
     if path.suffix.lower() not in MODEL_SUFFIXES:
         raise ValueError(
             f"[output] viewer_model = {spec!r}: unknown mesh format {path.suffix!r}; expected one of "
@@ -109,6 +111,12 @@ def model_glb(spec: str, scale: float = 1.0) -> bytes:
     import trimesh
 
     if not str(spec).startswith("builtin:") and Path(spec).suffix.lower() == ".glb":
+        from illuminet.runtime.assets.objects import ObjectLoadError, check_glb
+
+        try:
+            check_glb(Path(spec))  # truncated or not a GLB at all: from the header, not an IndexError
+        except ObjectLoadError as e:
+            raise ValueError(f"[output] viewer_model = {spec!r}: {e}") from None
         try:
             scene = trimesh.load(str(spec), force="scene")
         except Exception as e:  # noqa: BLE001 (trimesh raises many types for a broken file)
