@@ -70,10 +70,18 @@ def test_soak_refuses_a_bad_duration(capsys):
 def test_bench_refuses_bad_counts_in_one_line_before_running(capsys):
     """`bench demo --frames -3` once crashed with a traceback in the table printer; `--rounds 0` was
     silently the default. Each is refused at once, naming the flag."""
-    for argv in (["demo", "--frames", "-3"], ["demo", "--rounds", "0"], ["odometry", "--look", "-1"]):
+    for argv in (
+        ["demo", "--frames", "-3"],
+        ["demo", "--rounds", "0"],
+        ["odometry", "--look", "-1"],
+        ["demo", "--size", "abc"],
+    ):
         assert main(["bench", *argv]) == 2, argv
-        err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+        out, err = capsys.readouterr()
+        err = [ln for ln in err.splitlines() if ln.strip()]
         assert len(err) == 1 and argv[1] in err[0] and "expected" in err[0], (argv, err)
+        if argv[1] == "--size":
+            assert "# machine" not in out  # refused before the header (it came after it)
 
 
 def test_bench_refuses_a_json_path_it_cannot_write_before_running(tmp_path, capsys):

@@ -249,3 +249,15 @@ def test_relight_runtime_refuses_bad_exposure_depth_and_intrinsics():
         relight(color, depth, Intrinsics(True, K.fy, K.cx, K.cy, K.width, K.height), (160, 130), cfg)
     with pytest.raises(ValueError, match="made for a 640x200 image but the colour image is 320x200"):
         relight(color, depth, Intrinsics(K.fx, K.fy, K.cx, K.cy, 640, 200), (160, 130), cfg)
+
+
+def test_relight_says_when_precision_has_no_effect(tmp_path, capsys):
+    """`--precision fp32` picks the learned model's ONNX chain; with the default physical shading it was
+    silently ignored."""
+    _small_inputs(tmp_path)
+    capsys.readouterr()
+    assert main(_small_argv(tmp_path, precision="fp32")) == 0
+    out, err = capsys.readouterr()
+    assert "method prt" in out and "--precision fp32 applies to the learned model" in err, (out, err)
+    assert main(_small_argv(tmp_path)) == 0
+    assert "--precision" not in capsys.readouterr().err

@@ -84,6 +84,10 @@ def run(args: argparse.Namespace, cfg) -> int:
             file=sys.stderr,
         )
         return 2
+    if getattr(args, "size", None):
+        from illuminet.bench.demo import parse_size
+
+        parse_size(args.size)  # a bad --size: its one line before the header, not after it
     if args.json:
         # checked before the benchmarks run: a bad path found at the end lost their figures' JSON
         out = Path(args.json)

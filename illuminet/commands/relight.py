@@ -257,6 +257,13 @@ def run(args: argparse.Namespace, cfg) -> int:
         f"{res.plane_observed:.0%} of the plane grid observed, mean radiance "
         f"{[round(float(x), 4) for x in res.radiance.mean(0)]}"  # (np.round of float32 printed 0.37700000405311584)
     )
+    if args.precision and res.method != "model":
+        # the flag picks the learned model's ONNX chain; a run shaded otherwise ignored it without a word
+        print(
+            f"illuminet relight: note: --precision {args.precision} applies to the learned model "
+            f'([model] shading = "model"); this object was shaded by {res.method}, so it had no effect',
+            file=sys.stderr,
+        )
     if args.preview:
         import cv2
 
