@@ -16,7 +16,10 @@ when no maps are found), ``lamp`` (a near lamp), ``spatial`` (several object pos
 ``outdoor_look`` (:data:`LOOK_SUITES`), the ``outdoor`` suite's scenes, seeds and maps seen by a user
 who looks around once before looking back at the object (``path=look``: the view raised to the
 horizon, one full turn in place; at least :data:`LOOK_FRAMES` frames, so the turn is one a camera
-can follow), scored on the last frame as the others.
+can follow), scored on the last frame as the others; ``outdoor_boxes`` (:data:`VARIANT_SUITES`), the
+``outdoor`` suite's scenes, seeds and maps with three boxes on the ground: real cast shadows in view,
+the cue the dominant-light target asks for ("wherever ... a cue is in view"), which the ``outdoor``
+scenes do not have.
 
 Methods side by side: the variants, the learned transfer (``[model] shading = "model"`` on the same
 plane light), the constant prior, ambient, SH fitted to every valid RGB-D pixel (the regularised
@@ -86,6 +89,8 @@ def _as_is(values: np.ndarray) -> np.ndarray:
 SUITES = ("indoor", "outdoor", "lamp", "spatial", "cluttered")
 #: suites that are another suite's scenes seen by a user looking around (``path=look``)
 LOOK_SUITES = {"outdoor_look": "outdoor"}
+#: suites that are another suite's scenes with something added to their URL: (that suite, the addition)
+VARIANT_SUITES = {"outdoor_boxes": ("outdoor", "&boxes=3")}
 #: a look-around suite runs at least this many frames a scene (the turn in place takes half of them:
 #: 300 frames is 10 s at 30 fps, at most ~3.6 deg a frame; 100 frames lost the turn)
 LOOK_FRAMES = 300
@@ -350,8 +355,8 @@ class CameraEval:
         return v[self.sel]
 
     def url(self, suite: str, i: int, seed: int, frames: int) -> str:
-        kind = LOOK_SUITES.get(suite, suite)
-        u = f"synthetic://{kind}?seed={SEED_BASE + 31 * seed + i}&frames={frames}"
+        kind, extra = VARIANT_SUITES.get(suite, (LOOK_SUITES.get(suite, suite), ""))
+        u = f"synthetic://{kind}?seed={SEED_BASE + 31 * seed + i}&frames={frames}{extra}"
         if suite in LOOK_SUITES:
             u += "&path=look"
         if kind == "spatial":  # the camera frames the position evaluated (scene_case: i % count)
@@ -523,7 +528,7 @@ class CameraEval:
 
     @staticmethod
     def check(suites, frames: int) -> None:
-        known = SUITES + tuple(LOOK_SUITES)
+        known = SUITES + tuple(LOOK_SUITES) + tuple(VARIANT_SUITES)
         bad = [s for s in suites if s not in known]
         if bad:
             raise ValueError(f"unknown camera suite(s) {', '.join(bad)}; known: {', '.join(known)}")

@@ -183,6 +183,11 @@ def test_the_look_around_suite_is_the_outdoor_scenes_after_a_turn_and_runs_when_
     assert main(["eval", "--cases", "0", "--camera-scenes", "1", "--camera-suites", "outdoor_looks"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "unknown camera suite(s) outdoor_looks" in err[0] and "outdoor_look" in err[0]
+    # the outdoor scenes with boxes casting shadows in view: the same scenes, seeds and maps
+    for i in (0, 3):
+        assert ev.url("outdoor_boxes", i, 0, 30) == ev.url("outdoor", i, 0, 30) + "&boxes=3"
+    CameraEval.check(["outdoor_boxes"], 3)
+    assert "outdoor_boxes" not in SUITES
 
 
 def test_eval_with_nothing_to_evaluate_is_refused(tmp_path, capsys):

@@ -48,7 +48,7 @@ log = logging.getLogger("illuminet.eval")
 #: the camera suites and cross-check scenes (spelled here so that --help needs no heavy imports)
 CAMERA_SUITES = ("indoor", "outdoor", "lamp", "spatial", "cluttered")
 #: camera suites run only when named (--camera-suites): the look-around, 300 frames a scene
-CAMERA_SUITES_ON_REQUEST = ("outdoor_look",)
+CAMERA_SUITES_ON_REQUEST = ("outdoor_look", "outdoor_boxes")
 CROSSCHECK_SCENES = ("lamp_room", "area_lamp_boxes", "indoor_table", "outdoor_hdr")
 
 
@@ -94,7 +94,8 @@ def register(sub) -> None:
         default=",".join(CAMERA_SUITES),
         metavar="LIST",
         help=f"comma-separated camera suites (default: {','.join(CAMERA_SUITES)}; also "
-        f"{', '.join(CAMERA_SUITES_ON_REQUEST)}: the outdoor scenes seen after a look around, 300 frames each)",
+        "outdoor_look: the outdoor scenes seen after a look around, 300 frames each; outdoor_boxes: the "
+        "outdoor scenes with three boxes casting shadows in view)",
     )
     p.add_argument(
         "--variant",
