@@ -382,3 +382,15 @@ def test_a_run_without_any_output_says_so(tmp_path, capsys):
     assert "no output was given, so the frames were processed and dropped" in capsys.readouterr().err
     assert main(["run", src, "--timing", "asap", "--estimates", str(tmp_path / "e.jsonl")]) == 0
     assert "no output was given" not in capsys.readouterr().err
+
+
+def test_server_flags_without_mjpeg_get_a_note(tmp_path, capsys):
+    """`--viewer-model` (even a missing file), `--listen` and `--port` without `--mjpeg` were silently unused."""
+    src = "synthetic://indoor?frames=2&size=64x48"
+    out = ["--estimates", str(tmp_path / "e.jsonl")]
+    assert main(["run", src, "--timing", "asap", *out, "--viewer-model", str(tmp_path / "no.glb")]) == 0
+    assert "note: --viewer-model applies to the --mjpeg server only" in capsys.readouterr().err
+    assert main(["demo", "--source", src, "--frames", "2", "--no-video", "--port", "9999"]) == 0
+    assert "note: --port applies to the --mjpeg server only" in capsys.readouterr().err
+    assert main(["run", src, "--timing", "asap", *out]) == 0
+    assert "note:" not in capsys.readouterr().err

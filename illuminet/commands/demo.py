@@ -387,7 +387,11 @@ def demo_config(args: argparse.Namespace, cfg: Config) -> Config:
         over.append(("logging", "strict", True))
     if args.stats_json:
         over.append(("logging", "stats_json", args.stats_json))
-    return apply_overrides(cfg, over)
+    from illuminet.commands.run import note_server_flags
+
+    cfg = apply_overrides(cfg, over)
+    note_server_flags(args, cfg)
+    return cfg
 
 
 def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:

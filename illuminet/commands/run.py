@@ -171,7 +171,24 @@ def config_with_flags(args: argparse.Namespace, cfg: Config) -> Config:
     overrides = [(*_FLAG_KEYS[k], v) for k, v in vars(args).items() if k in _FLAG_KEYS and v is not None]
     if getattr(args, "no_fsync", False):
         overrides.append(("output", "record_fsync", False))
-    return apply_overrides(cfg, overrides)
+    cfg = apply_overrides(cfg, overrides)
+    note_server_flags(args, cfg)
+    return cfg
+
+
+def note_server_flags(args: argparse.Namespace, cfg: Config) -> None:
+    """One note for server flags given without ``--mjpeg`` (they were silently unused, even a
+    ``--viewer-model`` naming a missing file)."""
+    given = [
+        f"--{k.replace('_', '-')}" for k in ("viewer_model", "listen", "port") if getattr(args, k, None) is not None
+    ]
+    if given and not cfg.output.mjpeg:
+        many = len(given) > 1
+        print(
+            f"illuminet: note: {', '.join(given)} appl{'y' if many else 'ies'} to the --mjpeg server only; "
+            f"without --mjpeg {'they are' if many else 'it is'} not used",
+            file=sys.stderr,
+        )
 
 
 def report_stream(cfg: Config):
