@@ -241,8 +241,12 @@ class ReplaySource(Source):
 
 
 def session_folder(url: str) -> Path | None:
-    """The session folder a ``replay://`` URL reads (None for another scheme or no path)."""
-    parts = urlsplit(url)
+    """The session folder a ``replay://`` URL reads (None for another scheme, no path, or no URL at
+    all: ``open_source`` then says what is wrong with it)."""
+    try:
+        parts = urlsplit(url)
+    except ValueError:  # "Invalid IPv6 URL" for an unbalanced '[' (synthetic://[): a traceback before
+        return None
     path = unquote(parts.netloc + parts.path)
     return Path(path) if parts.scheme == "replay" and path else None
 

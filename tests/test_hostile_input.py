@@ -36,6 +36,9 @@ BAD_INPUTS = [
     (["run", "v4l2:///dev/null?stereo=maybe"], 2, "stereo='maybe'"),
     (["run", "webcam://0"], 2, "'webcam'"),
     (["run", "no-scheme-at-all"], 2, "no scheme"),
+    # an unbalanced '[' made urlsplit raise "Invalid IPv6 URL" in the replay-folder check: a traceback
+    (["run", "synthetic://["], 2, "is not a URL: Invalid IPv6 URL"),
+    (["run", "replay://["], 2, "is not a URL: Invalid IPv6 URL"),
     (["--set", "output.port=70000", "run", "synthetic://indoor"], 2, "[output] port"),
     (["--set", "output.port=-1", "run", "synthetic://indoor"], 2, "[output] port"),
     (["--set", "plane_light.grid=0", "run", "synthetic://indoor"], 2, "[plane_light] grid"),

@@ -446,7 +446,7 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
         return 2
     except (SourceError, SinkError, ValueError, OSError) as e:
         print(f"illuminet demo: {e}", file=sys.stderr)
-        return 1
+        return getattr(e, "exit_code", 1)  # a malformed --source URL is a usage mistake (2), as for run
     print(f"demo: source {url}", file=report)
     rc = 0
     from illuminet.progress import StatusLine
