@@ -123,7 +123,7 @@ def test_demo_rejects_bad_arguments(tmp_path, capsys):
     assert main(["demo", "--frames", "0"]) == 2
     assert "--frames must be at least 1" in capsys.readouterr().err
     rc = main(["demo", "--frames", "1", "--source", "nope://x", "--no-video", "--still", ""])
-    assert rc == 1
+    assert rc == 2  # a malformed or unknown source URL is a usage mistake, as for `run` (was 1 here)
     assert "nope" in capsys.readouterr().err
 
 

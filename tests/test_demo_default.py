@@ -51,6 +51,22 @@ def test_make_default_session_is_deterministic_per_seed(tmp_path):
     assert main(["demo", "--make-default-session", str(a), "--seed", "5"]) == 1
 
 
+def test_committed_session_matches_the_synthetic_camera_today():
+    """The fast guard of the slow test below: the shipped session had been made before the synthetic
+    camera's auto exposure changed (33.3 ms / ISO 127 per frame against 25.5 ms / ISO 100 now), so
+    `--make-default-session` no longer gave its bytes and nobody noticed (the slow test is opt-in).
+    Frame 0 of the session's source URL must have the committed exposure and picture."""
+    from illuminet.hw import open_source
+
+    with open_source(default_session_source_url()) as src:
+        f = src.read()
+    first = json.loads((DEFAULT_SESSION / "frames.jsonl").read_text().splitlines()[0])
+    assert first["exposure"]["exposure_us"] == pytest.approx(f.exposure.exposure_us)
+    assert first["exposure"]["iso"] == pytest.approx(f.exposure.iso)
+    stored = cv2.cvtColor(cv2.imread(str(DEFAULT_SESSION / first["color"])), cv2.COLOR_BGR2RGB)
+    assert abs(float(stored.mean()) - float(f.color.mean())) < 1.0  # the same picture, up to JPEG
+
+
 @pytest.mark.slow
 def test_committed_session_is_what_the_command_makes(tmp_path):
     out = make_default_session(tmp_path / "s")
