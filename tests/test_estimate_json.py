@@ -113,6 +113,12 @@ def test_no_primary_light_near_light_position_and_round_trip():
     d = estimate_dict(est, seq=2, t_device_ns=5)
     jsonschema.validate(d, SCHEMA)
     assert d["primaryLightPosition"] == {"x": 0.3, "y": 0.9, "z": -0.2, "w": 1.0}
+    # a position without a primary light was exported (9 of 30 lines in an attack's run): a client
+    # would place a point light there
+    assert (
+        estimate_dict(_estimate(direction=None, pos=(0.3, 0.9, -0.2)), seq=3, t_device_ns=6)["primaryLightPosition"]
+        is None
+    )
     back = estimate_from_dict(json.loads(to_line(d)))
     assert np.allclose(back.sh9, est.sh9, rtol=1e-5, atol=1e-6)
     assert np.allclose(back.primary_rgb, est.primary_rgb, rtol=1e-5)

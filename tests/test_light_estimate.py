@@ -439,3 +439,33 @@ def test_a_wide_bright_patch_is_ambient_light_not_an_emitter():
     assert direction is None and n >= 6
     stage, _ = _emitter_stage(sky[:1], [40.0, 40.0, 45.0])  # one bin of it is a compact emitter
     assert stage._emitter()[0] is not None
+
+
+def test_a_faded_primary_light_takes_its_position_with_it():
+    """The temporal filter kept a near lamp's position after the lamp's direction had faded out, so
+    estimates said hasPrimaryLight false with a primaryLightPosition."""
+    from types import SimpleNamespace
+
+    from illuminet.runtime.config import defaults
+    from illuminet.runtime.stages.light_estimate import LightEstimateStage
+
+    st = LightEstimateStage(defaults())
+    sh = np.zeros((9, 3))
+    sh[0] = 1.0
+    lamp = {
+        "sh9": sh,
+        "dir": np.array([0.0, 1.0, 0.0]),
+        "rgb": np.array([5.0, 4.0, 3.0]),
+        "pos": np.array([0.3, 0.5, 0.0]),
+    }
+    f = lambda i: SimpleNamespace(t_device_ns=i * 100_000_000, t_host_ns=None)  # noqa: E731 (the filter reads times only)
+    out = st._filter(lamp, f(1))
+    assert out["pos"] is not None
+    gone = {"sh9": sh, "dir": None, "rgb": np.zeros(3), "pos": None}
+    held = st._filter(gone, f(2))
+    if held["dir"] is not None:  # fading: the lamp's position goes with its direction
+        assert held["pos"] is not None
+    for i in range(3, 40):
+        out = st._filter(gone, f(i))
+        assert (out["dir"] is None) == (out["pos"] is None), (i, out["dir"], out["pos"])
+    assert out["dir"] is None and out["pos"] is None

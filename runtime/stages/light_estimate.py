@@ -1240,7 +1240,9 @@ class LightEstimateStage(Stage):
         out = {"sh9": a * prev["sh9"] + (1 - a) * raw["sh9"], "rgb": a * prev["rgb"] + (1 - a) * raw["rgb"]}
         if raw["dir"] is None:
             out["dir"] = prev["dir"] if float(out["rgb"] @ LUMA) > 0.05 * float(raw["sh9"][0] @ LUMA) else None
-            out["pos"] = prev["pos"]
+            # a faded primary takes its position with it: the estimate JSON had hasPrimaryLight false
+            # with a lamp position that a client would light
+            out["pos"] = prev["pos"] if out["dir"] is not None else None
         elif prev["dir"] is None:
             out["dir"], out["pos"] = raw["dir"], raw["pos"]
         else:

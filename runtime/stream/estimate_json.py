@@ -133,7 +133,8 @@ def estimate_dict(
         "primaryLightDirection": _vec4(d, 0.0),
         "primaryLightIntensity": _vec4(rgb, 1.0),
         "hasPrimaryLight": bool(has_primary),
-        "primaryLightPosition": _vec4(est.primary_pos, 1.0) if est.primary_pos is not None else None,
+        # no position without a primary light (a client would place a point light there)
+        "primaryLightPosition": _vec4(est.primary_pos, 1.0) if has_primary and est.primary_pos is not None else None,
         "ambientIntensity": _num(luma),
         "colorCorrection": {
             "r": _num(mean_px[0] / g),
