@@ -394,3 +394,26 @@ def test_server_flags_without_mjpeg_get_a_note(tmp_path, capsys):
     assert "note: --port applies to the --mjpeg server only" in capsys.readouterr().err
     assert main(["run", src, "--timing", "asap", *out]) == 0
     assert "note:" not in capsys.readouterr().err
+
+
+def test_an_output_that_fails_its_frames_makes_the_run_exit_1(tmp_path, capsys, monkeypatch):
+    """A PNG folder on a full disk failed every frame (40 sink failures) and the run exited 0; the
+    stream still goes on to the end (a live stream survives a bad frame), then says so and exits 1."""
+    import cv2
+
+    monkeypatch.setattr(cv2, "imwrite", lambda *a, **k: False)  # what OpenCV returns on a full disk
+    src = "synthetic://indoor?frames=3&size=64x48"
+    rc = main(["run", src, "--timing", "asap", "--png-dir", str(tmp_path / "png")])
+    out, err = capsys.readouterr()
+    assert rc == 1 and "3 frame(s) missing from an output" in err, err
+    assert "3 frames in" in out  # every frame was still processed
+
+
+def test_the_run_report_lists_each_stages_counters(tmp_path, capsys):
+    """docs/runtime.md sends users to "the imu stage's counters in the run's statistics" for skipped IMU
+    lines, but `run` printed only the timing table and the source's counters."""
+    src = "synthetic://indoor?frames=2&size=64x48"
+    argv = ["run", src, "--timing", "asap", "--estimates", str(tmp_path / "e.jsonl"), "--set", 'imu.url="loop://"']
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "  imu: good=" in out and "implausible=" in out and "  planes: frames=2" in out, out[-600:]

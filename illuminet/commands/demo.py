@@ -478,6 +478,9 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
             _print_report(stats, stages, probe, cfg, rc, report)
     if stats.end_reason.startswith("source error"):
         rc = 1
+    if stats.sink_failures and rc == 0:  # an output lacks frames (see run's _execute)
+        print(f"illuminet demo: {stats.sink_failures} frame(s) missing from an output (sink failures)", file=sys.stderr)
+        rc = 1
     return rc
 
 

@@ -247,6 +247,14 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
         status.close()
         if stats.frames or stats.end_reason:
             print(stats.format_stats(), file=report_stream(cfg))
+            # each stage's own counters, as the demo prints them (the serial IMU's skipped lines, the
+            # planes' bad depth, the anchor's placements ...: docs/runtime.md points users here)
+            for st in stages:
+                counters = st.stats() if hasattr(st, "stats") else None
+                if counters:
+                    print(
+                        f"  {st.name}: " + ", ".join(f"{k}={v}" for k, v in counters.items()), file=report_stream(cfg)
+                    )
         o = cfg.output
         if stats.frames and not (o.video or o.png_dir or o.record or o.estimates or o.mjpeg or cfg.logging.stats_json):
             # a first `illuminet run SOURCE` processed its frames and showed only a timing table: say why
@@ -263,6 +271,15 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
                 print(f"illuminet: [logging] stats_json: cannot write {cfg.logging.stats_json}: {e}", file=sys.stderr)
                 rc = 1
     if stats.end_reason.startswith("source error"):
+        rc = 1
+    if stats.sink_failures and rc == 0:
+        # the stream went on (a live stream survives a bad frame), but an output lacks frames: a PNG
+        # folder on a full disk failed all 40 frames and the run said 0
+        print(
+            f"illuminet: {stats.sink_failures} frame(s) missing from an output (sink failures; the first of each "
+            "kind is in the log above): exit status 1",
+            file=sys.stderr,
+        )
         rc = 1
     return rc
 
