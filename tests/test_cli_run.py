@@ -370,7 +370,7 @@ def test_demo_with_an_unknown_built_in_object_says_one_thing(capsys):
     failed on the unknown object: two lines that contradict each other."""
     rc = main(["demo", "--set", 'model.bundle="builtin:teapot"', "--frames", "2", "--no-video"])
     out, err = capsys.readouterr()
-    assert rc == 1 and "SH baseline" not in out + err
+    assert rc == 2 and "SH baseline" not in out + err  # a configuration mistake (the bundle key)
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1 and "unknown built-in object 'teapot'" in lines[0], lines
 
