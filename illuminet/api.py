@@ -31,15 +31,82 @@ from illuminet.runtime.frame import Exposure, Frame, Intrinsics
 from illuminet.runtime.scene import ANCHOR, COMPOSITE, LIGHT, SHADING
 
 # --------------------------------------------------------------------------------------------------
+# argument checks
+
+
+def _shown(v: Any, limit: int = 60) -> str:
+    """``repr(v)`` on one line, cut to ``limit`` characters (an array's repr can be megabytes)."""
+    from illuminet.runtime.relight import _shown as shown
+
+    return shown(v, limit)
+
+
+def _described(v: Any) -> str:
+    """What ``v`` is, for a message: an array's shape and dtype, else its type and (short) repr."""
+    if isinstance(v, np.ndarray):
+        return f"an array of shape {v.shape} {v.dtype}"
+    return f"{type(v).__name__} {_shown(v)}"
+
+
+def _flag(value: Any, name: str, optional: bool = False) -> bool | None:
+    """A bool argument as given (``"no"`` or ``0`` is a mistake, not ``bool()``'s truth value)."""
+    if optional and value is None:
+        return None
+    if not isinstance(value, (bool, np.bool_)):
+        expected = "True, False or None" if optional else "True or False"
+        raise ValueError(f"{name}: expected {expected}, got {_described(value)}")
+    return bool(value)
+
+
+def _check_pixels(shape: tuple[int, ...], what: str) -> None:
+    """Refuse an image of more than :data:`MAX_IMAGE_PIXELS` from its shape alone, before any copy
+    (a 20000x20000 ``np.broadcast_to`` view is 12 bytes; its copy 1.2 GB)."""
+    from illuminet.commands.relight import MAX_IMAGE_PIXELS
+
+    h, w = int(shape[0]), int(shape[1])
+    if h * w > MAX_IMAGE_PIXELS:
+        raise ValueError(
+            f"{what}: {w}x{h} pixels is over the limit of {MAX_IMAGE_PIXELS / 1e6:g} Mpx; expected an image "
+            f"of at most that size: resize it first"
+        )
+
+
+def _color(color: Any, what: str = "color") -> np.ndarray:
+    """``color`` as a contiguous HxWx3 uint8 array, its shape, dtype and size checked before any copy."""
+    expected = "expected a non-empty HxWx3 uint8 RGB image (numpy array)"
+    shape = getattr(color, "shape", None)
+    if isinstance(shape, tuple) and len(shape) == 3 and all(isinstance(n, (int, np.integer)) for n in shape):
+        _check_pixels(shape, what)  # an array-like (a tensor) that knows its shape: before converting it
+    if color is None or isinstance(color, (str, bytes, dict, int, float, complex)):
+        raise ValueError(f"{what}: {expected}, got {_described(color)}")
+    try:
+        a = np.asarray(color)  # no copy for an array
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{what}: {expected}, got {type(color).__name__}: {e}") from None
+    if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.uint8 or a.size == 0:
+        raise ValueError(f"{what}: {expected}, got {a.shape} {a.dtype}")
+    _check_pixels(a.shape, what)
+    return np.ascontiguousarray(a)
+
+
+# --------------------------------------------------------------------------------------------------
 # configuration
 
 
-def _config(config: Config | str | os.PathLike | None, overrides: dict[str, Any]) -> Config:
+def _config(
+    config: Config | str | os.PathLike | None, overrides: dict[str, Any], who: str = "illuminet.open()"
+) -> Config:
     """Built-in defaults (``None``), a config.toml path or a Config, plus keyword overrides.
 
     An override key is ``section__key`` (``light__rate_hz=5``), ``"section.key"`` (through ``**{...}``),
-    or a bare key that names exactly one key of the schema (``max_frames=30``).
+    or a bare key that names exactly one key of the schema (``max_frames=30``). ``who`` names the
+    function in the messages.
     """
+    if config is not None and not isinstance(config, (Config, str, os.PathLike)):
+        raise ConfigError(
+            f"{who}: config: expected a Config, a config.toml path or None, got {type(config).__name__} "
+            f"{_shown(config)}"
+        )
     cfg = defaults() if config is None else config if isinstance(config, Config) else load(config)
     items = []
     for name, value in overrides.items():
@@ -53,7 +120,7 @@ def _config(config: Config | str | os.PathLike | None, overrides: dict[str, Any]
                     if owners
                     else "no section has it; see config.toml"
                 )
-                raise ConfigError(f"illuminet.open(): override {name}={value!r}: {where}")
+                raise ConfigError(f"{who}: override {name}={value!r}: {where}")
             section, key = owners[0], name
         items.append((section, key, value))
     return apply_overrides(cfg, items)
@@ -224,7 +291,14 @@ def open(
     ------
     ConfigError
         An unknown or ambiguous override, or a bad value (the message names it).
+    ValueError
+        ``url`` not a string, ``render`` / ``strict`` not a bool.
     """
+    if not isinstance(url, str):
+        raise ValueError(
+            f"url: expected a source URL string such as 'synthetic://lamp' or 'oakd://', got {_described(url)}"
+        )
+    render, strict = _flag(render, "render"), _flag(strict, "strict", optional=True)
     return Stream(url, _config(config, overrides), render=render, strict=strict)
 
 
@@ -252,13 +326,18 @@ def _intrinsics(intrinsics: Any, width: int, height: int) -> Intrinsics:
                     f"intrinsics: a 3x3 camera matrix must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], got "
                     f"{a.tolist()} (transposed?)"
                 )
+            if a[0, 1] != 0:
+                raise ValueError(
+                    f"intrinsics: the 3x3 camera matrix has skew K[0, 1]={a[0, 1]:g}; the pipeline models no "
+                    f"skew: undistort/rectify the image, or pass (fx, fy, cx, cy)"
+                )
             K = Intrinsics(float(a[0, 0]), float(a[1, 1]), float(a[0, 2]), float(a[1, 2]), width, height)
         elif a.shape == (4,):
             K = Intrinsics(*(float(x) for x in a), width, height)
         else:
             raise ValueError(
                 f"intrinsics: expected an Intrinsics, a 3x3 camera matrix or (fx, fy, cx, cy), "
-                f"got an array of shape {a.shape}"
+                f"got {'None' if intrinsics is None else f'an array of shape {a.shape}'}"
             )
     check_intrinsics(K)
     return fit_intrinsics(K, width, height)
@@ -274,9 +353,15 @@ def align_depth(depth: np.ndarray, color_shape: tuple[int, ...], what: str = "de
     """
     import cv2
 
-    d = np.asarray(depth)
+    if depth is None or isinstance(depth, (str, bytes, dict, int, float, complex)):
+        raise ValueError(f"{what}: expected a 2-D array of depths (a single-channel image), got {_described(depth)}")
+    try:
+        d = np.asarray(depth)  # no copy for an array
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{what}: expected a 2-D array of depths, got {type(depth).__name__}: {e}") from None
     if d.ndim != 2:
         raise ValueError(f"{what}: expected a single-channel image, got shape {d.shape}")
+    _check_pixels(d.shape, what)  # before the float32 copy
     if d.size == 0:
         raise ValueError(f"{what}: empty (shape {d.shape}); expected a 2-D array of depths")
     if d.dtype.kind not in "fiu":
@@ -329,18 +414,24 @@ def relight(
         white diffuse surface in the image's linear units), ``irradiance``, ``T_cam_obj``, ... (see
         :class:`illuminet.runtime.relight.RelightResult`; ``illuminet relight``'s npz holds the same).
         :func:`render_preview` draws it into the image.
+
+    Raises
+    ------
+    ValueError
+        A mistake in an argument, one line naming it: ``color`` not HxWx3 uint8 or over
+        :data:`~illuminet.commands.relight.MAX_IMAGE_PIXELS`, ``depth``, ``intrinsics``, ``anchor_px``
+        not two finite numbers inside the image, ``config`` (a :class:`ConfigError`), ``exposure``.
     """
+    from illuminet.runtime.relight import check_anchor_px
     from illuminet.runtime.relight import relight as _relight
 
-    color = np.ascontiguousarray(color)
-    if color.ndim != 3 or color.shape[2] != 3 or color.dtype != np.uint8 or color.size == 0:
-        raise ValueError(f"color: expected a non-empty HxWx3 uint8 RGB image, got {color.shape} {color.dtype}")
+    color = _color(color)  # shape, dtype and size checked before the copy
     d = align_depth(depth, color.shape)
     h, w = color.shape[:2]
     K = _intrinsics(intrinsics, w, h)
-    return _relight(
-        color, d, K, tuple(anchor_px), _config(config, overrides), bundle=bundle, exposure=exposure, precision=precision
-    )
+    anchor = check_anchor_px(anchor_px, w, h, "anchor_px")
+    cfg = _config(config, overrides, "illuminet.relight()")
+    return _relight(color, d, K, anchor, cfg, bundle=bundle, exposure=exposure, precision=precision)
 
 
 def render_preview(
@@ -355,17 +446,23 @@ def render_preview(
 
     ``result`` is what :func:`relight` returned; the same bundle's render mesh is drawn with its
     predicted shading, cast shadow and occlusion by the real depth (as ``illuminet run`` draws it).
-    Needs OpenGL via EGL (``illuminet doctor`` says whether it works).
+    Needs OpenGL via EGL (``illuminet doctor`` says whether it works). The arguments are checked as
+    :func:`relight` checks them (a ValueError naming the argument) before any rendering.
     """
+    from illuminet.runtime.relight import RelightResult
     from illuminet.runtime.render.shadow import dominant_light
     from illuminet.runtime.render.stage import RenderStage
     from illuminet.runtime.scene import ObjectShading
 
-    color = np.ascontiguousarray(color)
+    if not isinstance(result, RelightResult):
+        raise ValueError(
+            f"result: expected the RelightResult that illuminet.relight() returned, got {_described(result)}"
+        )
+    color = _color(color)  # shape, dtype and size checked before the copy
     h, w = color.shape[:2]
     d = None if depth is None else align_depth(depth, color.shape)
     K = _intrinsics(intrinsics, w, h)
-    cfg = _config(config, overrides)
+    cfg = _config(config, overrides, "illuminet.render_preview()")
     if str(result.bundle):  # the bundle folder relight loaded: the same object and carry
         cfg = apply_overrides(cfg, [("model", "bundle", str(result.bundle))])
     R = np.asarray(result.T_cam_obj)[:3, :3]

@@ -151,6 +151,43 @@ def _is_number(v) -> bool:
     return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
 
 
+def _shown(v, limit: int = 60) -> str:
+    """``repr(v)`` cut to ``limit`` characters, for a message of one line."""
+    r = " ".join(repr(v).split())
+    return r if len(r) <= limit else r[: limit - 3] + "..."
+
+
+def check_anchor_px(anchor_px, width: int, height: int, what: str = "anchor pixel") -> tuple[float, float]:
+    """``anchor_px`` as ``(x, y)`` floats: exactly two finite real numbers (ints, floats or numpy scalars,
+    not bools) in a tuple, list or (2,) array, inside the ``width`` x ``height`` image."""
+    expected = "expected (x, y): two finite numbers in pixels of the colour image"
+    if isinstance(anchor_px, np.ndarray):
+        if anchor_px.shape != (2,):
+            raise ValueError(f"{what}: {expected}, got an array of shape {anchor_px.shape}")
+        vals = list(anchor_px)
+    elif isinstance(anchor_px, (tuple, list)):
+        if len(anchor_px) != 2:
+            raise ValueError(f"{what}: {expected}, got {len(anchor_px)} values {_shown(anchor_px)}")
+        vals = list(anchor_px)
+    else:
+        raise ValueError(f"{what}: {expected}, got {type(anchor_px).__name__} {_shown(anchor_px)}")
+    for v in vals:
+        if not _is_number(v):
+            raise ValueError(f"{what}: {expected}, got {_shown(v)} ({type(v).__name__}) in {_shown(anchor_px)}")
+    try:
+        x, y = float(vals[0]), float(vals[1])
+    except OverflowError:  # a Python int beyond any float
+        x = y = math.inf
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise ValueError(f"{what}: {expected}, got {_shown(anchor_px)}")
+    if not (0 <= x < width and 0 <= y < height):
+        raise ValueError(
+            f"{what}: ({x:g}, {y:g}) is outside the {width}x{height} image; expected 0 <= x < {width} and "
+            f"0 <= y < {height}"
+        )
+    return x, y
+
+
 def check_intrinsics(K: Intrinsics, what: str = "intrinsics") -> None:
     """Focal lengths must be positive and every value finite; the size (when given) positive whole
     pixels up to :data:`MAX_INTRINSICS_SIDE`; the focal lengths a field of view in :data:`FOV_RANGE_DEG`
@@ -294,9 +331,8 @@ def relight(
     check_exposure(exposure)
     h, w = np.shape(depth)[:2]
     intrinsics = fit_intrinsics(intrinsics, w, h)  # made for a proportional size: scaled; else refused
-    if not (0 <= anchor_px[0] < w and 0 <= anchor_px[1] < h):
-        raise ValueError(f"anchor pixel ({anchor_px[0]}, {anchor_px[1]}) is outside the {w}x{h} image")
-    over = [("anchor", "mode", "pixel"), ("anchor", "pixel", [float(anchor_px[0]), float(anchor_px[1])])]
+    anchor_px = check_anchor_px(anchor_px, w, h)
+    over = [("anchor", "mode", "pixel"), ("anchor", "pixel", list(anchor_px))]
     if bundle is not None:
         over.append(("model", "bundle", bundle))
     if precision is not None:
@@ -332,14 +368,14 @@ def relight(
             st.close()
     if ANCHOR.name not in f.results or PLANE_LIGHT.name not in f.results:
         raise ValueError(
-            f"no plane found under the anchor pixel ({anchor_px[0]}, {anchor_px[1]}): "
+            f"no plane found under the anchor pixel ({anchor_px[0]:g}, {anchor_px[1]:g}): "
             "the depth there does not belong to a detected plane"
         )
     anchor, pl, source = f.results[ANCHOR.name], f.results[PLANE_LIGHT.name], "stages"
     light = f.results.get(LIGHT.name)
     if anchor.synthetic or not np.any(pl.mask):
         raise ValueError(
-            f"no real plane observed under the anchor pixel ({anchor_px[0]}, {anchor_px[1]}); "
+            f"no real plane observed under the anchor pixel ({anchor_px[0]:g}, {anchor_px[1]:g}); "
             "relight needs the plane under the object to be visible in the image"
         )
     if shading_stage.mode == "prt" and light is None:

@@ -177,3 +177,155 @@ def test_relight_api_scales_intrinsics_of_a_proportional_size_and_save_names_the
     assert scaled.save(tmp_path / "r.out") == str(tmp_path / "r.out.npz")  # numpy's rule, told
     assert (tmp_path / "r.out.npz").is_file()
     assert full.save(tmp_path / "r.npz") == str(tmp_path / "r.npz")
+
+
+# --------------------------------------------------------------------------------------------------
+# argument checks: one ValueError naming the argument, what was expected and what was given
+
+
+def _one_line(e: pytest.ExceptionInfo) -> str:
+    msg = str(e.value)
+    assert "\n" not in msg and len(msg) < 400, msg
+    return msg
+
+
+@pytest.mark.parametrize(
+    "anchor, match",
+    [
+        (None, "anchor_px: expected \\(x, y\\).*got NoneType None"),
+        (np.float64(3.0), "anchor_px: expected \\(x, y\\).*got float64"),
+        (np.array(5.0), "anchor_px: expected .*got an array of shape \\(\\)"),
+        ((5,), "anchor_px: expected .*got 1 values \\(5,\\)"),
+        ((160, 130, 99), "anchor_px: expected .*got 3 values \\(160, 130, 99\\)"),
+        (("300", "200"), "anchor_px: expected .*got '300' \\(str\\)"),
+        ("ab", "anchor_px: expected .*got str 'ab'"),
+        ({"x": 1, "y": 2}, "anchor_px: expected .*got dict"),
+        ((1 + 2j, 3), "anchor_px: expected .*\\(complex\\)"),
+        (np.array([[160.0], [130.0]]), "anchor_px: expected .*got an array of shape \\(2, 1\\)"),
+        ((True, True), "anchor_px: expected .*got True \\(bool\\)"),
+        (np.array([True, False]), "anchor_px: expected .*\\(bool_?\\)"),
+        ((float("nan"), 130), "anchor_px: expected .*two finite numbers.*nan"),
+        ((160, float("inf")), "anchor_px: expected .*two finite numbers.*inf"),
+        ((10**400, 130), "anchor_px: expected .*two finite numbers"),
+        ((900, 130), "anchor_px: \\(900, 130\\) is outside the 320x200 image; expected 0 <= x < 320"),
+        ((-1, 130), "anchor_px: \\(-1, 130\\) is outside the 320x200 image"),
+        ((160, 200), "anchor_px: \\(160, 200\\) is outside the 320x200 image"),
+    ],
+)
+def test_relight_refuses_a_bad_anchor_px(anchor, match):
+    color, depth, K = floor_rgbd()  # 320x200
+    with pytest.raises(ValueError, match=match) as e:
+        illuminet.relight(color, depth, K, anchor, "builtin:vase")
+    _one_line(e)
+
+
+def test_relight_accepts_anchor_px_as_numpy_scalars_a_list_or_an_array():
+    from illuminet.runtime.relight import check_anchor_px
+
+    for ok in ((np.int64(160), np.float32(130)), [160, 130.5], np.array([160, 130]), np.array([160.0, 130.0])):
+        x, y = check_anchor_px(ok, 320, 200, "anchor_px")
+        assert type(x) is float and type(y) is float and x == 160
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        ({"color": None}, "color: expected a non-empty HxWx3 uint8 RGB image.*got NoneType"),
+        ({"color": "c.png"}, "color: expected .*got str 'c.png'"),
+        ({"color": np.zeros((200, 320), np.uint8)}, "color: expected .*got \\(200, 320\\) uint8"),
+        ({"color": np.zeros((200, 320, 3), np.float32)}, "color: expected .*got \\(200, 320, 3\\) float32"),
+        ({"depth": None}, "depth: expected a 2-D array of depths.*got NoneType"),
+        ({"depth": "d.png"}, "depth: expected a 2-D array of depths.*got str"),
+        ({"intrinsics": None}, "intrinsics: expected an Intrinsics, a 3x3 camera matrix .*got None"),
+        ({"intrinsics": "256,256,160,100"}, "intrinsics: expected numbers in pixels"),
+        ({"intrinsics": [[256, 0.5, 160], [0, 256, 100], [0, 0, 1]]}, "intrinsics: .*skew K\\[0, 1\\]=0.5.*undistort"),
+        ({"config": 5}, "illuminet.relight\\(\\): config: expected a Config, a config.toml path or None, got int"),
+        ({"config": b"c.toml"}, "config: expected a Config, a config.toml path or None, got bytes"),
+        ({"nope": 1}, "illuminet.relight\\(\\): override nope=1: no section has it"),
+    ],
+)
+def test_relight_refuses_bad_arguments_naming_them(kw, match):
+    color, depth, K = floor_rgbd()
+    args = {"color": color, "depth": depth, "intrinsics": K} | kw
+    with pytest.raises(ValueError, match=match) as e:
+        color, depth, K = args.pop("color"), args.pop("depth"), args.pop("intrinsics")
+        illuminet.relight(color, depth, K, (160, 130), "builtin:vase", **args)
+    _one_line(e)
+
+
+def test_relight_refuses_a_huge_image_from_its_shape_before_any_copy():
+    import time
+    import tracemalloc
+
+    from illuminet.commands.relight import MAX_IMAGE_PIXELS
+
+    color, depth, K = floor_rgbd()  # 320x200: the depth of the same aspect ratio would be resized down
+    huge_color = np.broadcast_to(np.uint8(128), (20000, 20000, 3))  # 12 bytes that read as 1.2 GB
+    huge_depth = np.broadcast_to(np.float32(1.0), (20000, 12500))
+    cases = [
+        (lambda: illuminet.relight(huge_color, depth, K, (160, 130)), "color: 20000x20000 pixels is over"),
+        (lambda: illuminet.relight(color, huge_depth, K, (160, 130)), "depth: 12500x20000 pixels is over"),
+        (lambda: illuminet.align_depth(huge_depth, color.shape), "depth: 12500x20000 pixels is over"),
+    ]
+    for call, match in cases:
+        tracemalloc.start()
+        t0 = time.perf_counter()
+        with pytest.raises(ValueError, match=f"{match} the limit of {MAX_IMAGE_PIXELS / 1e6:g} Mpx") as e:
+            call()
+        elapsed = time.perf_counter() - t0
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        _one_line(e)
+        assert elapsed < 0.5, f"{match}: refused after {elapsed:.2f} s"
+        assert peak < 50e6, f"{match}: {peak / 1e6:.0f} MB allocated before refusing"
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        ({"color": None}, "color: expected a non-empty HxWx3 uint8 RGB image.*got NoneType"),
+        ({"color": np.broadcast_to(np.uint8(128), (20000, 20000, 3))}, "color: 20000x20000 pixels is over the limit"),
+        ({"color": np.zeros((200, 320, 4), np.uint8)}, "color: expected .*got \\(200, 320, 4\\) uint8"),
+        ({"result": None}, "result: expected the RelightResult that illuminet.relight\\(\\) returned, got NoneType"),
+        ({"result": "x"}, "result: expected the RelightResult .*got str 'x'"),
+        ({"depth": "d.png"}, "depth: expected a 2-D array of depths.*got str"),
+        ({"intrinsics": (1.0, 2.0)}, "intrinsics: expected"),
+        ({"config": 5}, "illuminet.render_preview\\(\\): config: expected a Config"),
+        ({"nope": 1}, "illuminet.render_preview\\(\\): override nope=1"),
+    ],
+)
+def test_render_preview_refuses_bad_arguments_before_rendering(kw, match, monkeypatch):
+    import illuminet.runtime.render.stage as render_stage
+    from illuminet.runtime.relight import RelightResult
+
+    def no_gl(*a, **k):
+        raise AssertionError("RenderStage was made before the arguments were checked")
+
+    monkeypatch.setattr(render_stage, "RenderStage", no_gl)
+    color, depth, K = floor_rgbd()
+    fake = object.__new__(RelightResult)  # never drawn: every case is refused before
+    args = {"color": color, "depth": depth, "intrinsics": K, "result": fake} | kw
+    with pytest.raises(ValueError, match=match) as e:
+        color, depth, K, result = args.pop("color"), args.pop("depth"), args.pop("intrinsics"), args.pop("result")
+        illuminet.render_preview(color, depth, K, result, **args)
+    _one_line(e)
+
+
+@pytest.mark.parametrize(
+    "args, kw, match",
+    [
+        ((5,), {}, "url: expected a source URL string .*got int 5"),
+        ((None,), {}, "url: expected a source URL string .*got NoneType"),
+        (("synthetic://indoor",), {"strict": "no"}, "strict: expected True, False or None, got str 'no'"),
+        (("synthetic://indoor",), {"strict": 0}, "strict: expected True, False or None, got int 0"),
+        (("synthetic://indoor",), {"render": "no"}, "render: expected True or False, got str 'no'"),
+        (("synthetic://indoor",), {"render": None}, "render: expected True or False, got NoneType"),
+        (("synthetic://indoor", 5), {}, "illuminet.open\\(\\): config: expected a Config, a config.toml path or None"),
+    ],
+)
+def test_open_refuses_bad_arguments_naming_them(args, kw, match):
+    with pytest.raises(ValueError, match=match) as e:
+        illuminet.open(*args, **kw)
+    _one_line(e)
+    s = illuminet.open("synthetic://indoor", render=np.bool_(False), strict=True)
+    assert s.render is False and s.strict is True
