@@ -259,6 +259,9 @@ def test_a_catalogue_is_a_folder_a_list_file_or_specs(tmp_path):
         ("builtin:teapot", "unknown built-in object"),
         (str(shop / "missing.obj"), "no such mesh file"),
         (f"{shop / 'chair.obj'},{shop / 'sub'}/../chair.obj", "same folder"),
+        ("", "the list names no objects"),  # was Path('') = the current folder: or --objects '' trained a vase
+        (",,", "the list names no objects"),  # was "0 objects: 0 trained", exit 0
+        (" , ", "the list names no objects"),
     ):
         with pytest.raises(cluster.JobError, match=msg) as e:
             catalogue(bad)
@@ -279,6 +282,49 @@ def test_train_refuses_a_bundle_of_another_configuration(tmp_path):
     assert _trained(tmp_path / "bowl", tcfg)  # done: skipped by a rerun
     with pytest.raises(cluster.JobError, match=r"another configuration \(epochs_gae\): delete it"):
         _trained(tmp_path / "bowl", make_config("tiny", object="builtin:bowl", seed=0, epochs_gae=3))
+
+
+def test_train_out_must_be_new_empty_or_its_own_output(tmp_path):
+    # train wrote bundle.json, mesh.npz, *.onnx and work/ into any folder, package sources included
+    import json
+
+    from illuminet.commands.train import check_bundle_out, check_catalogue_out
+
+    from .conftest import REPO
+
+    check_bundle_out(tmp_path / "new", "builtin:bowl")
+    (tmp_path / "empty").mkdir()
+    check_bundle_out(tmp_path / "empty", "builtin:bowl")
+    own = tmp_path / "cat" / "bowl"  # an interrupted run: no bundle.json yet
+    (own / "work").mkdir(parents=True)
+    for name in ("work/data_train.npz", "work/gae_plane.npz", "work/log.jsonl", "mesh.npz", ".mesh.npz.tmp-12"):
+        (own / name).write_bytes(b"")
+    check_bundle_out(own, "builtin:bowl")
+    (own / "bundle.json").write_text(json.dumps({"object": "builtin:bowl"}))
+    check_bundle_out(own, "builtin:bowl")
+    check_bundle_out(REPO / "models" / "bundles" / "vase", "builtin:vase")  # the shipped bundle: retrained in place
+    check_catalogue_out(tmp_path / "cat", [("bowl", "builtin:bowl"), ("sphere", "builtin:sphere")])
+    check_catalogue_out(REPO / "models" / "bundles", [("vase", "builtin:vase")])
+    for folder, spec, msg in (
+        (own, "builtin:vase", "holds a bundle of 'builtin:bowl', not 'builtin:vase'"),
+        (REPO / "runtime", "builtin:bowl", r"holds .*__init__\.py"),  # a package source folder
+        (REPO / "models", "builtin:bowl", r"holds .*__init__\.py"),
+    ):
+        with pytest.raises(cluster.JobError, match=msg) as e:
+            check_bundle_out(folder, spec)
+        assert e.value.exit_code == 2 and "choose another --out" in str(e.value)
+    (own / "work" / "notes.txt").write_text("mine")
+    with pytest.raises(cluster.JobError, match="holds work/notes.txt: expected a new or empty folder"):
+        check_bundle_out(own, "builtin:bowl")
+    with pytest.raises(cluster.JobError, match="holds bowl/: expected a new or empty folder, or one holding only"):
+        check_catalogue_out(tmp_path / "cat", [("bowl", "builtin:bowl")])
+    (own / "work" / "notes.txt").unlink()
+    (tmp_path / "cat" / "keep.txt").write_text("mine")
+    with pytest.raises(cluster.JobError, match="holds keep.txt: expected a new or empty folder"):
+        check_catalogue_out(tmp_path / "cat", [("bowl", "builtin:bowl")])
+    (tmp_path / "cat" / "keep.txt").unlink()
+    with pytest.raises(cluster.JobError, match="bowl holds a bundle of 'builtin:bowl', not 'builtin:vase'"):
+        check_catalogue_out(tmp_path / "cat", [("bowl", "builtin:vase")])
 
 
 _NO_RAY = """

@@ -74,6 +74,7 @@ BAD_INPUTS = [
 _BUNDLE = ["bundle", "--object", "builtin:sphere", "--out", "{tmp}/b", "--quiet"]
 _DATAGEN = ["datagen", "--object", "builtin:sphere", "--out", "{tmp}/dg.npz", "--samples", "2", "--quiet"]
 _TRAIN = ["train", "--object", "builtin:sphere", "--preset", "tiny", "--out", "{tmp}/t", "--quiet"]
+_TRAIN_CAT = ["train", "--preset", "tiny", "--hdr", "", "--out", "{tmp}/t", "--quiet", "--objects"]
 _EVAL = ["eval", "--no-figure", "--cases", "1", "--camera-scenes", "0", "--out", "{tmp}/ev"]
 BAD_INPUTS += [
     (_BUNDLE + ["--height", "inf"], 2, "--height inf: expected a finite number of metres from 0.001 to 1000"),
@@ -106,6 +107,16 @@ BAD_INPUTS += [
     (_TRAIN + ["--hdr", "{tmp}/afile"], 2, "--hdr {tmp}/afile: is a file, not a folder"),
     (_TRAIN + ["--hdr", "{tmp}/nothing"], 2, "--hdr {tmp}/nothing: no such folder"),
     (_TRAIN + ["--out", "{tmp}/afile"], 2, "--out {tmp}/afile: is a file, expected a folder"),
+    # a folder that holds something else (was filled with bundle.json, mesh.npz, *.onnx and work/, exit 0)
+    (_TRAIN + ["--out", "{tmp}"], 2, "--out {tmp} holds afile, bad.toml, binary.toml and 1 more: expected a new"),
+    (_TRAIN_CAT + ["builtin:sphere", "--out", "{tmp}/hdr3"], 2, "--out {tmp}/hdr3 holds a.hdr, b.hdr, c.hdr: expected"),
+    # blank lists: '' trained builtin:vase into the --out root, ',,' was "0 objects: 0 trained", exit 0
+    (_TRAIN_CAT + [""], 2, "--objects '': the list names no objects; expected a folder of mesh files"),
+    (_TRAIN_CAT + [",,"], 2, "--objects ',,': the list names no objects"),
+    (_TRAIN + ["--object", " "], 2, "--object ' ': expected a mesh file or builtin:NAME"),
+    # absurd sample counts: ran until killed, memory growing
+    (_TRAIN + ["--n-train", "100000000"], 2, "--n-train 100000000: the samples would take about 718 GB"),
+    (_DATAGEN + ["--samples", "10000000000"], 2, "--samples 10000000000: the samples would take about 233 TB"),
     (_EVAL + ["--out", "{tmp}/afile"], 2, "--out {tmp}/afile: is a file, expected a folder"),
     (_EVAL + ["--hdr", "{tmp}/nothing"], 2, "--hdr {tmp}/nothing: no such folder"),
     (_EVAL + ["--hdr", "{tmp}/afile"], 2, "--hdr {tmp}/afile: is a file, not a folder"),
@@ -140,6 +151,22 @@ def test_a_mistake_is_one_line_with_its_exit_status(tmp_path, capsys, argv, code
     assert not (tmp_path / "missing").exists()
     # nor was an output of the offline jobs begun
     assert not any((tmp_path / p).exists() for p in ("b", "dg.npz", "t", "ev")), sorted(tmp_path.iterdir())
+
+
+def test_an_oversized_hdr_map_is_a_warning_not_a_traceback(tmp_path, capsys, caplog):
+    # its header's 100000 x 100000 pixels made OpenCV raise cv2.error (CV_IO_MAX_IMAGE_PIXELS): exit 1
+    (tmp_path / "hdr").mkdir()
+    big = tmp_path / "hdr" / "big.hdr"
+    big.write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 100000 +X 100000\n" + b"abcd" * 100)
+    argv = _DATAGEN + ["--n-proxy", "16", "--hdr", "{tmp}/hdr", "--hdr-share", "1"]
+    assert main([a.replace("{tmp}", str(tmp_path)) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "cv2.error" not in err, err
+    lines = [ln for ln in err.splitlines() if ln.startswith("illuminet: ")]
+    assert len(lines) == 1 and f"--hdr {tmp_path}/hdr: none of its training maps" in lines[0], err
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING" and "big.hdr" in r.getMessage()]
+    assert len(warned) == 1 and "header claims 100000 x 100000 pixels" in warned[0], caplog.text
+    assert not (tmp_path / "dg.npz").exists()
 
 
 def test_a_gl_backend_that_cannot_start_is_one_line():

@@ -174,6 +174,33 @@ def test_load_hdr_errors_name_the_file(tmp_path):
         L.load_hdr(bad)
 
 
+def test_load_hdr_reads_the_header_size_before_the_pixels(tmp_path):
+    # a header claiming 100000 x 100000 pixels made OpenCV raise cv2.error (CV_IO_MAX_IMAGE_PIXELS), a
+    # traceback out of datagen and train instead of the warning an unreadable map gets
+    big = tmp_path / "big.hdr"
+    big.write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 100000 +X 100000\n" + b"abcd" * 100)
+    with pytest.raises(ValueError, match=r"big.hdr: its header claims 100000 x 100000 pixels, more than"):
+        L.load_hdr(big)
+    # within the limit but far shorter than its pixels: refused before OpenCV allocates them
+    short = tmp_path / "short.hdr"
+    short.write_bytes(b"#?RADIANCE\n\n-Y 8192 +X 16384\n" + b"abcd" * 100)
+    with pytest.raises(ValueError, match=r"short.hdr: cannot read as an HDR image \(truncated"):
+        L.load_hdr(short)
+    for line in (b"", b"-Y 4 -Y 8", b"-Y x +X 8", b"-Y 0 +X 8"):
+        junk = tmp_path / "junk.hdr"
+        junk.write_bytes(b"#?RADIANCE\n\n" + line + b"\n" + b"\0" * 64)
+        with pytest.raises(ValueError, match="junk.hdr: cannot read as an HDR image"):
+            L.load_hdr(junk)
+    cv2 = pytest.importorskip("cv2")
+    for h, w in ((1, 1), (4, 7), (16, 32), (3, 40000)):  # flat and run-length scanlines read as before
+        ok = tmp_path / f"ok_{h}_{w}.hdr"
+        img = np.random.default_rng(0).random((h, w, 3), dtype=np.float32)
+        cv2.imwrite(str(ok), img)
+        assert L.hdr_header_size(ok) == (h, w) and L.load_hdr(ok).shape == (h, w, 3)
+    (tmp_path / "bad.hdr").write_bytes(b"not an image")
+    assert L.hdr_header_size(tmp_path / "bad.hdr") is None  # not Radiance: left to OpenCV (and refused there)
+
+
 @pytest.mark.shared_data
 def test_real_hdr_median_cut(shared_data):
     img = L.load_hdr(shared_data / "hdri" / "chinese_garden_1k.hdr")

@@ -47,7 +47,13 @@ def register(sub) -> None:
     )
     p.add_argument("--object", required=True, metavar="PATH|builtin:NAME", help="a mesh file or builtin:NAME")
     p.add_argument("--out", required=True, metavar="FILE.npz", help="the data file to write")
-    p.add_argument("--samples", type=int, default=3000, help="number of samples (default 3000)")
+    p.add_argument(
+        "--samples",
+        type=int,
+        default=3000,
+        help="number of samples (default 3000); the file is built in memory and may hold at most 16 GiB "
+        "(about 23 KB a sample at the default --grid and --n-proxy: at most 737206 samples)",
+    )
     p.add_argument("--seed", type=int, default=0, help="data set seed, >= 0 (default 0)")
     p.add_argument("--n-proxy", type=int, default=400, help="lighting proxy vertices (default 400, as train)")
     p.add_argument("--grid", type=int, default=32, help="plane grid cells per side (default 32)")
@@ -117,7 +123,15 @@ def write(out: Path, arrays, meta: dict) -> None:
 
 
 def run(args: argparse.Namespace, cfg) -> int:
-    from illuminet.commands.train import DEFAULT_HDR, check_count, check_hdr, check_number, check_out, check_seed
+    from illuminet.commands.train import (
+        DEFAULT_HDR,
+        check_count,
+        check_data_size,
+        check_hdr,
+        check_number,
+        check_out,
+        check_seed,
+    )
     from illuminet.runtime.config import SCHEMA
 
     cluster.check_arguments(args)
@@ -133,6 +147,8 @@ def run(args: argparse.Namespace, cfg) -> int:
     check_count("--grid", args.grid, 8, int(grid.max), note=" (cells per side, as [plane_light] grid allows)")
     check_number("--extent", args.extent, extent.min, extent.max, " of metres", " (as [plane_light] extent_m allows)")
     check_number("--hdr-share", args.hdr_share, 0.0, 1.0, note=" (the share of HDR-lit samples)")
+    fix = "give fewer, or make several files with different --seed (each sample's stream depends on both)"
+    check_data_size("--samples", args.samples, args.grid, args.n_proxy, fix)
     out = Path(args.out)
     if out.is_dir():
         raise _usage(f"--out {out} is a folder; give the data file's name (e.g. {out / 'data.npz'})")

@@ -139,6 +139,41 @@ def check_number(flag: str, value: float, least: float, most: float, unit: str =
         raise _usage(f"{flag} {value}: expected a finite number{unit} from {least:g} to {most:g}{note}")
 
 
+#: the most bytes of samples one job may make: ``datagen`` assembles its file in memory (about twice this at
+#: the end) and ``train`` keeps its training and validation sets in memory and in ``<out>/work``
+DATA_MAX_BYTES = 16 * 2**30
+#: float32 values of one sample besides the plane cells (4 each) and proxy vertices (12 each): scale, kind
+_SAMPLE_EXTRA = 2
+
+
+def sample_bytes(grid: int, n_proxy: int) -> int:
+    """Bytes of one data sample: the pooled plane cells (4 floats), 12 floats per proxy vertex (OI and
+    shading), the scale and the kind (see :mod:`illuminet.models.datagen`)."""
+    from illuminet.runtime.stages.shading import POOL
+
+    return 4 * ((grid // POOL) ** 2 * 4 + n_proxy * 12 + _SAMPLE_EXTRA)
+
+
+def size_text(n: float) -> str:
+    """``n`` bytes as a short text: 35 KB, 1.2 GB, 350 TB (powers of 1000)."""
+    for unit in ("bytes", "KB", "MB", "GB", "TB", "PB"):
+        if n < 1000 or unit == "PB":
+            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.3g} {unit}"
+        n /= 1000
+    raise AssertionError
+
+
+def check_data_size(flag: str, samples: int, grid: int, n_proxy: int, fix: str) -> None:
+    """Refuse a sample count whose data would exceed :data:`DATA_MAX_BYTES` (before any is made)."""
+    each = sample_bytes(grid, n_proxy)
+    if samples * each > DATA_MAX_BYTES:
+        raise _usage(
+            f"{flag} {samples}: the samples would take about {size_text(samples * each)} ({size_text(each)} each at "
+            f"grid {grid}, n-proxy {n_proxy}), over the {DATA_MAX_BYTES // 2**30} GiB limit: expected at most "
+            f"{DATA_MAX_BYTES // each} samples; {fix}"
+        )
+
+
 def check_out(flag: str, out: Path, folder: bool) -> None:
     """Refuse an output path that cannot be made: a file where a folder is needed (``folder``: ``out``
     itself), or a file where one of its parent folders would be. Checked before any work."""
@@ -179,6 +214,9 @@ def check_hdr(hdr: str | None, held_out: bool = False) -> None:
 def catalogue(arg: str) -> list[tuple[str, str]]:
     """``--objects DIR|LIST`` -> [(name, spec)]: the mesh files of a folder (sorted), the lines of a
     text file (paths relative to it) or a comma-separated list. File specs become absolute paths."""
+    want = "expected a folder of mesh files, a text file of specs or spec,spec,... (e.g. builtin:vase,builtin:bowl)"
+    if not arg.replace(",", "").strip():  # Path('') is the current folder: never scan it for a blank argument
+        raise _usage(f"--objects {arg!r}: the list names no objects; {want}")
     src = Path(arg)
     if src.is_dir():
         specs = [str(p.resolve()) for p in sorted(src.iterdir()) if p.suffix.lower() in MESH_SUFFIXES]
@@ -197,6 +235,8 @@ def catalogue(arg: str) -> list[tuple[str, str]]:
             raise _usage(f"--objects {arg}: the list names no objects")
     else:
         specs = [x.strip() for x in arg.split(",") if x.strip()]
+        if not specs:
+            raise _usage(f"--objects {arg!r}: the list names no objects; {want}")
         specs = [x if x.startswith("builtin:") else str(Path(x).resolve()) for x in specs]
     from illuminet.runtime.assets.objects import BUILTIN_OBJECTS
 
@@ -304,22 +344,109 @@ _OVERRIDE_LEAST = {
 }
 
 
-def check_train_arguments(args: argparse.Namespace) -> None:
-    """Every flag's value, before JAX is imported or any data is made."""
+#: what train writes into a bundle folder (``illuminet bundle`` adds prt.npz, ``eval --update-bundle``
+#: eval.json); ``work/`` holds its checkpoints, cached data (.npz) and log.jsonl
+_OWN_FILES = frozenset({"bundle.json", "mesh.npz", "transfer_fp32.onnx", "transfer_int8.onnx", "prt.npz", "eval.json"})
+
+
+def _foreign(folder: Path) -> list[str]:
+    """The entries of ``folder`` that are not a bundle's files or train's own work (sorted)."""
+    bad = []
+    for p in sorted(folder.iterdir()):
+        if p.name.startswith(".") and ".tmp-" in p.name:  # an interrupted atomic write
+            continue
+        if p.name == "work" and p.is_dir() and not p.is_symlink():
+            own = (".npz", ".jsonl")
+            bad += [f"work/{q.name}" for q in sorted(p.iterdir()) if not (q.is_file() and q.suffix in own)]
+        elif p.name not in _OWN_FILES or not p.is_file():
+            bad.append(p.name + ("/" if p.is_dir() else ""))
+    return bad
+
+
+def _listed(names: list[str]) -> str:
+    return ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+
+
+def check_bundle_out(out: Path, spec: str | None) -> None:
+    """Refuse a bundle folder that holds something else: an existing ``out`` must be empty or hold only a
+    bundle (of ``spec``, when given) and train's own earlier output (``work/``). Before any work."""
+    import json
+
+    from illuminet.commands.bundle import _same_object
+    from illuminet.runtime.assets.bundle import METADATA
+
+    if not out.is_dir():
+        return
+    bad = _foreign(out)
+    if bad:
+        raise _usage(
+            f"--out {out} holds {_listed(bad)}: expected a new or empty folder, or one holding only a bundle and "
+            "train's own earlier output: choose another --out"
+        )
+    if spec is not None and (out / METADATA).is_file():
+        try:
+            have = json.loads((out / METADATA).read_text()).get("object", "")
+        except (OSError, ValueError, AttributeError):
+            raise _usage(f"--out {out}: its {METADATA} is not valid JSON: choose another --out") from None
+        if not _same_object(str(have), spec):
+            raise _usage(f"--out {out} holds a bundle of {have!r}, not {spec!r}: choose another --out")
+
+
+def check_catalogue_out(root: Path, objects: list[tuple[str, str]]) -> None:
+    """Refuse a catalogue folder that holds something else: an existing ``root`` may hold only bundle
+    folders (those of ``objects``, ``<name>/``, checked as :func:`check_bundle_out`) and the failed
+    objects' ``.errors/``."""
+    if not root.is_dir():
+        return
+    bad = []
+    for p in sorted(root.iterdir()):
+        if p.name == cluster.ERRORS and p.is_dir():
+            continue
+        if not p.is_dir() or p.is_symlink() or _foreign(p):
+            bad.append(p.name + ("/" if p.is_dir() else ""))
+    if bad:
+        raise _usage(
+            f"--out {root} holds {_listed(bad)}: expected a new or empty folder, or one holding only the bundle "
+            "folders (<out>/<name>) of train --objects: choose another --out"
+        )
+    for name, spec in objects:
+        check_bundle_out(root / name, spec)
+
+
+def check_train_arguments(args: argparse.Namespace) -> list[tuple[str, str]] | None:
+    """Every flag's value and the output folder, before JAX is imported or any data is made; returns the
+    catalogue of ``--objects`` (None with ``--object``)."""
     check_seed(args.seed)
     for flag in _OVERRIDES:
         value = getattr(args, flag.replace("-", "_"))
         if value is not None:
             least, note = _OVERRIDE_LEAST[flag]
             check_count(f"--{flag}", value, least, note=note)
+    from illuminet.models.train import make_config
+
+    overrides = {k.replace("-", "_"): getattr(args, k.replace("-", "_")) for k in _OVERRIDES}
+    tcfg = make_config(args.preset, **{k: v for k, v in overrides.items() if v is not None})
+    for flag, n in (("--n-train", tcfg.n_train), ("--n-val", tcfg.n_val)):
+        fix = "give fewer (the paper-like gpu preset trains on 10000)"
+        check_data_size(flag, n, tcfg.grid, tcfg.n_proxy, fix)
     check_hdr(args.hdr)
     if args.out:
         check_out("--out", Path(args.out), folder=True)
+    if args.objects is not None:
+        objects = catalogue(args.objects)
+        check_catalogue_out(Path(args.out or "bundles"), objects)
+        return objects
+    if not args.object.strip():
+        raise _usage(f"--object {args.object!r}: expected a mesh file or builtin:NAME (e.g. --object builtin:vase)")
+    out = Path(args.out or Path("bundles") / object_name(args.object))
+    check_out("--out", out, folder=True)
+    check_bundle_out(out, args.object)
+    return None
 
 
 def run(args: argparse.Namespace, cfg) -> int:
     cluster.check_arguments(args)
-    check_train_arguments(args)
+    objects = check_train_arguments(args)
     if args.ray is None or args.ray == cluster.LOCAL:  # the training runs in this Python environment
         try:
             import jax  # noqa: F401
@@ -339,8 +466,8 @@ def run(args: argparse.Namespace, cfg) -> int:
     def config(spec: str):
         return make_config(args.preset, object=spec, seed=args.seed, hdr_dir=hdr, **overrides)
 
-    if args.objects:
-        return _run_catalogue(args, catalogue(args.objects), config)
+    if objects is not None:
+        return _run_catalogue(args, objects, config)
     if args.ray is not None:
         raise _usage("--ray trains a catalogue (--objects DIR|LIST), one Ray task per object; not one --object")
     out = Path(args.out or Path("bundles") / object_name(args.object))

@@ -433,20 +433,84 @@ def sample_lights(kind: str, rng: np.random.Generator, n: int = 32, object_size:
 # ------------------------------------------------------------------------------------ HDR maps
 
 
+#: The largest environment map :func:`load_hdr` reads: 16384 x 8192 pixels (a "16k" map, the largest
+#: commonly published; 1.6 GB as float32 RGB). Training resamples every map to 256 x 128, so a larger
+#: one gains nothing; a header claiming more is refused before any pixel is allocated.
+MAX_HDR_PIXELS = 16384 * 8192
+
+
+def hdr_header_size(path: str | Path) -> tuple[int, int] | None:
+    """(height, width) from a Radiance ``.hdr`` header, read without decoding the pixels.
+
+    ``None`` when the file does not start with the Radiance magic ``#?`` (an OpenEXR file, say).
+
+    Raises
+    ------
+    ValueError
+        Naming the file when the header has no valid resolution line, claims more than
+        :data:`MAX_HDR_PIXELS` pixels, or the file is too short to hold the pixels it claims.
+    """
+    path = Path(path)
+    with open(path, "rb") as f:
+        head = f.read(65536)
+        size = f.seek(0, 2)
+    if not head.startswith(b"#?"):
+        return None
+    want = "expected a Radiance .hdr map"
+    end = head.find(b"\n\n")
+    line_end = head.find(b"\n", end + 2) if end >= 0 else -1
+    if line_end < 0:
+        raise ValueError(f"{path}: cannot read as an HDR image (the header has no resolution line; {want})")
+    parts = head[end + 2 : line_end].split()
+    axes = [p.decode("latin-1") for p in parts[0::2]]
+    if len(parts) != 4 or sorted(a[1:] for a in axes) != ["X", "Y"] or any(a[:1] not in "+-" for a in axes):
+        line = head[end + 2 : line_end][:40]
+        raise ValueError(f"{path}: cannot read as an HDR image (bad resolution line {line!r}; {want})")
+    try:
+        n = {a[1]: int(v) for a, v in zip(axes, parts[1::2])}
+    except ValueError:
+        raise ValueError(f"{path}: cannot read as an HDR image (bad resolution line; {want})") from None
+    height, width = n["Y"], n["X"]
+    if height < 1 or width < 1:
+        raise ValueError(f"{path}: cannot read as an HDR image (its header claims {width} x {height} pixels)")
+    if height * width > MAX_HDR_PIXELS:
+        raise ValueError(
+            f"{path}: its header claims {width} x {height} pixels, more than the {MAX_HDR_PIXELS} (16384 x 8192) "
+            "an environment map may have; downscale it (training resamples every map to 256 x 128)"
+        )
+    # the fewest bytes the pixels can take: run-length scanlines (8 .. 32767 wide) need 4 bytes plus two
+    # per run of up to 127 values in each of 4 channels; other widths are stored flat, 4 bytes a pixel
+    least = height * (4 + 8 * -(-width // 127)) if 8 <= width <= 0x7FFF else 4 * width * height
+    if size - (line_end + 1) < least:
+        raise ValueError(
+            f"{path}: cannot read as an HDR image (truncated: its header claims {width} x {height} pixels, "
+            f"which take at least {least} bytes; the file holds {size - line_end - 1})"
+        )
+    return height, width
+
+
 def load_hdr(path: str | Path) -> np.ndarray:
     """Read an HDR environment map (Radiance ``.hdr`` or ``.exr``) as float32 H x W x 3 linear RGB.
+
+    A Radiance header's size is checked first (:func:`hdr_header_size`): a map over
+    :data:`MAX_HDR_PIXELS` or shorter than its pixels is refused before anything is allocated.
 
     Raises
     ------
     FileNotFoundError, ValueError
-        Naming the file when it is missing, unreadable or not a 3-channel image.
+        Naming the file when it is missing, unreadable, too large or not a 3-channel image.
     """
     import cv2  # runtime dependency, imported here so that pure light transport does not need it
 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"HDR map not found: {path}")
-    img = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
+    hdr_header_size(path)
+    try:
+        img = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
+    except cv2.error as e:  # e.g. an .exr whose header claims more pixels than OpenCV reads
+        msg = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
+        raise ValueError(f"{path}: cannot read as an HDR image (OpenCV: {msg})") from None
     if img is None or img.ndim != 3 or img.shape[2] != 3:
         raise ValueError(f"{path}: cannot read as an HDR image (expected a Radiance .hdr or .exr with 3 channels)")
     rgb = np.ascontiguousarray(img[..., ::-1], dtype=np.float32)
