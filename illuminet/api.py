@@ -71,18 +71,24 @@ def _check_pixels(shape: tuple[int, ...], what: str) -> None:
         )
 
 
+def _as_array(value: Any, what: str, expected: str) -> np.ndarray:
+    """``np.asarray(value)`` (no copy for an array), or one ValueError naming ``what`` for a value that is
+    no array at all (None, a string, a number, a dict) or that numpy cannot make one of."""
+    if value is None or isinstance(value, (str, bytes, dict, int, float, complex)):
+        raise ValueError(f"{what}: {expected}, got {_described(value)}")
+    try:
+        return np.asarray(value)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{what}: {expected}, got {type(value).__name__}: {e}") from None
+
+
 def _color(color: Any, what: str = "color") -> np.ndarray:
     """``color`` as a contiguous HxWx3 uint8 array, its shape, dtype and size checked before any copy."""
     expected = "expected a non-empty HxWx3 uint8 RGB image (numpy array)"
     shape = getattr(color, "shape", None)
     if isinstance(shape, tuple) and len(shape) == 3 and all(isinstance(n, (int, np.integer)) for n in shape):
         _check_pixels(shape, what)  # an array-like (a tensor) that knows its shape: before converting it
-    if color is None or isinstance(color, (str, bytes, dict, int, float, complex)):
-        raise ValueError(f"{what}: {expected}, got {_described(color)}")
-    try:
-        a = np.asarray(color)  # no copy for an array
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"{what}: {expected}, got {type(color).__name__}: {e}") from None
+    a = _as_array(color, what, expected)
     if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.uint8 or a.size == 0:
         raise ValueError(f"{what}: {expected}, got {a.shape} {a.dtype}")
     _check_pixels(a.shape, what)
@@ -353,12 +359,7 @@ def align_depth(depth: np.ndarray, color_shape: tuple[int, ...], what: str = "de
     """
     import cv2
 
-    if depth is None or isinstance(depth, (str, bytes, dict, int, float, complex)):
-        raise ValueError(f"{what}: expected a 2-D array of depths (a single-channel image), got {_described(depth)}")
-    try:
-        d = np.asarray(depth)  # no copy for an array
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"{what}: expected a 2-D array of depths, got {type(depth).__name__}: {e}") from None
+    d = _as_array(depth, what, "expected a 2-D array of depths (a single-channel image)")
     if d.ndim != 2:
         raise ValueError(f"{what}: expected a single-channel image, got shape {d.shape}")
     _check_pixels(d.shape, what)  # before the float32 copy
