@@ -106,6 +106,8 @@ BAD_INPUTS += [
     (_TRAIN + ["--unroll", "-1"], 2, "--unroll -1"),
     (_TRAIN + ["--hdr", "{tmp}/afile"], 2, "--hdr {tmp}/afile: is a file, not a folder"),
     (_TRAIN + ["--hdr", "{tmp}/nothing"], 2, "--hdr {tmp}/nothing: no such folder"),
+    # maps with no readable header: train set up, warned "synthetic lights only" and trained without them
+    (_TRAIN + ["--hdr", "{tmp}/hdr3"], 2, "--hdr {tmp}/hdr3: none of its training maps (3 of every 4 .hdr files) has"),
     (_TRAIN + ["--out", "{tmp}/afile"], 2, "--out {tmp}/afile: is a file, expected a folder"),
     # a folder that holds something else (was filled with bundle.json, mesh.npz, *.onnx and work/, exit 0)
     (_TRAIN + ["--out", "{tmp}"], 2, "--out {tmp} holds afile, bad.toml, binary.toml and 1 more: expected a new"),

@@ -209,6 +209,26 @@ def check_hdr(hdr: str | None, held_out: bool = False) -> None:
             f"--hdr {hdr}: holds {len(maps)} .hdr map(s), but eval uses only the held-out ones (every 4th in "
             "name order, the training never sees them): give a folder of at least 4 maps, or --hdr '' for none"
         )
+    if not held_out:
+        # from the headers alone (no pixels decoded): train only warned "training on synthetic lights
+        # only" after its set-up when no training map could be read, although --hdr asked for maps
+        from illuminet.runtime.groundtruth.lighting import hdr_header_size
+
+        def readable(p: Path) -> bool:
+            try:
+                if hdr_header_size(p) is not None:
+                    return True
+                why = "not a Radiance file (no #? header)"
+            except (OSError, ValueError) as e:
+                why = str(e)
+            log.warning("HDR map %s skipped: %s", p.name, why)
+            return False
+
+        if not any(readable(p) for p in hdr_maps(folder, "train")):
+            raise _usage(
+                f"--hdr {hdr}: none of its training maps (3 of every 4 .hdr files) has a readable Radiance "
+                "header; give readable .hdr maps, or --hdr '' for none"
+            )
 
 
 def catalogue(arg: str) -> list[tuple[str, str]]:
