@@ -115,6 +115,19 @@ def _same_object(existing: str, spec: str) -> bool:
     return Path(existing).resolve() == Path(spec).resolve()
 
 
+def check_bundle_object(out: Path, spec: str) -> None:
+    """Refuse an existing bundle in ``out`` (its metadata file present) made of another object than
+    ``spec`` (``bundle`` adds PRT to it, ``train`` resumes into it: either would mix two objects)."""
+    from illuminet.runtime.assets.bundle import METADATA
+
+    try:
+        existing = json.loads((out / METADATA).read_text()).get("object", "")
+    except (ValueError, AttributeError) as e:  # not JSON (or not an object)
+        raise _usage(f"{out / METADATA}: not valid JSON ({e}); choose another --out") from None
+    if not _same_object(str(existing), spec):
+        raise _usage(f"--out {out} holds a bundle of {existing!r}, not {spec!r}: choose another --out")
+
+
 def _check_writable(out: Path) -> None:
     """Make ``--out`` (and a probe file in it) before any work, then remove what was made: a folder that
     cannot be written is one line naming ``--out`` now, not an ``[Errno ...]`` after the PRT."""
@@ -191,12 +204,7 @@ def run(args: argparse.Namespace, cfg) -> int:
     t0 = time.perf_counter()
     try:
         if (out / METADATA).is_file():
-            try:
-                existing = json.loads((out / METADATA).read_text()).get("object", "")
-            except json.JSONDecodeError as e:
-                raise _usage(f"{out / METADATA}: not valid JSON ({e}); choose another --out") from None
-            if not _same_object(str(existing), args.object):
-                raise _usage(f"--out {out} holds a bundle of {existing!r}, not {args.object!r}: choose another --out")
+            check_bundle_object(out, args.object)
             if args.height is not None or args.up != "y":
                 raise _usage(
                     f"--out {out} is an existing bundle whose mesh is kept: --height/--up apply to new bundles only"

@@ -390,9 +390,7 @@ def _listed(names: list[str]) -> str:
 def check_bundle_out(out: Path, spec: str | None) -> None:
     """Refuse a bundle folder that holds something else: an existing ``out`` must be empty or hold only a
     bundle (of ``spec``, when given) and train's own earlier output (``work/``). Before any work."""
-    import json
-
-    from illuminet.commands.bundle import _same_object
+    from illuminet.commands.bundle import check_bundle_object
     from illuminet.runtime.assets.bundle import METADATA
 
     if not out.is_dir():
@@ -404,12 +402,7 @@ def check_bundle_out(out: Path, spec: str | None) -> None:
             "train's own earlier output: choose another --out"
         )
     if spec is not None and (out / METADATA).is_file():
-        try:
-            have = json.loads((out / METADATA).read_text()).get("object", "")
-        except (OSError, ValueError, AttributeError):
-            raise _usage(f"--out {out}: its {METADATA} is not valid JSON: choose another --out") from None
-        if not _same_object(str(have), spec):
-            raise _usage(f"--out {out} holds a bundle of {have!r}, not {spec!r}: choose another --out")
+        check_bundle_object(out, spec)  # the same rule as `illuminet bundle` adding PRT to it
 
 
 def check_catalogue_out(root: Path, objects: list[tuple[str, str]]) -> None:
