@@ -61,7 +61,7 @@ def _flag(value: Any, name: str, optional: bool = False) -> bool | None:
 def _check_pixels(shape: tuple[int, ...], what: str) -> None:
     """Refuse an image of more than :data:`MAX_IMAGE_PIXELS` from its shape alone, before any copy
     (a 20000x20000 ``np.broadcast_to`` view is 12 bytes; its copy 1.2 GB)."""
-    from illuminet.commands.relight import MAX_IMAGE_PIXELS
+    from illuminet.runtime.relight import MAX_IMAGE_PIXELS
 
     h, w = int(shape[0]), int(shape[1])
     if h * w > MAX_IMAGE_PIXELS:
@@ -420,7 +420,7 @@ def relight(
     ------
     ValueError
         A mistake in an argument, one line naming it: ``color`` not HxWx3 uint8 or over
-        :data:`~illuminet.commands.relight.MAX_IMAGE_PIXELS`, ``depth``, ``intrinsics``, ``anchor_px``
+        :data:`~illuminet.runtime.relight.MAX_IMAGE_PIXELS`, ``depth``, ``intrinsics``, ``anchor_px``
         not two finite numbers inside the image, ``config`` (a :class:`ConfigError`), ``exposure``.
     """
     from illuminet.runtime.relight import check_anchor_px

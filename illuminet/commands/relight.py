@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from illuminet.runtime.relight import MAX_IMAGE_PIXELS  # the largest image relight takes (the API's too)
+
 
 def register(sub) -> None:
     p = sub.add_parser(
@@ -65,11 +67,6 @@ def _floats(text: str, n: int, what: str) -> list[float]:
     if len(vals) != n:
         raise ValueError(f"{what}: expected {n} comma-separated numbers, got {text!r}")
     return vals
-
-
-#: largest image ``relight`` decodes (8K UHD is 33 Mpx): a header claiming more is refused before decoding,
-#: which would otherwise take a minute and gigabytes for a 1 MB PNG that says 20000x20000
-MAX_IMAGE_PIXELS = 50_000_000
 
 
 def _input_file(path: str, flag: str) -> Path:
