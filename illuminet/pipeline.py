@@ -79,8 +79,10 @@ def session_root(path: Path) -> Path | None:
     ``path`` up, holding a ``manifest.json`` and an index (``frames.jsonl``) or a ``frames/`` folder.
 
     Not the manifest's contents: a session whose manifest a crash left torn is still a recording."""
+    from illuminet.runtime.stream.session import INDEX, MANIFEST
+
     for d in (path, *path.parents):
-        if (d / "manifest.json").is_file() and ((d / "frames.jsonl").exists() or (d / "frames").is_dir()):
+        if (d / MANIFEST).is_file() and ((d / INDEX).exists() or (d / "frames").is_dir()):
             return d
     return None
 

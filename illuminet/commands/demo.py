@@ -395,7 +395,7 @@ def demo_config(args: argparse.Namespace, cfg: Config) -> Config:
 
 
 def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
-    from illuminet.commands.run import report_stream
+    from illuminet.commands.run import lost_frames_status, report_stream
     from illuminet.hw import SourceError, open_source
     from illuminet.hw.replay import session_folder
     from illuminet.pipeline import build_sinks, check_output_paths, session_root
@@ -478,10 +478,7 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
             _print_report(stats, stages, probe, cfg, rc, report)
     if stats.end_reason.startswith("source error"):
         rc = 1
-    if stats.sink_failures and rc == 0:  # an output lacks frames (see run's _execute)
-        print(f"illuminet demo: {stats.sink_failures} frame(s) missing from an output (sink failures)", file=sys.stderr)
-        rc = 1
-    return rc
+    return rc or lost_frames_status(stats, "illuminet demo")
 
 
 def _make_session(args: argparse.Namespace) -> int:
@@ -525,12 +522,11 @@ def _still_path(args: argparse.Namespace) -> str:
 def _print_report(stats, stages, probe: StillSink, cfg: Config, rc: int, out=None) -> None:
     """The end-of-run report: timing table, stage statistics, shading used, outputs, peak memory
     (to ``out``, default stdout)."""
+    from illuminet.commands.run import print_stage_counters
+
     out = out or sys.stdout
     print(stats.format_stats(), file=out)
-    for st in stages:
-        s = st.stats()
-        if s:
-            print(f"  {st.name}: " + ", ".join(f"{k}={v}" for k, v in s.items()), file=out)
+    print_stage_counters(stages, out)
     print(f"shading: {describe_shading(probe.methods, cfg)}", file=out)
     if cfg.output.video and rc == 0:
         print(f"video: {cfg.output.video}", file=out)

@@ -249,12 +249,7 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
             print(stats.format_stats(), file=report_stream(cfg))
             # each stage's own counters, as the demo prints them (the serial IMU's skipped lines, the
             # planes' bad depth, the anchor's placements ...: docs/runtime.md points users here)
-            for st in stages:
-                counters = st.stats() if hasattr(st, "stats") else None
-                if counters:
-                    print(
-                        f"  {st.name}: " + ", ".join(f"{k}={v}" for k, v in counters.items()), file=report_stream(cfg)
-                    )
+            print_stage_counters(stages, report_stream(cfg))
         o = cfg.output
         if stats.frames and not (o.video or o.png_dir or o.record or o.estimates or o.mjpeg or cfg.logging.stats_json):
             # a first `illuminet run SOURCE` processed its frames and showed only a timing table: say why
@@ -272,16 +267,28 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
                 rc = 1
     if stats.end_reason.startswith("source error"):
         rc = 1
-    if stats.sink_failures and rc == 0:
-        # the stream went on (a live stream survives a bad frame), but an output lacks frames: a PNG
-        # folder on a full disk failed all 40 frames and the run said 0
-        print(
-            f"illuminet: {stats.sink_failures} frame(s) missing from an output (sink failures; the first of each "
-            "kind is in the log above): exit status 1",
-            file=sys.stderr,
-        )
-        rc = 1
-    return rc
+    return rc or lost_frames_status(stats, "illuminet")
+
+
+def print_stage_counters(stages, out) -> None:
+    """Each stage's own counters, a line each (the demo's report and run's)."""
+    for st in stages:
+        counters = st.stats() if hasattr(st, "stats") else None
+        if counters:
+            print(f"  {st.name}: " + ", ".join(f"{k}={v}" for k, v in counters.items()), file=out)
+
+
+def lost_frames_status(stats: LoopStats, who: str) -> int:
+    """1 (and a line saying so) when an output lacks frames, else 0. The stream went on (a live stream
+    survives a bad frame), but a PNG folder on a full disk failed all 40 frames and the run said 0."""
+    if not stats.sink_failures:
+        return 0
+    print(
+        f"{who}: {stats.sink_failures} frame(s) missing from an output (sink failures; the first of each kind is "
+        "in the log above): exit status 1",
+        file=sys.stderr,
+    )
+    return 1
 
 
 def cmd_run(args: argparse.Namespace, cfg: Config) -> int:
