@@ -87,10 +87,10 @@ def _as_is(values: np.ndarray) -> np.ndarray:
 
 
 SUITES = ("indoor", "outdoor", "lamp", "spatial", "cluttered")
-#: suites that are another suite's scenes seen by a user looking around (``path=look``)
-LOOK_SUITES = {"outdoor_look": "outdoor"}
 #: suites that are another suite's scenes with something added to their URL: (that suite, the addition)
-VARIANT_SUITES = {"outdoor_boxes": ("outdoor", "&boxes=3")}
+VARIANT_SUITES = {"outdoor_look": ("outdoor", "&path=look"), "outdoor_boxes": ("outdoor", "&boxes=3")}
+#: the variant suites whose scenes are seen by a user looking around (``path=look``): longer runs
+LOOK_SUITES = {s: kind for s, (kind, extra) in VARIANT_SUITES.items() if "path=look" in extra}
 #: a look-around suite runs at least this many frames a scene (the turn in place takes half of them:
 #: 300 frames is 10 s at 30 fps, at most ~3.6 deg a frame; 100 frames lost the turn)
 LOOK_FRAMES = 300
@@ -355,10 +355,8 @@ class CameraEval:
         return v[self.sel]
 
     def url(self, suite: str, i: int, seed: int, frames: int) -> str:
-        kind, extra = VARIANT_SUITES.get(suite, (LOOK_SUITES.get(suite, suite), ""))
+        kind, extra = VARIANT_SUITES.get(suite, (suite, ""))
         u = f"synthetic://{kind}?seed={SEED_BASE + 31 * seed + i}&frames={frames}{extra}"
-        if suite in LOOK_SUITES:
-            u += "&path=look"
         if kind == "spatial":  # the camera frames the position evaluated (scene_case: i % count)
             u += f"&position={i}"
         if kind == "outdoor" and self.hdr_maps:
@@ -528,7 +526,7 @@ class CameraEval:
 
     @staticmethod
     def check(suites, frames: int) -> None:
-        known = SUITES + tuple(LOOK_SUITES) + tuple(VARIANT_SUITES)
+        known = SUITES + tuple(VARIANT_SUITES)
         bad = [s for s in suites if s not in known]
         if bad:
             raise ValueError(f"unknown camera suite(s) {', '.join(bad)}; known: {', '.join(known)}")
