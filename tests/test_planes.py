@@ -314,6 +314,40 @@ def test_pixel_anchor_on_the_table(scene):
     assert np.linalg.norm(a.t - p_c) < 0.01
 
 
+def _project(scene, p_w):
+    p_c = scene.R_c2w.T @ (np.asarray(p_w, float) - scene.C)
+    return p_c, (scene.intr.fx * p_c[0] / p_c[2] + scene.intr.cx, scene.intr.fy * p_c[1] / p_c[2] + scene.intr.cy)
+
+
+def test_pixel_anchor_on_a_wall_stands_on_the_floor_at_its_foot(scene, caplog):
+    """An object cannot stand on a wall: a pixel on the wall puts it on the floor where the wall meets it
+    (the floor under the pixel's ray lies behind the wall), with one warning naming the pixel."""
+    _, (u, v) = _project(scene, [1.0, 0.4, scene.wall_dist])  # beside the table, seen above the floor
+    assert 0 <= u < 640 and 0 <= v < 400
+    cfg = apply_overrides(defaults(), [("anchor", "mode", "pixel"), ("anchor", "pixel", [float(u), float(v)])])
+    caplog.set_level(logging.WARNING)
+    _, out = _anchor_chain(cfg, scene.frame(0))
+    a = out.results["anchor"]
+    planes = out.results["planes"]
+    floor = [p for p in planes if p.label == "floor"][0]
+    assert any(p.label == "wall" for p in planes)
+    assert a.plane_id == floor.id and not a.synthetic
+    p_w = scene.R_c2w @ a.t + scene.C
+    assert p_w[2] < scene.wall_dist  # in front of the wall, where the camera sees it
+    assert np.linalg.norm(p_w[[0, 2]] - [1.0, scene.wall_dist]) < 0.4  # at the wall's foot, below the pixel
+    assert f"pixel = [{u:g}, {v:g}] lies on a plane labelled wall" in caplog.text
+
+
+def test_pixel_anchor_on_the_floor_is_unchanged_by_the_support_rule(scene):
+    p_c, (u, v) = _project(scene, [-1.0, 0.0, 2.0])  # floor in view, beside the table
+    cfg = apply_overrides(defaults(), [("anchor", "mode", "pixel"), ("anchor", "pixel", [float(u), float(v)])])
+    st, out = _anchor_chain(cfg, scene.frame(0))
+    a = out.results["anchor"]
+    floor = [p for p in out.results["planes"] if p.label == "floor"][0]
+    assert a.plane_id == floor.id and np.linalg.norm(a.t - p_c) < 0.01
+    assert st.stats()["warnings"] == {}
+
+
 def test_point_anchor_projects_onto_the_nearest_plane(scene):
     p_floor = scene.R_c2w.T @ (np.array([0.4, 0.05, 2.5]) - scene.C)  # 5 cm above the floor
     cfg = apply_overrides(defaults(), [("anchor", "mode", "point"), ("anchor", "point", [float(x) for x in p_floor])])

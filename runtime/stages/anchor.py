@@ -63,6 +63,13 @@ SYNTHETIC_DISTANCE_M = 1.5
 #: Plane ID of the synthetic plane.
 SYNTHETIC_ID = -1
 HORIZONTAL = ("floor", "table")
+#: ``mode = "pixel"`` off a floor or table: where the pixel's ray meets the floor farther than this
+#: fraction behind the depth the pixel shows, the floor there is hidden (behind a wall)
+SUPPORT_BEHIND = 0.05
+#: ... and where it meets the floor farther than this (metres) from the floor seen nearest to the pixel,
+#: the object would stand on a part of the plane nobody saw (the table top's plane extended across the
+#: room): it stands at that nearest seen point instead
+SUPPORT_GAP_M = 0.15
 LOCKS = ("world", "camera")
 #: World lock: a tracked plane is taken as the anchor plane when its normal is within this angle of
 #: the carried object's up axis and the carried origin is this close to it (when its ID changed).
@@ -170,6 +177,21 @@ def _covers(p: Plane, u: float, v: float, radius: int = 3, min_fraction: float =
     return win.size > 0 and float(win.mean()) >= min_fraction
 
 
+def _measured_depth(frame: Frame, u: float, v: float, radius: int = 2) -> float | None:
+    """Median of the valid depth (metres) around colour pixel (u, v), or None (no depth there)."""
+    d = frame.depth
+    if d is None:
+        return None
+    w, h = frame.size
+    dh, dw = d.shape[:2]
+    i, j = int(round(v * dh / max(h, 1))), int(round(u * dw / max(w, 1)))
+    win = np.asarray(d[max(0, i - radius) : i + radius + 1, max(0, j - radius) : j + radius + 1], np.float64)
+    if d.dtype == np.uint16:
+        win = win * 0.001
+    win = win[np.isfinite(win) & (win > 0)]
+    return float(np.median(win)) if win.size else None
+
+
 def _nearest_inlier_pixel(p: Plane, u: float, v: float) -> tuple[float, float] | None:
     """The inlier pixel of ``p`` nearest to (u, v), using the low-resolution cloud mask."""
     m, s = p.cloud_mask, max(1, p.cloud_stride)
@@ -251,7 +273,12 @@ class AnchorStage(Stage):
                 u, v = (w - 1) / 2.0, (h - 1) / 2.0
             ray = _pixel_ray(frame, u, v)
             under = [p for p in planes if _covers(p, u, v)]
-            hits = [(p, x) for p in (under or planes) if (x := p.intersect(ray)) is not None]
+            support = [p for p in under if p.label in HORIZONTAL]
+            if not support:
+                stand = self._support_near(frame, planes, under, u, v, ray)
+                if stand is not None:
+                    return stand
+            hits = [(p, x) for p in (support or under or planes) if (x := p.intersect(ray)) is not None]
             if not hits:
                 return None
             return min(hits, key=lambda px: px[1][2])
@@ -273,6 +300,43 @@ class AnchorStage(Stage):
         x = p.intersect(_pixel_ray(frame, u, v))
         if x is None:
             x = np.asarray(p.centroid, np.float64) - p.distance(p.centroid) * p.normal
+        return p, x
+
+    def _support_near(
+        self, frame: Frame, planes: tuple[Plane, ...], under: list[Plane], u: float, v: float, ray: np.ndarray
+    ) -> tuple[Plane, np.ndarray] | None:
+        """``mode = "pixel"`` on a pixel that no floor or table covers: the floor or table nearest to it
+        in the picture, where the pixel's ray meets it when that point continues the plane seen nearest
+        to the pixel (a gap of bad depth), else (the point lies behind the surface the pixel shows, a
+        wall, or far from any of the plane that was seen) at the plane's inlier pixel nearest to it.
+        The object stands; a wall, a slope, or a phantom plane fitted to noisy depth (a stereo camera's
+        left border band on the real OAK-D recordings: a vase on its side) cannot hold it. None when
+        no floor or table is tracked (the pixel's own plane is used, as before)."""
+        horiz = [p for p in planes if p.label in HORIZONTAL]
+        near = [(p, q) for p in horiz if (q := _nearest_inlier_pixel(p, u, v)) is not None]
+        if not near:
+            return None
+        p, q = min(near, key=lambda pq: (pq[1][0] - u) ** 2 + (pq[1][1] - v) ** 2)
+        edge = p.intersect(_pixel_ray(frame, *q))
+        if edge is None:
+            return None
+        x = p.intersect(ray)
+        seen = _measured_depth(frame, u, v)
+        if (
+            x is None
+            or np.linalg.norm(x - edge) > SUPPORT_GAP_M
+            or (seen is not None and x[2] > seen * (1.0 + SUPPORT_BEHIND))
+        ):
+            x, where = edge, f"at its inlier pixel nearest to it ({q[0]:g}, {q[1]:g})"
+        else:
+            where = "under the pixel"
+        labels = "/".join(sorted({q.label for q in under}))
+        on = f"a plane labelled {labels}" if labels else "no tracked plane"
+        self._warn(
+            "pixel_not_support",
+            f"[anchor] pixel = [{u:g}, {v:g}] lies on {on}, not on a floor or table: the object stands "
+            f"on the {p.label} (plane {p.id}) {where}; point the pixel at a floor or table to choose the place",
+        )
         return p, x
 
     def reanchor(self) -> None:
