@@ -297,6 +297,19 @@ def check_exposure(exposure, what: str = "exposure") -> None:
             )
 
 
+def _clipped_share(color: np.ndarray, anchor_px: tuple[float, float], radius: int = 24) -> float:
+    """Share of the colour pixels within ``radius`` of the anchor pixel with a channel clipped
+    (>= :data:`~illuminet.runtime.stages.plane_light.SATURATED`): the plane light skips them."""
+    from illuminet.runtime.stages.plane_light import SATURATED
+
+    c = np.asarray(color)
+    if c.ndim != 3 or c.dtype != np.uint8:
+        return 0.0
+    u, v = int(round(anchor_px[0])), int(round(anchor_px[1]))
+    win = c[max(0, v - radius) : v + radius + 1, max(0, u - radius) : u + radius + 1]
+    return float(np.mean(win.max(axis=2) >= SATURATED)) if win.size else 0.0
+
+
 def relight(
     color: np.ndarray,
     depth: np.ndarray,
@@ -377,6 +390,16 @@ def relight(
         )
     anchor, pl, source = f.results[ANCHOR.name], f.results[PLANE_LIGHT.name], "stages"
     light = f.results.get(LIGHT.name)
+    if not anchor.synthetic and not np.any(pl.mask):
+        from illuminet.runtime.stages.plane_light import SATURATED
+
+        clipped = _clipped_share(color, anchor_px)
+        if clipped >= 0.5:
+            raise ValueError(
+                f"the plane under the anchor pixel ({anchor_px[0]:g}, {anchor_px[1]:g}) is overexposed: "
+                f"{100 * clipped:.0f} % of the pixels around it are clipped (a channel >= {SATURATED}) and "
+                "measure no light; use a shorter exposure, or an anchor pixel on a surface that is not clipped"
+            )
     if anchor.synthetic or not np.any(pl.mask):
         raise ValueError(
             f"no real plane observed under the anchor pixel ({anchor_px[0]:g}, {anchor_px[1]:g}); "
