@@ -14,6 +14,7 @@ import sys
 import time
 import tracemalloc
 
+import numpy as np
 import pytest
 
 from illuminet.cli import main
@@ -810,3 +811,25 @@ def test_a_mesh_file_with_a_vertex_far_off_is_one_line(tmp_path, capsys, far, ex
     err = capsys.readouterr().err
     assert f"{obj}: {expect}" in err and "Traceback" not in err, err
     assert not (tmp_path / "b").exists()
+
+
+def test_datagen_replaces_only_its_own_earlier_data(tmp_path, capsys):
+    """--out naming an existing file that datagen did not write (a bundle's mesh.npz, a relight result, a
+    text file) is refused and the file kept; an earlier datagen file is replaced, and the last line says
+    so. (It overwrote any file without a word.)"""
+    out = tmp_path / "dg.npz"
+    np.savez(out, vertices=np.zeros((3, 3)))  # someone else's npz
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in _DATAGEN] + ["--n-proxy", "16", "--hdr", ""]
+    before = out.read_bytes()
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"--out {out} exists and is not a datagen data file" in err and "Traceback" not in err, err
+    assert out.read_bytes() == before
+    out.write_text("notes")
+    assert main(argv) == 2 and out.read_text() == "notes"
+    capsys.readouterr()
+    out.unlink()
+    assert main(argv) == 0
+    assert "replaced" not in capsys.readouterr().out
+    assert main(argv) == 0
+    assert "it replaced the earlier data there (2 samples of builtin:sphere)" in capsys.readouterr().out

@@ -22,6 +22,7 @@ redoes only the missing ones when run again.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import sys
@@ -122,6 +123,33 @@ def write(out: Path, arrays, meta: dict) -> None:
     os.replace(tmp, out)
 
 
+def check_data_out(out: Path) -> str | None:
+    """An existing ``--out`` file is replaced only when it is an earlier datagen file (its own arrays and
+    meta); anything else there (a bundle's mesh.npz, a relight result, a file that is not an npz) is
+    refused before any work. Returns what is replaced (for the last line), or None."""
+    if not out.exists() and not out.is_symlink():
+        return None
+    import zipfile
+
+    import numpy as np
+
+    what = None
+    try:
+        with np.load(out, allow_pickle=False) as z:
+            if {"meta", "plane", "shading"} <= set(z.files):
+                meta = json.loads(bytes(z["meta"]).decode())
+                if isinstance(meta, dict) and "samples" in meta:
+                    what = f"{meta['samples']} samples of {meta.get('object', 'an object')}"
+    except (OSError, ValueError, zipfile.BadZipFile, KeyError, UnicodeDecodeError, RecursionError):
+        what = None
+    if what is None:
+        raise _usage(
+            f"--out {out} exists and is not a datagen data file: expected a new file name, or an earlier "
+            "datagen file to replace; choose another --out (or move that file away)"
+        )
+    return what
+
+
 def run(args: argparse.Namespace, cfg) -> int:
     from illuminet.commands.train import (
         DEFAULT_HDR,
@@ -153,6 +181,7 @@ def run(args: argparse.Namespace, cfg) -> int:
     if out.is_dir():
         raise _usage(f"--out {out} is a folder; give the data file's name (e.g. {out / 'data.npz'})")
     check_out("--out", out, folder=False)
+    replaced = check_data_out(out)
     check_hdr(args.hdr)
     hdr = args.hdr if args.hdr is not None else (str(DEFAULT_HDR) if DEFAULT_HDR.is_dir() else "")
     from illuminet.models.datagen import data_spec
@@ -180,7 +209,10 @@ def run(args: argparse.Namespace, cfg) -> int:
         arrays = spec.generate(0, args.samples, progress=Progress("datagen", args.samples, not args.quiet))
         wall = time.perf_counter() - t0
         write(out, arrays, meta)
-        print(f"wrote {out}: {args.samples} samples in {wall:.1f} s ({args.samples / max(wall, 1e-9):.3g} samples/s)")
+        print(
+            f"wrote {out}: {args.samples} samples in {wall:.1f} s ({args.samples / max(wall, 1e-9):.3g} samples/s)"
+            + (f"; it replaced the earlier data there ({replaced})" if replaced else "")
+        )
         return 0
     store = cluster.ShardStore(Path(str(out) + ".shards"))
     store.check_job({"job": "datagen", "shard_size": args.shard_size, **meta})
@@ -198,5 +230,9 @@ def run(args: argparse.Namespace, cfg) -> int:
     cluster.finish(summary, store)
     write(out, merge(store, shards), meta)
     store.remove()
-    print(f"wrote {out}: {args.samples} samples from {len(shards)} shards", file=sys.stdout)
+    print(
+        f"wrote {out}: {args.samples} samples from {len(shards)} shards"
+        + (f"; it replaced the earlier data there ({replaced})" if replaced else ""),
+        file=sys.stdout,
+    )
     return 0
