@@ -138,6 +138,36 @@ def test_light_from_the_left_lights_the_left_and_throws_the_shadow_right(gl):
     assert (out[:20] == BG).all() and (out[:, :20] == BG).all()
 
 
+def test_the_shadow_stops_at_the_plane_edge_through_holes_in_the_depth(gl):
+    """Beyond a table's edge the floor is lower: the shadow is not drawn there, also not on the holes
+    of a stereo camera's depth (invalid depth counts as the plane: it was a speckle of shadow on each)."""
+    mesh = sphere_mesh()
+    T = camera_pose()
+    depth = floor_depth(T)
+    eu, _ = project(T, [0.13, 0.0, 0.0])
+    beyond = np.zeros((H, W), bool)
+    beyond[:, int(eu) :] = True
+    depth[beyond] += 0.3  # the floor 30 cm farther: past the table's edge
+    holes = beyond & (np.random.default_rng(0).random((H, W)) < 0.05)
+    depth[holes] = 0.0
+    st = stage(gl, mesh)
+    try:
+        f = make_frame(T, directional_shading(mesh, [-1.0, 1.0, 0.0]), depth=depth)
+        out = st.process(f).results["composite"]
+    finally:
+        st.close()
+    fu, fv = project(T, [0.25, 0.0, 0.0])  # where the shadow would fall on the table's plane
+    win = (slice(int(fv) - 8, int(fv) + 8), slice(int(fu) - 8, int(fu) + 8))
+    assert holes[win].sum() >= 5
+    assert (out[win] == BG).all(), np.argwhere((out[win] != BG).any(axis=-1))[:5]
+    # on the table (left of the edge) the shadow is drawn as before
+    su, sv = project(T, [0.1, 0.0, 0.0])
+    assert (
+        lum(out[int(sv) - 2 : int(sv) + 2, int(su) - 2 : int(su) + 2]).mean()
+        < 0.8 * lum(np.full((1, 1, 3), BG, np.uint8))[0, 0]
+    )
+
+
 def test_diffuse_light_leaves_only_a_soft_contact_shadow(gl):
     mesh = sphere_mesh()
     T = camera_pose()
