@@ -455,7 +455,17 @@ class V4l2Source(Source):
     def _to_frame(self, left: np.ndarray, right: np.ndarray, t_dev: int | None, t_host: int) -> Frame:
         size = (left.shape[1], left.shape[0])
         if self._stereo is None or self._stereo_size != size:
-            self._stereo = self._stereo_factory(self.calib_path, size, self.scale)
+            try:
+                self._stereo = self._stereo_factory(self.calib_path, size, self.scale)
+            except ValueError as e:
+                if self._stereo is not None:  # one odd-sized frame of a camera that worked: skip it
+                    raise ValueError(f"a {size[0]}x{size[1]} frame does not fit the calibration: {e}") from e
+                # a calibration that cannot serve this camera (no stereo pair, another aspect ratio, a
+                # malformed file) fails the same way on every frame: an error, not a skipped frame
+                raise V4l2Error(
+                    f"V4L2 camera {self.grabber.left.name}: the calibration {self.calib_path} cannot be used "
+                    f"for its {size[0]}x{size[1]} images: {e}"
+                ) from e
             self._stereo_size = size
         rgb, depth = self._stereo.compute(left, right)
         t = t_dev if t_dev is not None else t_host

@@ -192,6 +192,38 @@ def test_two_device_pair_and_bad_frames_are_skipped(calib_file):
     assert lc.closed == rc.closed == 1
 
 
+def test_a_calibration_that_does_not_fit_the_camera_is_an_error_not_endless_bad_frames(calib_file, tmp_path):
+    """A calibration of another aspect ratio (or without a stereo pair) fails on every frame alike: the
+    first frame ends the stream with one error naming the file and the size; before, every frame was
+    skipped as 'bad' with a warning, forever on a live camera."""
+    frames = [np.zeros((240, 2 * W, 3), np.uint8)] * 50  # 320x240 per eye: 4:3, calibrated 320x200 (16:10)
+    cap = RecordedCapture("/dev/video0", frames)
+    src = v4l2.V4l2Source(v4l2.StereoGrabber(cap), calib_file, reconnect=False)
+    with src, pytest.raises(v4l2.V4l2Error, match=r"rig.json cannot be used for its 320x240 images: .*aspect"):
+        src.read()
+    assert cap.i == 0 and src.stats()["bad_frames"] == 0
+    mono = tmp_path / "mono.json"
+    d = json.loads(open(calib_file).read())
+    del d["stereo"]
+    mono.write_text(json.dumps(d))
+    left, right = _pair(0)
+    cap = RecordedCapture("/dev/video0", [np.hstack([left, right])] * 5)
+    src = v4l2.V4l2Source(v4l2.StereoGrabber(cap), str(mono), reconnect=False)
+    with src, pytest.raises(v4l2.V4l2Error, match="has no 'stereo' section"):
+        src.read()
+
+
+def test_one_odd_sized_frame_after_good_ones_is_skipped(calib_file):
+    left, right = _pair(0)
+    good = np.hstack([left, right])
+    frames = [good, np.zeros((240, 2 * W, 3), np.uint8), good]
+    src = v4l2.V4l2Source(v4l2.StereoGrabber(RecordedCapture("/dev/video0", frames)), calib_file, reconnect=False)
+    with src:
+        assert src.read().seq == 0
+        assert src.read().seq == 1  # the 320x240 frame in between is skipped
+    assert src.stats()["bad_frames"] == 1
+
+
 def test_lost_device_reconnects_with_backoff(calib_file):
     left, right = _pair(0)
     sbs = np.hstack([left, right])
