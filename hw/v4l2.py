@@ -337,6 +337,10 @@ class V4l2Source(Source):
         ``(calib_path, (w, h), scale) -> HostStereo``; the default loads the calibration file.
     max_failures : int
         Consecutive empty grabs that mean the device is lost.
+    max_bad_frames : int
+        Consecutive unusable frames (see :meth:`read`) that end the stream with an error: a fault that
+        hits every frame (two cameras of different sizes, a mono camera's odd-width image) is not
+        transient.
     """
 
     name = "v4l2"
@@ -354,6 +358,7 @@ class V4l2Source(Source):
         exposure_us: int = 0,
         stereo_factory: Callable[..., Any] | None = None,
         max_failures: int = 10,
+        max_bad_frames: int = 30,
     ):
         self.grabber = grabber
         self.calib_path = calib_path
@@ -364,6 +369,7 @@ class V4l2Source(Source):
         self._stereo = None
         self._stereo_size: tuple[int, int] | None = None
         self.max_failures = max_failures
+        self.max_bad_frames = max_bad_frames
         self._open = False
         self._stop = threading.Event()
         self._seq = 0
@@ -429,7 +435,7 @@ class V4l2Source(Source):
 
     def read(self) -> Frame | None:
         """The next RGB-D frame (rectified left colour + aligned depth); ``None`` after :meth:`close`."""
-        failures = 0
+        failures = bad_run = 0
         while not self._stop.is_set():
             if not self._open:
                 self._lost("not open")
@@ -447,6 +453,11 @@ class V4l2Source(Source):
                 frame = self._to_frame(left, right, t_dev, t_host)
             except ValueError as e:  # one bad frame: counted and skipped, the stream goes on
                 self.bad_frames += 1
+                bad_run += 1
+                if bad_run >= self.max_bad_frames:
+                    raise V4l2Error(
+                        f"V4L2 camera {self.grabber.left.name}: {bad_run} frames in a row could not be used: {e}"
+                    ) from e
                 log.warning("V4L2 %s: skipped a bad frame: %s", self.grabber.left.name, e)
                 continue
             return frame

@@ -224,6 +224,18 @@ def test_one_odd_sized_frame_after_good_ones_is_skipped(calib_file):
     assert src.stats()["bad_frames"] == 1
 
 
+def test_frames_that_are_all_bad_end_the_stream_with_the_reason(calib_file):
+    """Two cameras of different sizes fail every frame alike: after max_bad_frames in a row, one error
+    with the reason, instead of a warning per frame forever."""
+    lefts = [_pair(0)[0]] * 40
+    rights = [np.zeros((H // 2, W, 3), np.uint8)] * 40
+    grabber = v4l2.StereoGrabber(RecordedCapture("/dev/video0", lefts), RecordedCapture("/dev/video2", rights))
+    src = v4l2.V4l2Source(grabber, calib_file, reconnect=False)  # max_bad_frames=30
+    with src, pytest.raises(v4l2.V4l2Error, match="30 frames in a row could not be used: .*set the same size="):
+        src.read()
+    assert src.stats()["bad_frames"] == 30
+
+
 def test_lost_device_reconnects_with_backoff(calib_file):
     left, right = _pair(0)
     sbs = np.hstack([left, right])
