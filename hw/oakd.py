@@ -31,7 +31,9 @@ How it is split, so that everything but the device itself is tested on a machine
 * :class:`OakdSource` ties them together and handles a lost device (clear error, or reconnection
   with exponential backoff when ``[source] reconnect`` is on).
 
-Telemetry is off: ``DEPTHAI_TELEMETRY=0`` is set before ``depthai`` is imported.
+Telemetry is off: ``DEPTHAI_TELEMETRY=0`` is set before ``depthai`` is imported; so is the upload of a
+camera's firmware crash dump (``DEPTHAI_CRASHDUMP=0``, ``DEPTHAI_DISABLE_CRASHDUMP_COLLECTION=1``, unless
+already set).
 """
 
 from __future__ import annotations
@@ -47,6 +49,10 @@ from typing import Any
 from urllib.parse import urlsplit
 
 os.environ["DEPTHAI_TELEMETRY"] = "0"  # before importing depthai: the runtime never phones home
+# ... nor uploads a firmware crash dump ("... will not be saved nor uploaded to the Luxonis servers" with
+# DEPTHAI_CRASHDUMP=0, libdepthaicore 3.12); a user who wants to send one sets these before starting
+os.environ.setdefault("DEPTHAI_CRASHDUMP", "0")
+os.environ.setdefault("DEPTHAI_DISABLE_CRASHDUMP_COLLECTION", "1")
 
 import cv2  # noqa: E402
 import depthai as dai  # noqa: E402

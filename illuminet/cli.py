@@ -23,8 +23,11 @@ from illuminet import __version__
 from illuminet.runtime.config import Config, ConfigError, apply_overrides, load
 from illuminet.runtime.errors import IllumiNetError
 
-# The runtime must not phone home: DepthAI sends telemetry unless told not to.
+# The runtime must not phone home: DepthAI sends telemetry unless told not to, and uploads a camera's
+# firmware crash dump to Luxonis unless DEPTHAI_CRASHDUMP=0 (libdepthaicore's own message says so).
 os.environ.setdefault("DEPTHAI_TELEMETRY", "0")
+os.environ.setdefault("DEPTHAI_CRASHDUMP", "0")
+os.environ.setdefault("DEPTHAI_DISABLE_CRASHDUMP_COLLECTION", "1")
 
 #: command modules of this package, in the order --help lists them
 COMMAND_MODULES: list[str] = [

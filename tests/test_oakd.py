@@ -33,6 +33,24 @@ def test_telemetry_is_off():
     assert os.environ["DEPTHAI_TELEMETRY"] == "0"
 
 
+def test_crash_dump_upload_is_off_unless_the_user_asked(tmp_path):
+    """libdepthaicore uploads a firmware crash dump to Luxonis unless DEPTHAI_CRASHDUMP=0: importing the
+    OAK-D source (and the CLI) sets it, in a fresh interpreter; a value the user set is kept."""
+    import subprocess
+    import sys
+
+    code = (
+        "import os, illuminet.hw.oakd, illuminet.cli; "
+        "print(os.environ['DEPTHAI_CRASHDUMP'], os.environ['DEPTHAI_DISABLE_CRASHDUMP_COLLECTION'])"
+    )
+    env = {k: v for k, v in os.environ.items() if "CRASHDUMP" not in k}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert out.stdout.splitlines()[-1].split() == ["0", "1"], out.stderr
+    env["DEPTHAI_CRASHDUMP"] = str(tmp_path)
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert out.stdout.splitlines()[-1].split() == [str(tmp_path), "1"], out.stderr
+
+
 def test_parse_url_defaults_and_options():
     o = oakd.parse_url("oakd://")
     assert o.device == "" and o.size == (640, 400) and o.queue == 2 and o.fps == 30
