@@ -372,6 +372,10 @@ class V4l2Source(Source):
         self.max_bad_frames = max_bad_frames
         self._open = False
         self._stop = threading.Event()
+        # held around grab/retrieve: close() must not release the devices under a grab in progress
+        # (OpenCV's V4L2 backend frees the buffers a blocked grab is using: a crash at exit)
+        self._io = threading.RLock()
+        self._release_after_grab = False
         self._seq = 0
         self._last_t: int | None = None
         self._period_ns: float | None = None
@@ -384,16 +388,32 @@ class V4l2Source(Source):
         self.grabber.open()
         self._open = True
 
+    #: close() waits this long for a grab in progress (a stalled camera blocks one for up to 10 s);
+    #: after that the reading thread releases the devices itself when its grab returns
+    CLOSE_WAIT_S = 1.0
+
     def close(self) -> None:
         self._stop.set()
+        if not self._io.acquire(timeout=self.CLOSE_WAIT_S):
+            self._release_after_grab = True
+            log.info("V4L2 camera %s: a grab is in progress; it is released when it returns", self.grabber.left.name)
+            return
+        try:
+            self._release()
+        finally:
+            self._io.release()
+
+    def _release(self) -> None:
+        self._release_after_grab = False
         if self._open:
             self.grabber.close()
             self._open = False
 
     def _lost(self, why: str) -> None:
         """Handle a lost device: raise EndOfStream, or reopen with backoff until it works or close()."""
-        self.grabber.close()
-        self._open = False
+        with self._io:
+            self.grabber.close()
+            self._open = False
         if not self.reconnect:
             raise EndOfStream(
                 f"V4L2 camera {self.grabber.left.name} lost: {why}. Reconnect it and run again, "
@@ -412,8 +432,11 @@ class V4l2Source(Source):
             if self._stop.wait(delay):
                 return
             try:
-                self.grabber.open()
-                self._open = True
+                with self._io:  # not while close() releases the devices
+                    if self._stop.is_set():
+                        return
+                    self.grabber.open()
+                    self._open = True
                 self._last_t = None
                 return
             except (V4l2Error, OSError, cv2.error) as e:
@@ -440,16 +463,29 @@ class V4l2Source(Source):
             if not self._open:
                 self._lost("not open")
                 continue
-            if not self.grabber.grab():
+            with self._io:
+                if self._stop.is_set():
+                    break
+                grabbed = self.grabber.grab()
+                t_host = time.monotonic_ns()
+                try:
+                    pair = self.grabber.retrieve() if grabbed else None
+                except ValueError as e:
+                    pair = e
+                if self._release_after_grab:  # close() gave up waiting for this grab
+                    self._release()
+                    break
+            if not grabbed:
                 failures += 1
                 if failures >= self.max_failures:
                     self._lost(f"{failures} grabs in a row returned nothing")
                     failures = 0
                 continue
             failures = 0
-            t_host = time.monotonic_ns()
             try:
-                left, right, t_dev = self.grabber.retrieve()
+                if isinstance(pair, ValueError):
+                    raise pair
+                left, right, t_dev = pair
                 frame = self._to_frame(left, right, t_dev, t_host)
             except ValueError as e:  # one bad frame: counted and skipped, the stream goes on
                 self.bad_frames += 1

@@ -304,3 +304,42 @@ def test_real_sbs_camera(tmp_path):
         assert img is not None and img.ndim == 3
     finally:
         cap.close()
+
+
+def test_close_during_a_stalled_grab_never_releases_the_device_under_it(calib_file):
+    """OpenCV's V4L2 grab can block for 10 s on a stalled camera; releasing the capture meanwhile frees
+    the buffers it uses (a crash at exit). close() waits a moment, then leaves the release to the
+    reading thread, which does it as soon as its grab returns."""
+    left, right = _pair(0)
+    sbs = np.hstack([left, right])
+    in_grab, go = threading.Event(), threading.Event()
+    events = []
+
+    class Stalls(RecordedCapture):
+        def grab(self):
+            if self.i >= 0:  # the second grab stalls until released by the test
+                in_grab.set()
+                go.wait(10)
+                events.append("grab returned")
+            return super().grab()
+
+        def close(self):
+            events.append("close")
+            super().close()
+
+    cap = Stalls("/dev/video0", [sbs, sbs])
+    src = v4l2.V4l2Source(v4l2.StereoGrabber(cap), calib_file, reconnect=False)
+    src.CLOSE_WAIT_S = 0.2
+    src.open()
+    assert src.read() is not None
+    out = {}
+    t = threading.Thread(target=lambda: out.setdefault("f", src.read()))
+    t.start()
+    assert in_grab.wait(5)
+    t0 = time.monotonic()
+    src.close()
+    assert time.monotonic() - t0 < 2 and events == []  # close() returned without touching the device
+    go.set()
+    t.join(5)
+    assert not t.is_alive() and out["f"] is None
+    assert events == ["grab returned", "close"] and cap.closed == 1
