@@ -216,6 +216,13 @@ def check_intrinsics(K: Intrinsics, what: str = "intrinsics") -> None:
             f"{what}: width x height {K.width:g}x{K.height:g} is over {MAX_INTRINSICS_SIDE} pixels a side, not a "
             f"camera image; expected the image size in pixels the intrinsics were calibrated at"
         )
+    if not (0 <= K.cx <= K.width and 0 <= K.cy <= K.height):
+        # the optical axis outside the picture is no camera's; -5000 (a sign or unit slip) placed nothing and
+        # blamed the plane ("no real plane observed under the anchor pixel")
+        raise ValueError(
+            f"{what}: principal point cx={K.cx:g}, cy={K.cy:g} is outside the {K.width:g}x{K.height:g} image; "
+            f"expected pixels inside it, usually near the centre ({K.width / 2:g}, {K.height / 2:g})"
+        )
     lo, hi = FOV_RANGE_DEG
     for f, side, fname, sname in ((K.fx, K.width, "fx", "wide"), (K.fy, K.height, "fy", "high")):
         fov = math.degrees(2.0 * math.atan(side / (2.0 * f)))
@@ -271,6 +278,13 @@ def check_depth(depth: np.ndarray, what: str = "depth") -> None:
             f"{what}: median depth {med:g} m looks like millimetres; float depth is in metres: divide by 1000 "
             f"(or give uint16 millimetres, e.g. a 16-bit PNG)"
         )
+    # what the planes stage refuses (a map under 32x24, under 1 % valid, a median of 1 mm or 65.535 m):
+    # said here, not as a warning followed by "no real plane observed under the anchor pixel"
+    from illuminet.runtime.stages.plane_fit import check_depth as planes_check_depth
+
+    problem = planes_check_depth(d.astype(np.float32, copy=False))
+    if problem is not None:
+        raise ValueError(f"{what}: {problem[1]}")
 
 
 def check_exposure(exposure, what: str = "exposure") -> None:

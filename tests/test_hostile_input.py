@@ -541,6 +541,8 @@ def _relight_inputs(tmp_path):
     (tmp_path / "K_bool.json").write_text('{"fx": true, "fy": 60, "cx": 32, "cy": 24}')
     (tmp_path / "K_huge.json").write_text(f'{{{k}, "width": 1e30, "height": 1e30}}')
     (tmp_path / "K_half.json").write_text(f'{{{k}, "width": 1280}}')
+    np.save(tmp_path / "mm1.npy", np.full((48, 64), 0.001, np.float32))  # millimetres divided twice
+    cv2.imwrite(str(tmp_path / "d65535.png"), np.full((48, 64), 65535, np.uint16))
 
 
 BAD_RELIGHT = [
@@ -577,6 +579,10 @@ BAD_RELIGHT = [
     ({"--intrinsics": "1e-9,1e-9,32,24"}, "--intrinsics 1e-9,1e-9,32,24: fx=1e-09 pixels"),
     # a missing intrinsics file was "expected 4 comma-separated numbers, got 'nope.json'"
     ({"--intrinsics": "{tmp}/nope.json"}, "--intrinsics {tmp}/nope.json: no such file; expected a JSON file"),
+    # what the planes stage refused with a warning, then "no real plane observed under the anchor pixel"
+    ({"--depth": "{tmp}/mm1.npy"}, "--depth {tmp}/mm1.npy: depth median is 0.0010 m: too small for a room"),
+    ({"--depth": "{tmp}/d65535.png"}, "--depth {tmp}/d65535.png: depth median is 65.535 m"),
+    ({"--intrinsics": "60,60,-500,24"}, "principal point cx=-500, cy=24 is outside the 64x48 image"),
 ]
 
 

@@ -249,6 +249,13 @@ def test_relight_runtime_refuses_bad_exposure_depth_and_intrinsics():
         relight(color, depth, Intrinsics(True, K.fy, K.cx, K.cy, K.width, K.height), (160, 130), cfg)
     with pytest.raises(ValueError, match="made for a 640x200 image but the colour image is 320x200"):
         relight(color, depth, Intrinsics(K.fx, K.fy, K.cx, K.cy, 640, 200), (160, 130), cfg)
+    # the planes stage refused these with a warning; the error then blamed the plane under the anchor
+    with pytest.raises(ValueError, match="depth: depth median is 0.0013 m: too small for a room"):
+        relight(color, depth / 1000, K, (160, 130), cfg)
+    with pytest.raises(ValueError, match="depth: depth map is 16x10; expected at least 32x24"):
+        relight(color[:10, :16], depth[:10, :16], Intrinsics(16, 16, 8, 5, 16, 10), (8, 6), cfg)
+    with pytest.raises(ValueError, match="intrinsics: principal point cx=-5000, cy=99.5 is outside the 320x200"):
+        relight(color, depth, Intrinsics(K.fx, K.fy, -5000.0, K.cy, K.width, K.height), (160, 130), cfg)
 
 
 def test_relight_says_when_precision_has_no_effect(tmp_path, capsys):
