@@ -541,8 +541,15 @@ def _relight_inputs(tmp_path):
     (tmp_path / "K_bool.json").write_text('{"fx": true, "fy": 60, "cx": 32, "cy": 24}')
     (tmp_path / "K_huge.json").write_text(f'{{{k}, "width": 1e30, "height": 1e30}}')
     (tmp_path / "K_half.json").write_text(f'{{{k}, "width": 1280}}')
+    noise = np.random.default_rng(0).integers(0, 256, (48, 64, 3), np.uint8)
+    cv2.imwrite(str(tmp_path / "c.jpg"), noise)
+    jpg = (tmp_path / "c.jpg").read_bytes()
+    (tmp_path / "cut.jpg").write_bytes(jpg[: len(jpg) // 2])  # libjpeg decoded it half grey, exit 0
+    np.savez(tmp_path / "d.npz", depth=np.ones((48, 64), np.float32))
     np.save(tmp_path / "mm1.npy", np.full((48, 64), 0.001, np.float32))  # millimetres divided twice
     cv2.imwrite(str(tmp_path / "d65535.png"), np.full((48, 64), 65535, np.uint16))
+    (tmp_path / "K_deep.json").write_text('{"fx": ' + "[" * 100000 + "]" * 100000 + "}")
+    (tmp_path / "empty.png").write_bytes(b"")
 
 
 BAD_RELIGHT = [
@@ -579,10 +586,16 @@ BAD_RELIGHT = [
     ({"--intrinsics": "1e-9,1e-9,32,24"}, "--intrinsics 1e-9,1e-9,32,24: fx=1e-09 pixels"),
     # a missing intrinsics file was "expected 4 comma-separated numbers, got 'nope.json'"
     ({"--intrinsics": "{tmp}/nope.json"}, "--intrinsics {tmp}/nope.json: no such file; expected a JSON file"),
+    ({"--color": "{tmp}/cut.jpg"}, "--color {tmp}/cut.jpg: the JPEG is cut short"),
+    ({"--color": "/dev/null"}, "--color /dev/null: not a regular file"),  # was "no such file"
+    ({"--depth": "{tmp}/d.npz"}, "--depth {tmp}/d.npz: an .npz archive; expected one float array"),
+    ({"--depth": "{tmp}/empty.png"}, "--depth {tmp}/empty.png: cannot read an image from it (empty, cut short"),
     # what the planes stage refused with a warning, then "no real plane observed under the anchor pixel"
     ({"--depth": "{tmp}/mm1.npy"}, "--depth {tmp}/mm1.npy: depth median is 0.0010 m: too small for a room"),
     ({"--depth": "{tmp}/d65535.png"}, "--depth {tmp}/d65535.png: depth median is 65.535 m"),
     ({"--intrinsics": "60,60,-500,24"}, "principal point cx=-500, cy=24 is outside the 64x48 image"),
+    ({"--intrinsics": "{tmp}/K_deep.json"}, "--intrinsics {tmp}/K_deep.json: JSON nested too deeply"),  # traceback
+    ({"--anchor": "64,10"}, "--anchor 64,10: (64, 10) is outside the 64x48 image"),  # was "anchor pixel"
 ]
 
 

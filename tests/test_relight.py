@@ -223,6 +223,18 @@ def test_relight_cli_accepts_upper_case_npy_proportional_intrinsics_and_exposure
     assert float(scaled["exposure_scale"]) == pytest.approx(8000e-6 * 4)  # the metadata was used
 
 
+def test_relight_cli_reads_a_uint16_npy_as_millimetres_like_a_png(tmp_path, capsys):
+    """uint16 depth is millimetres in a 16-bit PNG and in the Python API; a uint16 .npy was read as metres
+    and refused as "millimetres: ... or give uint16 millimetres", which it was."""
+    _small_inputs(tmp_path)
+    np.save(tmp_path / "mm.npy", np.full((48, 64), 2000, np.uint16))
+    assert main(_small_argv(tmp_path)) == 0
+    png = dict(np.load(tmp_path / "r.npz"))
+    assert main(_small_argv(tmp_path, depth="{tmp}/mm.npy")) == 0, capsys.readouterr().err
+    npy = dict(np.load(tmp_path / "r.npz"))
+    np.testing.assert_allclose(npy["T_cam_obj"], png["T_cam_obj"], atol=1e-6)
+
+
 def test_relight_cli_names_the_npz_numpy_actually_writes(tmp_path, capsys):
     _small_inputs(tmp_path)
     capsys.readouterr()

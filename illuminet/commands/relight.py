@@ -76,6 +76,8 @@ def _input_file(path: str, flag: str) -> Path:
         raise ValueError(f"{flag} {path!r}: a NUL byte in the path; not a file name")
     if p.is_dir():
         raise ValueError(f"{flag} {path}: is a folder; expected a file")
+    if p.exists() and not p.is_file():  # /dev/null, a pipe: "no such file" sent users looking for a typo
+        raise ValueError(f"{flag} {path}: not a regular file (a device or pipe?); expected an image or array file")
     if not p.is_file():
         raise ValueError(f"{flag} {path}: no such file")
     return p
@@ -120,6 +122,22 @@ def _check_image_header(p: Path, flag: str) -> None:
         )
 
 
+def _check_jpeg_complete(p: Path, flag: str) -> None:
+    """Refuse a JPEG cut short: libjpeg decodes it anyway, grey below the cut, with only a warning on
+    stderr (a relight of the half-grey picture exited 0). A complete JPEG has its end-of-image marker
+    after the last start-of-scan (the scan data cannot hold ``FF D9``: its ``FF`` bytes are stuffed)."""
+    with open(p, "rb") as f:
+        data = f.read()
+    if not data.startswith(b"\xff\xd8"):
+        return  # not a JPEG
+    sos = data.rfind(b"\xff\xda")
+    if sos < 0 or data.find(b"\xff\xd9", sos) < 0:
+        raise ValueError(
+            f"{flag} {p}: the JPEG is cut short ({len(data)} bytes, no end-of-image marker after its image data); "
+            f"expected the complete file: copy or export it again"
+        )
+
+
 def _load_npy(p: Path, flag: str) -> np.ndarray:
     with open(p, "rb") as f:
         magic = f.read(6)
@@ -132,6 +150,10 @@ def _load_npy(p: Path, flag: str) -> np.ndarray:
         raise ValueError(f"{flag} {p}: cannot read the array: {e}") from None
     if a.ndim != 2 or a.dtype.kind not in "fiu":
         raise ValueError(f"{flag} {p}: expected a 2-D array of depths in metres, got {a.dtype} with shape {a.shape}")
+    if a.dtype == np.uint16:  # uint16 is millimetres, as in a 16-bit PNG and the Python API (was read as metres)
+        from illuminet.runtime.frame import depth_from_mm
+
+        return depth_from_mm(a)
     return a.astype(np.float32)
 
 
@@ -152,19 +174,26 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
     cpath = _input_file(color_path, "--color")
     dpath = _input_file(depth_path, "--depth")
     _check_image_header(cpath, "--color")
+    _check_jpeg_complete(cpath, "--color")
     bgr = cv2.imread(color_path, cv2.IMREAD_COLOR)
     if bgr is None:
-        raise ValueError(f"--color {color_path}: cannot read an image from it")
+        raise ValueError(
+            f"--color {color_path}: cannot read an image from it (empty, cut short, or not an image format "
+            f"OpenCV reads); expected an 8-bit RGB PNG or JPEG"
+        )
     color = np.ascontiguousarray(bgr[..., ::-1])
     with open(dpath, "rb") as f:
         is_npy = f.read(6) == b"\x93NUMPY"
-    if is_npy or dpath.suffix.lower() == ".npy":  # X.NPY too; a numpy array under any name is one
-        depth = _load_npy(dpath, "--depth")
+    if is_npy or dpath.suffix.lower() in (".npy", ".npz"):  # X.NPY too; a numpy array under any name is one
+        depth = _load_npy(dpath, "--depth")  # an .npz is named as one (was "cannot read an image from it")
     else:
         _check_image_header(dpath, "--depth")
         d = cv2.imread(depth_path, cv2.IMREAD_UNCHANGED)
         if d is None:
-            raise ValueError(f"--depth {depth_path}: cannot read an image from it")
+            raise ValueError(
+                f"--depth {depth_path}: cannot read an image from it (empty, cut short, or not an image format "
+                f"OpenCV reads); expected a single-channel 16-bit PNG in millimetres or a .npy of float metres"
+            )
         if d.dtype != np.uint16 or d.ndim != 2:
             raise ValueError(
                 f"--depth {depth_path}: expected a single-channel 16-bit PNG in millimetres, "
@@ -181,6 +210,10 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
             d = json.loads(Path(intr).read_text(encoding="utf-8"))
         except ValueError as e:  # not JSON, or not UTF-8 text
             raise ValueError(f"--intrinsics {intr}: not JSON ({e}); expected an object with fx, fy, cx, cy") from None
+        except RecursionError:  # [[[[...]]]] thousands deep: a traceback from the JSON decoder
+            raise ValueError(
+                f"--intrinsics {intr}: JSON nested too deeply; expected an object with fx, fy, cx, cy"
+            ) from None
         missing = [k for k in ("fx", "fy", "cx", "cy") if k not in d] if isinstance(d, dict) else None
         if missing is None or missing:
             what = f"{type(d).__name__}" if missing is None else f"no {', '.join(missing)}"
@@ -224,7 +257,7 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
 def run(args: argparse.Namespace, cfg) -> int:
     from illuminet.runtime.assets.bundle import BundleError
     from illuminet.runtime.frame import Exposure
-    from illuminet.runtime.relight import check_exposure, npz_path, relight
+    from illuminet.runtime.relight import check_anchor_px, check_exposure, npz_path, relight
 
     try:
         _check_output(args.out, "--out")
@@ -240,6 +273,8 @@ def run(args: argparse.Namespace, cfg) -> int:
             check_exposure(exp, f"--exposure {args.exposure}")
         ax, ay = _floats(args.anchor, 2, "--anchor")
         color, depth, K = load_inputs(args.color, args.depth, args.intrinsics)
+        # named by its flag here (the runtime's check says "anchor pixel", which is no option of this command)
+        ax, ay = check_anchor_px((ax, ay), color.shape[1], color.shape[0], f"--anchor {args.anchor}")
         res = relight(color, depth, K, (ax, ay), cfg, bundle=args.bundle, exposure=exp, precision=args.precision)
     except (ValueError, BundleError, OSError) as e:
         print(f"illuminet relight: {e}", file=sys.stderr)
