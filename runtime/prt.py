@@ -66,6 +66,19 @@ from illuminet.runtime.sh import SH_A_HAT, sh9
 PRT_FILE = "prt.npz"
 #: arrays of ``prt.npz`` (``bounce`` is optional)
 PRT_KEYS = ("transfer", "vis_directions", "vis_bits")
+#: the arrays of ``prt.npz`` that hold real numbers (all but the packed ``vis_bits``)
+PRT_FLOAT_KEYS = (
+    "transfer",
+    "vis_directions",
+    "bounce",
+    "bounce_primary",
+    "bounce_matrix",
+    "floor_dirs",
+    "floor_shadow",
+    "render_transfer",
+    "render_bounce",
+    "render_bounce_primary",
+)
 #: interpolation kernel radius, in units of the mean table spacing sqrt(4 pi / K)
 KERNEL_RADIUS = 1.5
 
@@ -159,6 +172,11 @@ class PrtTables:
         missing = [k for k in PRT_KEYS if k not in arrays]
         if missing:
             raise ValueError(f"missing arrays {', '.join(missing)}")
+        for key in PRT_FLOAT_KEYS:
+            # every table but the visibility bits is real numbers: a bool bounce matrix shaded 50x too bright
+            # and text parsed as numbers, both without a word
+            if key in arrays and np.asarray(arrays[key]).dtype.kind != "f":
+                raise ValueError(f"{key} holds {np.asarray(arrays[key]).dtype}; expected floating-point numbers")
         V = n_vertices
         t = np.asarray(arrays["transfer"], np.float32)
         d = np.asarray(arrays["vis_directions"], np.float32)

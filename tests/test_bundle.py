@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import numpy as np
 import pytest
 
 from illuminet.runtime.assets.bundle import FILES, BundleError, TransferChain, builtin_names, load_bundle
+from illuminet.runtime.prt import PRT_FILE
 
 MAX_BYTES = 10 * 1024 * 1024
 
@@ -122,3 +124,57 @@ def test_a_bundle_without_faces_is_refused_at_load_and_a_run_says_so_in_one_line
     b.faces = np.zeros((0, 3), np.int32)
     with pytest.raises(BundleError, match="F > 0.*remake the bundle"):
         mesh_from_bundle(b)
+
+
+def _edit_npz(d, name, edit):
+    """Rewrite ``d/name`` with ``edit(arrays)`` applied and the checksums in bundle.json made to agree."""
+    from illuminet.models.export import finalize_bundle
+
+    with np.load(d / name) as z:
+        arr = {k: z[k] for k in z.files}
+    edit(arr)
+    np.savez_compressed(d / name, **arr)
+    finalize_bundle(d, json.loads((d / "bundle.json").read_text()))
+
+
+@pytest.mark.parametrize(
+    "name, key, make, match",
+    [
+        # an IndexError traceback deep in the carry
+        (
+            FILES["mesh"],
+            "proxy_index",
+            lambda a: a.astype(np.float64),
+            "array 'proxy_index' holds float64; expected int",
+        ),
+        (FILES["mesh"], "faces", lambda a: a.astype(np.float32), "array 'faces' holds float32; expected integers"),
+        # "could not convert string to float", naming no file
+        (FILES["mesh"], "vertices", lambda a: a.astype("U8"), "array 'vertices' holds <U8; expected floating-point"),
+        (FILES["mesh"], "vertices", lambda a: a > 0, "array 'vertices' holds bool"),  # a silently wrong object
+        (FILES["mesh"], "proxy_edges", lambda a: -a - 1, "proxy_edges index outside 0..399"),  # wrapped around
+        # a bool bounce matrix shaded 50x too bright, text tables were parsed as numbers: both silently
+        (PRT_FILE, "bounce_matrix", lambda a: a > 0, "prt.npz: bounce_matrix holds bool; expected floating-point"),
+        (PRT_FILE, "transfer", lambda a: a.astype("U6"), "prt.npz: transfer holds <U6; expected floating-point"),
+    ],
+)
+def test_bundle_arrays_of_the_wrong_kind_are_refused_naming_them(tmp_path, capsys, name, key, make, match):
+    from illuminet.cli import main
+
+    d = _copy(tmp_path)
+
+    def edit(arr):
+        arr[key] = make(arr[key])
+
+    _edit_npz(d, name, edit)
+    with pytest.raises(BundleError, match=re.escape(match)):
+        load_bundle(d)
+    assert main(["--set", f"model.bundle={d}", "run", "synthetic://indoor?frames=1"]) == 2
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and match in lines[0], lines
+
+
+def test_a_bundle_json_nested_too_deeply_is_one_line(tmp_path):
+    d = _copy(tmp_path)
+    (d / "bundle.json").write_text('{"format": ' + "[" * 100000 + "]" * 100000 + "}")  # was a RecursionError
+    with pytest.raises(BundleError, match="bundle.json: JSON nested too deeply"):
+        load_bundle(d)

@@ -226,6 +226,8 @@ def load_bundle(spec: str | Path, verify: bool = True) -> Bundle:
         meta = json.loads(mpath.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise BundleError(f"{mpath}: not valid JSON: {e}") from None
+    except RecursionError:  # [[[[...]]]] thousands deep: a traceback from the JSON decoder
+        raise BundleError(f"{mpath}: JSON nested too deeply to be a bundle's metadata; remake the bundle") from None
     check_metadata(meta, mpath)
     required = [FILES["mesh"]] + ([FILES[k] for k in MODEL_FILES] if "onnx" in meta else [])
     for name in required:
@@ -261,6 +263,7 @@ def load_bundle(spec: str | Path, verify: bool = True) -> Bundle:
         raise
     except Exception as e:  # zip/npz errors
         raise BundleError(f"{path / FILES['mesh']}: cannot read: {e}") from None
+    _check_dtypes(arr, path / FILES["mesh"])
     b = Bundle(path=path, meta=meta, **arr)
     _check_finite(b, path / FILES["mesh"])
     _check_shapes(b, path / FILES["mesh"])
@@ -372,6 +375,24 @@ def check_metadata(meta: object, mpath: Path) -> None:
         raise bad("onnx.outputs.shading", "a shape (a list of ints)", outs)
 
 
+#: mesh.npz arrays that index vertices (integers) and those that hold numbers (floats)
+MESH_INDEX_KEYS = ("faces", "proxy_index", "proxy_edges", "carry_index")
+MESH_FLOAT_KEYS = ("vertices", "normals", "carry_weight", "prior_shading")
+
+
+def _check_dtypes(arr: dict, where: Path) -> None:
+    """Index arrays must hold integers and the others real numbers: float indices were an IndexError
+    traceback, text vertices "could not convert string to float" without the file, bool vertices a
+    silently wrong object."""
+    for key in MESH_INDEX_KEYS + MESH_FLOAT_KEYS:
+        kinds, expected = ("iu", "integers") if key in MESH_INDEX_KEYS else ("f", "floating-point numbers")
+        if arr[key].dtype.kind not in kinds:
+            raise BundleError(
+                f"{where}: array {key!r} holds {arr[key].dtype}; expected {expected}; remake the bundle "
+                "(`illuminet bundle` or `illuminet train`)"
+            )
+
+
 def _check_finite(b: Bundle, where: Path) -> None:
     # a NaN vertex renders nothing and a NaN weight or prior makes every shading value NaN, silently
     for key in ("vertices", "normals", "carry_weight", "prior_shading"):
@@ -407,7 +428,10 @@ def _check_shapes(b: Bundle, where: Path) -> None:
         b.proxy_edges.ndim == 2 and b.proxy_edges.shape[1] == 2,
         f"proxy_edges must be (E, 2), got {b.proxy_edges.shape}",
     )
-    need(b.proxy_edges.size == 0 or b.proxy_edges.max() < V, f"proxy_edges index outside 0..{V - 1}")
+    need(
+        b.proxy_edges.size == 0 or (b.proxy_edges.min() >= 0 and b.proxy_edges.max() < V),
+        f"proxy_edges index outside 0..{V - 1}",
+    )
     need(
         b.carry_index.shape == b.carry_weight.shape and b.carry_index.ndim == 2 and len(b.carry_index) == R,
         f"carry_index {b.carry_index.shape} and carry_weight {b.carry_weight.shape} must both be (R={R}, k)",
