@@ -114,6 +114,40 @@ def test_a_broken_mesh_file_or_path_is_one_line_saying_what_it_is(tmp_path, caps
             load_render_mesh(tmp_path / name)
 
 
+def _bad_geometry_files(tmp_path):
+    box = _box()
+    v, f = box.vertices.tolist(), (box.faces + 1).tolist()
+    lines = [f"v {x} {y}" for x, y, _ in v] + [f"f {a} {b} {c}" for a, b, c in f]
+    (tmp_path / "xy.obj").write_text("\n".join(lines))
+    lines = [f"v {x} {y} {z}" for x, y, z in v] + ["f 1 1 1", "f 2 2 3"]
+    (tmp_path / "degenerate.obj").write_text("\n".join(lines))
+    (tmp_path / "collinear.obj").write_text("v 0 0 0\nv 1 1 1\nv 2 2 2\nf 1 2 3\n")
+    scene = trimesh.Scene()
+    scene.add_geometry(box, transform=np.diag([1e300, 1e300, 1e300, 1.0]))
+    (tmp_path / "far.glb").write_bytes(trimesh.exchange.gltf.export_glb(scene))
+
+
+BAD_GEOMETRY = [
+    ("xy.obj", "xy.obj: 2 coordinate(s) per vertex; expected x y z"),  # an IndexError traceback
+    # a bundle of nothing to draw or light, exit 0
+    ("degenerate.obj", "degenerate.obj: all its 2 triangle(s) have zero area (repeated or collinear corners)"),
+    ("collinear.obj", "collinear.obj: all its 1 triangle(s) have zero area"),
+    ("far.glb", "far.glb: 8 vertex/vertices lie 1e+299 units"),  # after ten lines of numpy overflow warnings
+]
+
+
+@pytest.mark.parametrize("name,expect", BAD_GEOMETRY, ids=[n for n, _ in BAD_GEOMETRY])
+def test_a_mesh_without_usable_geometry_is_one_line(tmp_path, capfd, name, expect):
+    _bad_geometry_files(tmp_path)
+    with pytest.raises(ObjectLoadError, match="expected"):
+        load_object(str(tmp_path / name))
+    capfd.readouterr()
+    assert main(["bundle", "--object", str(tmp_path / name), "--out", str(tmp_path / "out")]) == 2
+    err = capfd.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and expect in err, err
+    assert not (tmp_path / "out").exists()
+
+
 def test_a_module_trimesh_lacks_is_named_as_such_not_as_a_broken_file(tmp_path, monkeypatch):
     (tmp_path / "m.glb").write_bytes(trimesh.exchange.gltf.export_glb(trimesh.Scene(_box())))
 

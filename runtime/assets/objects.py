@@ -189,6 +189,26 @@ def _check_extent(mesh: trimesh.Trimesh, path: Path) -> None:
         )
 
 
+def _check_xyz(mesh: trimesh.Trimesh, path: Path) -> None:
+    """Vertices must have three coordinates (an OBJ of ``v x y`` lines was an IndexError traceback)."""
+    v = np.asarray(mesh.vertices)
+    if v.ndim != 2 or v.shape[1] != 3:
+        got = f"{v.shape[1]} coordinate(s) per vertex" if v.ndim == 2 else f"vertices of shape {v.shape}"
+        raise ObjectLoadError(f"{path}: {got}; expected x y z for every vertex: fix or re-export the mesh")
+
+
+def _check_area(mesh: trimesh.Trimesh, path: Path) -> None:
+    """Refuse a mesh none of whose triangles has an area (repeated or collinear corners): ``bundle`` made a
+    bundle of it, exit 0, with nothing to draw or light."""
+    ext = float(np.ptp(np.asarray(mesh.vertices, np.float64), axis=0).max())
+    area = np.asarray(mesh.area_faces, np.float64)
+    if not np.any(area > 1e-12 * ext * ext):
+        raise ObjectLoadError(
+            f"{path}: all its {len(area)} triangle(s) have zero area (repeated or collinear corners); expected a "
+            "surface: fix or re-export the mesh"
+        )
+
+
 #: file kinds by suffix, for messages
 MESH_KINDS = {".glb": "GLB (binary glTF)", ".gltf": "glTF", ".obj": "OBJ", ".ply": "PLY", ".stl": "STL", ".off": "OFF"}
 #: formats trimesh parses as text (PLY: its header, and its body when ``format ascii``; STL when not binary)
@@ -382,7 +402,12 @@ def load_object(
     # single-mesh formats are read unprocessed first: trimesh's processing silently drops the faces of a
     # vertex with NaN or infinite coordinates (a broken export), which the check below then never saw
     single = path.suffix.lower() in (".obj", ".ply", ".stl", ".off")
-    loaded = read_mesh(path, process=not single, label=f"object {spec!r}")
+    # np.errstate: a scene node scaled by 1e300 or a NaN matrix printed numpy's overflow warnings (ten lines of
+    # them) before the one line below that refuses the mesh
+    with np.errstate(all="ignore"):
+        loaded = read_mesh(path, process=not single, label=f"object {spec!r}")
+    if isinstance(loaded, trimesh.Trimesh):
+        _check_xyz(loaded, path)
     if single and isinstance(loaded, trimesh.Trimesh):
         bad = ~np.all(np.isfinite(loaded.vertices), axis=1)
         if bad.any():
@@ -397,16 +422,22 @@ def load_object(
         if not loaded.geometry:
             raise ObjectLoadError(f"{path}: the file holds no geometry")
         try:
-            mesh = loaded.to_mesh()  # applies node transforms, keeps visuals where it can
+            with np.errstate(all="ignore"):
+                mesh = loaded.to_mesh()  # applies node transforms, keeps visuals where it can
         except Exception as e:
             raise ObjectLoadError(f"{path}: cannot flatten the scene into one mesh ({e})") from None
     else:
         mesh = loaded
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0 or len(mesh.vertices) == 0:
         raise ObjectLoadError(f"{path}: holds no triangles (a point cloud or empty mesh?)")
+    _check_xyz(mesh, path)
     if not np.all(np.isfinite(mesh.vertices)):
-        raise ObjectLoadError(f"{path}: has non-finite vertex coordinates")
+        raise ObjectLoadError(
+            f"{path}: has non-finite vertex coordinates (NaN or inf, in the file or from a node's transform); "
+            "fix or re-export the mesh"
+        )
     _check_extent(mesh, path)
+    _check_area(mesh, path)
     if up == "z":
         mesh.apply_transform(_Z_UP_TO_Y_UP)
     elif up != "y":
