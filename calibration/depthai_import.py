@@ -204,4 +204,8 @@ def import_depthai(path: str | Path, left_socket: int | None = None, right_socke
         raise CalibrationError(f"{path}: cannot read it: {e.strerror or e}") from None
     except json.JSONDecodeError as e:
         raise CalibrationError(f"{path}: not valid JSON: {e}") from None
+    except RecursionError:  # [[[[...]]]] thousands deep: a traceback from the JSON decoder
+        raise CalibrationError(
+            f"{path}: JSON nested too deeply to be a calibration; expected a DepthAI calibration JSON export"
+        ) from None
     return parse_depthai(data, str(path), left_socket, right_socket, path=path)

@@ -115,6 +115,10 @@ def exposure_times_from_names(paths: Sequence[Path], times_json: Path | None = N
             raw = json.loads(Path(times_json).read_text(encoding="utf-8"))
         except (OSError, ValueError) as e:  # ValueError: not JSON, or not UTF-8 text
             raise CalibrationError(f"{times_json}: cannot read exposure table: {e}") from None
+        except RecursionError:  # [[[[...]]]] thousands deep: a traceback from the JSON decoder
+            raise CalibrationError(
+                f'{times_json}: JSON nested too deeply; expected an exposure table {{"file name": seconds}}'
+            ) from None
         if not isinstance(raw, dict):
             raise CalibrationError(f'{times_json}: expected an object {{"file name": seconds}}')
         for k, v in raw.items():

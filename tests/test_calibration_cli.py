@@ -139,6 +139,11 @@ def test_cli_errors_are_one_line_exit_2(tmp_path, capsys):
     assert main(["calibrate", "import-depthai", str(binary), "-o", str(tmp_path / "x.json")]) == 2
     err = capsys.readouterr().err
     assert "photo.json: not a text file" in err and len(err.strip().splitlines()) == 1
+    deep = tmp_path / "deep.json"
+    deep.write_text('{"cameraData": ' + "[" * 100000 + "]" * 100000 + "}")  # was a RecursionError traceback
+    assert main(["calibrate", "import-depthai", str(deep), "-o", str(tmp_path / "x.json")]) == 2
+    err = capsys.readouterr().err
+    assert "deep.json: JSON nested too deeply" in err and len(err.strip().splitlines()) == 1, err
 
 
 def test_an_output_that_cannot_be_made_is_one_line(tmp_path, capsys):
@@ -370,6 +375,9 @@ def test_photometric_flags_are_checked(tmp_path, capsys):
         assert main([*cmd, "--times", str(times)]) == 2, value
         err = _one_line(capsys)
         assert f'{times}: "img_5ms.png": expected the exposure time in seconds' in err, err
+    times.write_text("[" * 100000 + "]" * 100000)  # was a RecursionError traceback
+    assert main([*cmd, "--times", str(times)]) == 2
+    assert f"{times}: JSON nested too deeply" in _one_line(capsys)
     assert not out.exists()
     assert main([*cmd, "--samples", "60", "--smoothness", "20"]) == 0, capsys.readouterr().err
     assert np.load(out).shape == (256, 3)

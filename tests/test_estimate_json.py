@@ -177,6 +177,9 @@ def test_recorder_writes_the_estimates_sidecar_and_the_reader_tolerates_its_abse
     with open(tmp_path / "s" / ESTIMATES, "ab") as fh:
         fh.write(b'{"i": 0, "estimate": {"fram')
     assert sorted(SessionReader(tmp_path / "s").estimates()) == [1, 3, 5]
+    with open(tmp_path / "s" / ESTIMATES, "ab") as fh:  # a line nested too deeply was a RecursionError
+        fh.write(b"\n" + b"[" * 100000 + b"]" * 100000 + b"\n")
+    assert sorted(SessionReader(tmp_path / "s").estimates()) == [1, 3, 5]
     # a session recorded without estimates: an empty mapping, no problem reported
     with SessionWriter(tmp_path / "plain", fsync=False) as w:
         w.append(fs[0])

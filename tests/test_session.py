@@ -213,6 +213,9 @@ def test_manifest_not_json(tmp_path):
     (tmp_path / "s" / "manifest.json").write_text("{not json")
     with pytest.raises(SessionError, match=r"manifest.json: not valid JSON"):
         SessionReader(tmp_path / "s")
+    (tmp_path / "s" / "manifest.json").write_text("[" * 100000 + "]" * 100000)  # was a RecursionError
+    with pytest.raises(SessionError, match=r"manifest.json: JSON nested too deeply"):
+        SessionReader(tmp_path / "s")
 
 
 def test_unknown_version_is_named(tmp_path):

@@ -719,6 +719,8 @@ class SessionReader:
             m = json.loads(mpath.read_text(encoding="utf-8"))
         except (json.JSONDecodeError, UnicodeDecodeError) as e:
             raise SessionError(f"{mpath}: not valid JSON ({e})") from None
+        except RecursionError:  # [[[[...]]]] thousands deep: a traceback from the JSON decoder
+            raise SessionError(f"{mpath}: JSON nested too deeply; expected the session's manifest object") from None
         if not isinstance(m, dict):
             raise SessionError(f"{mpath}: expected a JSON object, got {type(m).__name__}")
         where = str(mpath)
@@ -1046,7 +1048,7 @@ class SessionReader:
             try:
                 d = json.loads(raw.decode("utf-8"))
                 i, est = d["i"], d["estimate"]
-            except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError):
+            except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, RecursionError):
                 bad += 1
                 continue
             if isinstance(i, int) and not isinstance(i, bool) and i in intact and isinstance(est, dict):
