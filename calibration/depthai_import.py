@@ -45,9 +45,47 @@ def _mat(where: str, key: str, v: Any, shape: tuple[int, ...]) -> np.ndarray:
     return a
 
 
+#: the most a translation component may be, in centimetres (a camera module is centimetres across;
+#: 1e300 gave an overflow warning and a written calibration of an absurd baseline)
+MAX_TRANSLATION_CM = 10_000.0
+#: the largest image side a camera entry may claim (pixels)
+MAX_SIDE = 100_000
+#: DepthAI sockets are CAM_A..CAM_Z
+MAX_SOCKET = 25
+
+
+def _shown(v: Any) -> str:
+    r = " ".join(repr(v).split())
+    return r if len(r) <= 60 else r[:57] + "..."
+
+
+def _is_real(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _int(where: str, key: str, v: Any, lo: int, hi: int, what: str) -> int:
+    """``v`` as a whole number in ``lo..hi`` (a JSON ``1280.0`` counts), else one line naming ``key``:
+    ``int()`` of a string, None, a list or infinity was a traceback, of ``1280.7`` a silent truncation,
+    and True was socket 1."""
+    if not (_is_real(v) and np.isfinite(v) and float(v).is_integer() and lo <= v <= hi):
+        raise CalibrationError(f"{where}: {key}: expected {what} (a whole number from {lo} to {hi}), got {_shown(v)}")
+    return int(v)
+
+
+def _socket(where: str, key: str, v: Any) -> int:
+    return _int(where, key, v, 0, MAX_SOCKET, "a camera socket number")
+
+
 def _xyz(where: str, key: str, d: Any) -> np.ndarray:
     if not isinstance(d, dict) or not all(k in d for k in "xyz"):
         raise CalibrationError(f"{where}: {key}: expected an object with x, y, z, got {d!r}")
+    for k in "xyz":
+        v = d[k]
+        if not (_is_real(v) and np.isfinite(v) and abs(v) <= MAX_TRANSLATION_CM):
+            raise CalibrationError(
+                f"{where}: {key}.{k}: expected a finite number of centimetres within +-{MAX_TRANSLATION_CM:g}, "
+                f"got {_shown(v)}"
+            )
     return np.array([float(d["x"]), float(d["y"]), float(d["z"])])
 
 
@@ -69,6 +107,11 @@ def parse_depthai(
     sockets: list[int] = []
     for n, entry in enumerate(entries):
         sock, cam, link = _parse_camera(where, f"cameraData[{n}]", entry)
+        if sock in sockets:  # the second silently replaced the first
+            raise CalibrationError(
+                f"{where}: cameraData[{n}]: socket {sock} appears twice (cameraData[{sockets.index(sock)}] too); "
+                "expected one entry per camera socket"
+            )
         cams[socket_name(sock)] = cam
         sockets.append(sock)
         if link is not None:
@@ -76,12 +119,17 @@ def parse_depthai(
             links.setdefault(sock, []).append((to, R, T))
             links.setdefault(to, []).append((sock, R.T, -R.T @ T))
     rect = data.get("stereoRectificationData") or {}
+    if not isinstance(rect, dict):  # a list was an AttributeError traceback
+        raise CalibrationError(
+            f"{where}: stereoRectificationData: expected an object with leftCameraSocket and rightCameraSocket, "
+            f"got {_shown(rect)}"
+        )
     left_from = "--left-socket" if left_socket is not None else "stereoRectificationData.leftCameraSocket"
     right_from = "--right-socket" if right_socket is not None else "stereoRectificationData.rightCameraSocket"
-    if left_socket is None:
-        left_socket = rect.get("leftCameraSocket")
-    if right_socket is None:
-        right_socket = rect.get("rightCameraSocket")
+    if left_socket is None and rect.get("leftCameraSocket") is not None:
+        left_socket = _socket(where, left_from, rect["leftCameraSocket"])
+    if right_socket is None and rect.get("rightCameraSocket") is not None:
+        right_socket = _socket(where, right_from, rect["rightCameraSocket"])
     if left_socket is not None and left_socket == right_socket:
         raise CalibrationError(
             f"{where}: stereo left and right are the same socket {left_socket} ({left_from}, {right_from}): "
@@ -128,20 +176,34 @@ def _parse_camera(where: str, key: str, entry) -> tuple[int, CameraCalib, tuple[
     if not (isinstance(entry, list) and len(entry) == 2 and isinstance(entry[0], int) and isinstance(entry[1], dict)):
         raise CalibrationError(f"{where}: {key}: expected [socket number, {{camera}}], got {str(entry)[:80]}")
     sock, c = entry
+    sock = _socket(where, f"{key}[0]", sock)
     for k in ("width", "height", "intrinsicMatrix", "distortionCoeff"):
         if k not in c:
             raise CalibrationError(f"{where}: {key}: missing key {k!r}")
-    ctype = int(c.get("cameraType", 0))
-    if ctype not in CAMERA_TYPES:
-        raise CalibrationError(f"{where}: {key}.cameraType: expected 0 (perspective) or 1 (fisheye), got {ctype}")
-    model = CAMERA_TYPES[ctype]
-    w, h = int(c["width"]), int(c["height"])
-    if w <= 0 or h <= 0:
-        raise CalibrationError(f"{where}: {key}: width/height must be positive, got {w}x{h}")
+    ctype = c.get("cameraType", 0)
+    if not (_is_real(ctype) and ctype in CAMERA_TYPES):
+        raise CalibrationError(
+            f"{where}: {key}.cameraType: expected 0 (perspective) or 1 (fisheye), got {_shown(ctype)}"
+        )
+    model = CAMERA_TYPES[int(ctype)]
+    w = _int(where, f"{key}.width", c["width"], 1, MAX_SIDE, "the image width in pixels")
+    h = _int(where, f"{key}.height", c["height"], 1, MAX_SIDE, "the image height in pixels")
     K = _mat(where, f"{key}.intrinsicMatrix", c["intrinsicMatrix"], (3, 3))
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         raise CalibrationError(f"{where}: {key}.intrinsicMatrix: focal lengths must be positive, got {K.tolist()}")
-    D = np.asarray(c["distortionCoeff"], float).ravel()
+    if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+        raise CalibrationError(
+            f"{where}: {key}.intrinsicMatrix: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}"
+        )
+    if not (0 <= K[0, 2] <= w and 0 <= K[1, 2] <= h):
+        raise CalibrationError(
+            f"{where}: {key}.intrinsicMatrix: principal point ({K[0, 2]:g}, {K[1, 2]:g}) is outside the {w}x{h} "
+            f"image; expected pixels inside it"
+        )
+    coeffs = c["distortionCoeff"]
+    if not isinstance(coeffs, list):
+        raise CalibrationError(f"{where}: {key}.distortionCoeff: expected a list of numbers, got {_shown(coeffs)}")
+    D = _mat(where, f"{key}.distortionCoeff", coeffs, (len(coeffs),))
     if model == "fisheye":
         if len(D) < 4:
             raise CalibrationError(f"{where}: {key}.distortionCoeff: fisheye needs 4 coefficients, got {len(D)}")
@@ -149,7 +211,14 @@ def _parse_camera(where: str, key: str, entry) -> tuple[int, CameraCalib, tuple[
     elif len(D) not in (4, 5, 8, 12, 14):
         raise CalibrationError(f"{where}: {key}.distortionCoeff: expected 4/5/8/12/14 coefficients, got {len(D)}")
     ex = c.get("extrinsics") or {}
-    to = int(ex.get("toCameraSocket", -1))
+    if not isinstance(ex, dict):  # a list was an AttributeError traceback
+        raise CalibrationError(
+            f"{where}: {key}.extrinsics: expected an object with rotationMatrix, translation, toCameraSocket, "
+            f"got {_shown(ex)}"
+        )
+    to = ex.get("toCameraSocket", -1)
+    if to != -1:
+        to = _socket(where, f"{key}.extrinsics.toCameraSocket", to)  # -1: none
     link = None
     if to >= 0:
         R = _mat(where, f"{key}.extrinsics.rotationMatrix", ex.get("rotationMatrix"), (3, 3))

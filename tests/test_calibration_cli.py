@@ -233,6 +233,51 @@ def test_import_depthai_refuses_a_pair_without_baseline(tmp_path, capsys):
     assert main(argv) == 0  # no pair asked for and none named: the cameras alone, as before
 
 
+def _cam0(d):
+    return d["cameraData"][0][1]
+
+
+BAD_DEPTHAI = [  # each was a traceback, or a calibration written without a word (exit 0)
+    (lambda d: d.update(stereoRectificationData=[1, 2]), "stereoRectificationData: expected an object"),
+    (lambda d: d["stereoRectificationData"].update(leftCameraSocket=True), "leftCameraSocket: expected a camera"),
+    (lambda d: _cam0(d).update(cameraType="abc"), "cameraData[0].cameraType: expected 0 (perspective) or 1"),
+    (lambda d: _cam0(d).update(width="wide"), "cameraData[0].width: expected the image width in pixels"),
+    (lambda d: _cam0(d).update(width=1280.7), "cameraData[0].width: expected the image width"),  # truncated
+    (lambda d: _cam0(d).update(height=1e999), "cameraData[0].height: expected the image height"),
+    (lambda d: _cam0(d).update(distortionCoeff="abc"), "cameraData[0].distortionCoeff: expected a list"),
+    (lambda d: _cam0(d).update(distortionCoeff=[float("nan")] * 14), "distortionCoeff: expected finite numbers"),
+    (
+        lambda d: _cam0(d).update(intrinsicMatrix=[[800, 0, -9000], [0, 800, 400], [0, 0, 1]]),
+        "principal point (-9000, 400) is outside the 1280x800 image",
+    ),
+    (
+        lambda d: _cam0(d).update(intrinsicMatrix=[[800, 0, 640], [0, 800, 400], [5, 5, 5]]),
+        "intrinsicMatrix: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]",
+    ),
+    (lambda d: _cam0(d).update(extrinsics=[1, 2]), "cameraData[0].extrinsics: expected an object"),
+    (lambda d: _cam0(d)["extrinsics"].update(toCameraSocket="two"), "toCameraSocket: expected a camera socket"),
+    (
+        lambda d: _cam0(d)["extrinsics"].update(translation={"x": "a", "y": 0, "z": 0}),
+        "extrinsics.translation.x: expected a finite number of centimetres",
+    ),
+    (lambda d: _cam0(d)["extrinsics"].update(translation={"x": 1e300, "y": 0, "z": 0}), "translation.x: expected"),
+    (lambda d: d["cameraData"][0].__setitem__(0, 10**9), "cameraData[0][0]: expected a camera socket number"),
+    (lambda d: d["cameraData"][1].__setitem__(0, 1), "cameraData[1]: socket 1 appears twice"),
+]
+
+
+@pytest.mark.parametrize("edit,expect", BAD_DEPTHAI, ids=[e for _, e in BAD_DEPTHAI])
+def test_import_depthai_refuses_malformed_entries_in_one_line(tmp_path, capsys, edit, expect):
+    data = _depthai_data()
+    edit(data)
+    src, out = tmp_path / "dai.json", tmp_path / "ours.json"
+    src.write_text(json.dumps(data))
+    assert main(["calibrate", "import-depthai", str(src), "-o", str(out)]) == 2
+    err = _one_line(capsys)
+    assert f"{src}: " in err and expect in err, err
+    assert not out.exists()
+
+
 def test_board_keeps_a_json_it_did_not_write(tmp_path, capsys):
     cal = tmp_path / "calibration.json"
     cal.write_text('{"format": "illuminet-calibration", "cameras": {}}\n')
