@@ -369,12 +369,25 @@ def _opt_number(where: str, d: Mapping[str, Any], key: str, prefix: str, what: s
     return float(v)
 
 
+#: the largest image side a calibration may describe (pixels)
+MAX_SIDE = 100_000
+#: the field of view (degrees, per axis) focal lengths must give for the image size (as relight's intrinsics)
+FOV_RANGE_DEG = (0.5, 179.0)
+#: the largest stereo translation (metres, per axis): a camera pair, not two buildings
+MAX_BASELINE_M = 100.0
+
+
 def camera_from_dict(d: Mapping[str, Any], where: str = "<calibration>", prefix: str = "") -> CameraCalib:
     """Parse one ``cameras.NAME`` object (see the module docstring)."""
     w = _get(where, d, "width", prefix, (int,))
     h = _get(where, d, "height", prefix, (int,))
     if w <= 0 or h <= 0:
         raise CalibrationError(f"{where}: {prefix}width/height: expected positive sizes, got {w}x{h}")
+    if w > MAX_SIDE or h > MAX_SIDE:
+        raise CalibrationError(
+            f"{where}: {prefix}width/height: {w}x{h} is over {MAX_SIDE} pixels a side, not a camera image; expected "
+            "the image size in pixels the camera was calibrated at"
+        )
     model = d.get("model", "pinhole")
     if model not in MODELS:
         raise CalibrationError(f"{where}: {prefix}model: expected one of {MODELS}, got {model!r}")
@@ -383,6 +396,19 @@ def camera_from_dict(d: Mapping[str, Any], where: str = "<calibration>", prefix:
         raise CalibrationError(
             f"{where}: {prefix}K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, got {K.tolist()}"
         )
+    if not (0 <= K[0, 2] <= w and 0 <= K[1, 2] <= h):
+        raise CalibrationError(
+            f"{where}: {prefix}K: principal point ({K[0, 2]:g}, {K[1, 2]:g}) is outside the {w}x{h} image; "
+            "expected pixels inside it, usually near the centre"
+        )
+    lo, hi = FOV_RANGE_DEG
+    for f, side, name in ((K[0, 0], w, "fx"), (K[1, 1], h, "fy")):
+        fov = math.degrees(2.0 * math.atan(side / (2.0 * f)))
+        if not lo <= fov <= hi:
+            raise CalibrationError(
+                f"{where}: {prefix}K: {name}={f:g} pixels for an image {side} px across is a {fov:.3g} deg field "
+                f"of view; expected focal lengths in pixels giving {lo:g}-{hi:g} deg"
+            )
     dist_raw = d.get("dist", [])
     if not isinstance(dist_raw, list):
         raise CalibrationError(f"{where}: {prefix}dist: expected a list of numbers, got {dist_raw!r}")
@@ -423,6 +449,11 @@ def calibration_from_dict(d: Mapping[str, Any], where: str = "<calibration>", pa
                 f"{where}: stereo.R: expected a rotation matrix (orthonormal, det +1), got {R.tolist()}"
             )
         T = _matrix(where, "stereo.T", _get(where, s, "T", "stereo.", (list,)), (3,))
+        if np.abs(T).max() > MAX_BASELINE_M:  # 1e300 overflowed |T| (a numpy warning) and loaded
+            raise CalibrationError(
+                f"{where}: stereo.T: {T.tolist()} is over {MAX_BASELINE_M:g} m; expected the translation between the "
+                "two cameras in metres"
+            )
         if np.linalg.norm(T) <= 0:
             raise CalibrationError(f"{where}: stereo.T: expected a non-zero translation in metres, got {T.tolist()}")
         baseline = _opt_number(where, s, "baseline_m", "stereo.", "the baseline |T| in metres")

@@ -66,9 +66,20 @@ def test_round_trip(tmp_path):
         (lambda d: d.update(meta=[[1, 2]]), "meta: expected an object"),  # dict() would have taken it
         (lambda d: d.update(color_camera=5), "color_camera: expected the name of one of the cameras"),
         (lambda d: d.update(stereo=5), "stereo: expected an object, got int"),
+        # loaded without a word: an optical axis outside the picture, an absurd size, focal length or baseline
+        (
+            lambda d: d["cameras"]["left"].update(K=[[400, 0, -9000], [0, 400, 200], [0, 0, 1]]),
+            "cameras.left.K: principal point (-9000, 200) is outside the 640x400 image",
+        ),
+        (lambda d: d["cameras"]["left"].update(width=10**30), "cameras.left.width/height: 1000000000000000000000"),
+        (
+            lambda d: d["cameras"]["left"].update(K=[[1e300, 0, 320], [0, 400, 200], [0, 0, 1]]),
+            "cameras.left.K: fx=1e+300 pixels for an image 640 px across",
+        ),
+        (lambda d: d["stereo"].update(T=[1e300, 0, 0], baseline_m=None), "stereo.T: [1e+300, 0.0, 0.0] is over 100 m"),
     ],
 )
-def test_bad_file_names_key(tmp_path, mutate, message):
+def test_bad_file_names_key(tmp_path, mutate, message, recwarn):
     d = _calib().to_dict()
     mutate(d)
     p = tmp_path / "bad.json"
@@ -77,6 +88,7 @@ def test_bad_file_names_key(tmp_path, mutate, message):
         load_calibration(p)
     assert str(p) in str(e.value) and message in str(e.value)
     assert "\n" not in str(e.value)
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]  # |1e300| overflowed, a warning
 
 
 def test_not_json_and_missing_and_depthai_hint(tmp_path):
