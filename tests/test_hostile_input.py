@@ -130,6 +130,11 @@ BAD_INPUTS += [
     (_EVAL + ["--object-albedo", "nan"], 2, "--object-albedo: expected a number in [0, 1), got nan"),
     (_EVAL + ["--crosscheck-spp", "0"], 2, "--crosscheck-spp 0"),
     (_EVAL + ["--crosscheck-bounces", "-1"], 2, "--crosscheck-bounces -1: expected a count from 0 to 16"),
+    # a folder that cannot be written: datagen's was a FileNotFoundError traceback after the samples were made,
+    # train's an "[Errno 2]" without the flag after setting up
+    (_DATAGEN + ["--out", "/proc/dg.npz"], 2, "--out /proc/dg.npz: cannot write files there (No such file"),
+    (_TRAIN + ["--out", "/proc/t"], 2, "--out /proc/t: cannot write files there"),
+    (_EVAL + ["--out", "/proc/ev"], 2, "--out /proc/ev: cannot write files there"),
 ]
 
 
@@ -154,6 +159,21 @@ def test_a_mistake_is_one_line_with_its_exit_status(tmp_path, capsys, argv, code
     assert not (tmp_path / "missing").exists()
     # nor was an output of the offline jobs begun
     assert not any((tmp_path / p).exists() for p in ("b", "dg.npz", "t", "ev")), sorted(tmp_path.iterdir())
+
+
+def test_datagen_leaves_no_half_written_file_when_the_disk_fills(tmp_path, monkeypatch):
+    import errno
+    import os
+
+    from illuminet.commands import datagen
+
+    def full(*a):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "replace", full)
+    with pytest.raises(errors.JobError, match=r"--out .*dg.npz: cannot write the data file \(No space left"):
+        datagen.write(tmp_path / "dg.npz", {}, {})
+    assert list(tmp_path.iterdir()) == []  # its temporary file was left behind
 
 
 def test_an_oversized_hdr_map_is_a_warning_not_a_traceback(tmp_path, capsys, caplog):

@@ -128,31 +128,6 @@ def check_bundle_object(out: Path, spec: str) -> None:
         raise _usage(f"--out {out} holds a bundle of {existing!r}, not {spec!r}: choose another --out")
 
 
-def _check_writable(out: Path) -> None:
-    """Make ``--out`` (and a probe file in it) before any work, then remove what was made: a folder that
-    cannot be written is one line naming ``--out`` now, not an ``[Errno ...]`` after the PRT."""
-    made: list[Path] = []
-    try:
-        for d in [*reversed(out.parents), out]:
-            if not d.exists():
-                d.mkdir()
-                made.append(d)
-        probe = out / ".illuminet-write-test"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as e:
-        raise _usage(
-            f"--out {out}: cannot write a bundle there ({e.strerror or e}{f': {e.filename}' if e.filename else ''}); "
-            "expected a folder you can create and write: choose another --out"
-        ) from None
-    finally:
-        for d in reversed(made):
-            try:
-                d.rmdir()
-            except OSError:
-                pass
-
-
 def _os_error(e: OSError, out: Path) -> JobError:
     """An OSError as one line, naming ``--out`` when it is about the bundle folder."""
     name = Path(e.filename) if e.filename else None
@@ -171,8 +146,7 @@ def run(args: argparse.Namespace, cfg) -> int:
     check_count("--transfer-rays", args.transfer_rays, 64, MAX_RAYS, note=" (default 4096)")
     check_count("--directions", args.directions, 64, MAX_RAYS, note=" (default 4096)")
     check_seed(args.seed)
-    check_out("--out", Path(args.out), folder=True)
-    _check_writable(Path(args.out))
+    check_out("--out", Path(args.out), folder=True, what="a bundle")
     try:
         import scipy  # noqa: F401  (the proxy's nearest neighbours)
     except ImportError:

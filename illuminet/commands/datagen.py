@@ -117,10 +117,16 @@ def merge(store: cluster.ShardStore, shards: list[cluster.Shard]):
 def write(out: Path, arrays, meta: dict) -> None:
     from illuminet.models.datagen import data_bytes
 
-    out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
-    tmp.write_bytes(data_bytes(arrays, meta))
-    os.replace(tmp, out)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp.write_bytes(data_bytes(arrays, meta))
+        os.replace(tmp, out)
+    except OSError as e:  # a disk that filled up since --out was checked: one line, and no half-written file
+        tmp.unlink(missing_ok=True)
+        raise JobError(
+            f"--out {out}: cannot write the data file ({e.strerror or e}); free space or choose another --out"
+        ) from None
 
 
 def check_data_out(out: Path) -> str | None:

@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import os
 import shlex
 import sys
 import time
@@ -174,9 +175,11 @@ def check_data_size(flag: str, samples: int, grid: int, n_proxy: int, fix: str) 
         )
 
 
-def check_out(flag: str, out: Path, folder: bool) -> None:
+def check_out(flag: str, out: Path, folder: bool, what: str = "files") -> None:
     """Refuse an output path that cannot be made: a file where a folder is needed (``folder``: ``out``
-    itself), or a file where one of its parent folders would be. Checked before any work."""
+    itself), a file where one of its parent folders would be, or a folder that cannot be created or
+    written (``/proc/x``, a read-only folder: the write failed after the work, a traceback or an
+    ``[Errno 2]``). Checked before any work; the folders made to probe it are removed again."""
     if folder and out.exists() and not out.is_dir():
         raise _usage(f"{flag} {out}: is a file, expected a folder: choose a new or existing folder")
     for parent in out.parents:
@@ -184,6 +187,27 @@ def check_out(flag: str, out: Path, folder: bool) -> None:
             if not parent.is_dir():
                 raise _usage(f"{flag} {out}: {parent} is a file, not a folder: choose another {flag}")
             break
+    made: list[Path] = []
+    target = out if folder else out.parent
+    try:
+        for d in [*reversed(target.parents), target]:
+            if not d.exists():
+                d.mkdir()
+                made.append(d)
+        probe = target / f".illuminet-write-test-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise _usage(
+            f"{flag} {out}: cannot write {what} there ({e.strerror or e}{f': {e.filename}' if e.filename else ''}); "
+            f"expected a folder you can create and write: choose another {flag}"
+        ) from None
+    finally:
+        for d in reversed(made):
+            try:
+                d.rmdir()
+            except OSError:
+                pass
 
 
 def check_hdr(hdr: str | None, held_out: bool = False) -> None:
