@@ -403,7 +403,7 @@ def relight(
         resolution of the same field of view is resized nearest-neighbour (:func:`align_depth`)
     intrinsics : Intrinsics, 3x3 K or (fx, fy, cx, cy) of the colour image
     anchor_px : (x, y) colour pixel where the object stands
-    bundle : object bundle (default ``[model] bundle``, e.g. ``builtin:vase``)
+    bundle : object bundle (default ``[model] bundle``, e.g. ``builtin:vase``): a str or a path
     config, **overrides : as for :func:`open`
     exposure : Exposure, optional (absolute units when known)
     precision : ``"int8"`` or ``"fp32"`` ONNX chain (default ``[model] precision``)
@@ -426,6 +426,12 @@ def relight(
     from illuminet.runtime.relight import check_anchor_px
     from illuminet.runtime.relight import relight as _relight
 
+    if isinstance(bundle, os.PathLike):  # a pathlib.Path was "override: [model] bundle: expected string"
+        bundle = os.fspath(bundle)
+    if bundle is not None and not isinstance(bundle, str):
+        raise ValueError(
+            f"bundle: expected builtin:NAME or a bundle folder (a str or a path), or None, got {_described(bundle)}"
+        )
     color = _color(color)  # shape, dtype and size checked before the copy
     d = align_depth(depth, color.shape)
     h, w = color.shape[:2]
@@ -464,9 +470,19 @@ def render_preview(
     d = None if depth is None else align_depth(depth, color.shape)
     K = _intrinsics(intrinsics, w, h)
     cfg = _config(config, overrides, "illuminet.render_preview()")
+    try:
+        T = np.asarray(result.T_cam_obj, np.float64)
+    except (TypeError, ValueError):
+        T = np.full((0,), np.nan)
+    if T.shape != (4, 4) or not np.isfinite(T).all() or not np.array_equal(T[3], [0, 0, 0, 1]):
+        # a 3x3 was an IndexError traceback from the renderer, NaN "cannot convert float NaN to integer"
+        raise ValueError(
+            f"result.T_cam_obj: expected the finite 4x4 object-to-camera transform relight returned, got "
+            f"{_described(result.T_cam_obj)}"
+        )
     if str(result.bundle):  # the bundle folder relight loaded: the same object and carry
         cfg = apply_overrides(cfg, [("model", "bundle", str(result.bundle))])
-    R = np.asarray(result.T_cam_obj)[:3, :3]
+    R = T[:3, :3]
     shading = ObjectShading(
         irradiance=np.asarray(result.proxy_irradiance, np.float32),
         method=result.method,
@@ -479,8 +495,6 @@ def render_preview(
     try:
         irr = stage.render_irradiance(shading)
         light, share = dominant_light(shading, stage.comp.mesh.normals, irr)
-        return stage.comp.draw(
-            color, d, K.K, np.asarray(result.T_cam_obj, np.float64), irr, float(result.exposure_scale), light, share
-        )
+        return stage.comp.draw(color, d, K.K, T, irr, float(result.exposure_scale), light, share)
     finally:
         stage.close()

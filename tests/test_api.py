@@ -311,6 +311,39 @@ def test_render_preview_refuses_bad_arguments_before_rendering(kw, match, monkey
     _one_line(e)
 
 
+def test_relight_takes_a_bundle_path_and_refuses_a_bundle_of_another_type():
+    from pathlib import Path
+
+    from illuminet.runtime.assets.bundle import builtin_dir
+
+    color, depth, K = floor_rgbd()
+    res = illuminet.relight(color, depth, K, (160, 130), Path(builtin_dir() / "vase"))  # was refused
+    assert Path(res.bundle) == builtin_dir() / "vase"
+    with pytest.raises(ValueError, match="bundle: expected builtin:NAME or a bundle folder .*got int 5") as e:
+        illuminet.relight(color, depth, K, (160, 130), 5)  # was "override: [model] bundle: expected string"
+    _one_line(e)
+
+
+@pytest.mark.parametrize(
+    "T", [np.eye(3), np.full((4, 4), np.nan), "T", np.diag([1.0, 1.0, 1.0, 2.0])], ids=["3x3", "nan", "str", "row"]
+)
+def test_render_preview_refuses_a_result_with_a_broken_transform(T, monkeypatch):
+    # a 3x3 was an IndexError traceback from the renderer, NaN "cannot convert float NaN to integer"
+    import dataclasses
+
+    import illuminet.runtime.render.stage as render_stage
+
+    def no_gl(*a, **k):
+        raise AssertionError("RenderStage was made before the arguments were checked")
+
+    color, depth, K = floor_rgbd()
+    res = illuminet.relight(color, depth, K, (160, 130), "builtin:vase")
+    monkeypatch.setattr(render_stage, "RenderStage", no_gl)
+    with pytest.raises(ValueError, match="result.T_cam_obj: expected the finite 4x4 object-to-camera transform") as e:
+        illuminet.render_preview(color, depth, K, dataclasses.replace(res, T_cam_obj=T))
+    _one_line(e)
+
+
 @pytest.mark.parametrize(
     "args, kw, match",
     [
