@@ -570,6 +570,9 @@ def _relight_inputs(tmp_path):
     cv2.imwrite(str(tmp_path / "d65535.png"), np.full((48, 64), 65535, np.uint16))
     (tmp_path / "K_deep.json").write_text('{"fx": ' + "[" * 100000 + "]" * 100000 + "}")
     (tmp_path / "empty.png").write_bytes(b"")
+    with open(tmp_path / "big.npy", "wb") as f:  # a complete 8000x8000 float64 array: 512 MB read, then copied
+        np.lib.format.write_array_header_1_0(f, {"descr": "<f8", "fortran_order": False, "shape": (8000, 8000)})
+        f.truncate(f.tell() + 8000 * 8000 * 8)  # sparse: no disk space used
 
 
 BAD_RELIGHT = [
@@ -616,6 +619,7 @@ BAD_RELIGHT = [
     ({"--intrinsics": "60,60,-500,24"}, "principal point cx=-500, cy=24 is outside the 64x48 image"),
     ({"--intrinsics": "{tmp}/K_deep.json"}, "--intrinsics {tmp}/K_deep.json: JSON nested too deeply"),  # traceback
     ({"--anchor": "64,10"}, "--anchor 64,10: (64, 10) is outside the 64x48 image"),  # was "anchor pixel"
+    ({"--depth": "{tmp}/big.npy"}, "--depth {tmp}/big.npy: the array header says 8000x8000 pixels, over the limit"),
 ]
 
 

@@ -144,6 +144,18 @@ def _load_npy(p: Path, flag: str) -> np.ndarray:
     if magic != b"\x93NUMPY":
         kind = "an .npz archive" if magic.startswith(b"PK") else "not a .npy array"
         raise ValueError(f"{flag} {p}: {kind}; expected one float array in metres saved by numpy.save")
+    try:  # the size from the header, before the array is read and copied to float32 (as a PNG's header)
+        with open(p, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape = read(f, max_header_size=1 << 16)[0] if version in ((1, 0), (2, 0)) else ()
+    except (ValueError, OSError, EOFError, SyntaxError) as e:
+        raise ValueError(f"{flag} {p}: cannot read the array header: {e}") from None
+    if len(shape) == 2 and shape[0] * shape[1] > MAX_IMAGE_PIXELS:
+        raise ValueError(
+            f"{flag} {p}: the array header says {shape[1]}x{shape[0]} pixels, over the limit of "
+            f"{MAX_IMAGE_PIXELS / 1e6:g} Mpx; resize it first"
+        )
     try:
         a = np.load(p, allow_pickle=False)
     except (ValueError, OSError, EOFError) as e:
