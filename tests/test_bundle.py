@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -57,6 +58,9 @@ def _copy(tmp_path, name="vase"):
 def test_unknown_builtin_lists_known():
     with pytest.raises(BundleError, match="builtin:vase"):
         load_bundle("builtin:teapot")
+    a_file = Path(__file__).parent / "__init__.py"  # there, but a file
+    with pytest.raises(BundleError, match="is a file, not a bundle folder"):  # was "folder not found"
+        load_bundle(str(a_file))
 
 
 def test_checksum_mismatch_names_file(tmp_path):

@@ -89,6 +89,11 @@ def resolve_bundle(spec: str | Path) -> Path:
     p = Path(s)
     if p.is_file() and p.name == METADATA:
         p = p.parent
+    if p.exists() and not p.is_dir():  # "folder not found" sent users looking for a typo in a name that is there
+        raise BundleError(
+            f"bundle {s!r}: is a file, not a bundle folder (expected builtin:NAME or a bundle folder containing "
+            f"{METADATA}; `illuminet bundle --object {s}` makes one from a mesh file)"
+        )
     if not p.is_dir():
         raise BundleError(
             f"bundle {s!r}: folder not found (expected builtin:NAME or a bundle folder containing {METADATA})"
