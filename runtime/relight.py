@@ -15,6 +15,7 @@ frame's transfer curve (sRGB unless a response curve is configured) gives pixel 
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
@@ -58,6 +59,23 @@ class RelightResult:
         without it: :func:`npz_path`), None for a file object."""
         extra = light_fields(self.light) if self.light is not None else {}
         written = None if hasattr(path, "write") else npz_path(path)
+        if written is None:
+            self._write(path, extra)
+            return None
+        # written beside itself and moved into place: a write that failed (a full disk) left a truncated npz
+        # in place of the previous result
+        folder, name = os.path.split(written)
+        tmp = os.path.join(folder, f".{name}.tmp-{os.getpid()}.npz")
+        try:
+            self._write(tmp, extra)
+            os.replace(tmp, written)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+            raise
+        return written
+
+    def _write(self, path, extra: dict) -> None:
         np.savez_compressed(
             path,
             vertices=self.vertices.astype(np.float32),
@@ -78,7 +96,6 @@ class RelightResult:
             format=np.int64(1),
             **extra,
         )
-        return written
 
 
 def npz_path(path) -> str:

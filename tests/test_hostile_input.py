@@ -619,6 +619,8 @@ BAD_RELIGHT = [
     ({"--intrinsics": "60,60,-500,24"}, "principal point cx=-500, cy=24 is outside the 64x48 image"),
     ({"--intrinsics": "{tmp}/K_deep.json"}, "--intrinsics {tmp}/K_deep.json: JSON nested too deeply"),  # traceback
     ({"--anchor": "64,10"}, "--anchor 64,10: (64, 10) is outside the 64x48 image"),  # was "anchor pixel"
+    ({"--preview": "{tmp}/c.png"}, "--preview {tmp}/c.png: is the --color input file"),  # replaced the photo
+    ({"--out": "{tmp}/d.npz", "--depth": "{tmp}/d.npz"}, "--out {tmp}/d.npz: is the --depth input file"),
     ({"--depth": "{tmp}/big.npy"}, "--depth {tmp}/big.npy: the array header says 8000x8000 pixels, over the limit"),
 ]
 

@@ -235,6 +235,28 @@ def test_relight_cli_reads_a_uint16_npy_as_millimetres_like_a_png(tmp_path, caps
     np.testing.assert_allclose(npy["T_cam_obj"], png["T_cam_obj"], atol=1e-6)
 
 
+def test_relight_leaves_the_previous_npz_when_a_write_fails(tmp_path, capsys, monkeypatch):
+    """A full disk mid-write left a truncated npz in place of the previous result."""
+    import errno
+
+    _small_inputs(tmp_path)
+    assert main(_small_argv(tmp_path)) == 0
+    before = (tmp_path / "r.npz").read_bytes()
+
+    def fill_the_disk(path, **arrays):
+        with open(path, "wb") as f:
+            f.write(b"PK\x03\x04 half an npz")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(np, "savez_compressed", fill_the_disk)
+    capsys.readouterr()
+    assert main(_small_argv(tmp_path)) == 1
+    err = capsys.readouterr().err
+    assert "cannot write" in err and "No space left on device" in err and len(err.strip().splitlines()) == 1, err
+    assert (tmp_path / "r.npz").read_bytes() == before
+    assert not [p.name for p in tmp_path.iterdir() if ".tmp-" in p.name]
+
+
 def test_relight_cli_names_the_npz_numpy_actually_writes(tmp_path, capsys):
     _small_inputs(tmp_path)
     capsys.readouterr()

@@ -110,6 +110,27 @@ def _check_output(path: str, flag: str, image: bool = False) -> None:
             raise OutputPathError(f"{flag} {path}: {what}; expected an image file name such as preview.png (or .jpg)")
 
 
+def _check_not_an_input(args: argparse.Namespace, out: str) -> None:
+    """Refuse an output that is one of the inputs: ``--preview`` naming the ``--color`` image replaced the
+    photograph with the composite."""
+    import os
+
+    from illuminet.runtime.errors import OutputPathError
+
+    inputs = [("--color", args.color), ("--depth", args.depth), ("--intrinsics", args.intrinsics)]
+    for oflag, opath in (("--out", out), ("--preview", args.preview)):
+        for iflag, ipath in inputs:
+            try:
+                same = bool(opath) and os.path.isfile(ipath) and os.path.samefile(opath, ipath)
+            except (OSError, ValueError):  # the output does not exist yet (or a NUL byte): no input
+                same = False
+            if same:
+                raise OutputPathError(
+                    f"{oflag} {opath}: is the {iflag} input file; writing it would replace the input: choose "
+                    f"another {oflag} name"
+                )
+
+
 def _check_image_header(p: Path, flag: str) -> None:
     """Refuse a PNG/JPEG whose header claims more than :data:`MAX_IMAGE_PIXELS`, without decoding it."""
     from illuminet.runtime.imageheader import image_size_of_file
@@ -278,6 +299,7 @@ def run(args: argparse.Namespace, cfg) -> int:
             _check_output(out, "--out")
         if args.preview:
             _check_output(args.preview, "--preview", image=True)
+        _check_not_an_input(args, out)
         exp = None
         if args.exposure is not None:
             us, iso = _floats(args.exposure, 2, "--exposure")
@@ -323,12 +345,22 @@ def run(args: argparse.Namespace, cfg) -> int:
                 file=sys.stderr,
             )
             return 1
+        import os
+
+        # written beside itself (same extension: it picks the encoder) and moved into place: a write that
+        # failed (a full disk) left a truncated picture in place of the previous one
+        folder, name = os.path.split(args.preview)
+        tmp = os.path.join(folder, f".{Path(name).stem}.tmp-{os.getpid()}{Path(name).suffix}")
         try:
-            written = cv2.imwrite(args.preview, np.ascontiguousarray(pic[:, :, ::-1]))
-        except cv2.error as e:  # checked up front; an encoder that still refuses is one line too
+            written = cv2.imwrite(tmp, np.ascontiguousarray(pic[:, :, ::-1]))
+            if written:
+                os.replace(tmp, args.preview)
+        except (cv2.error, OSError) as e:  # checked up front; an encoder that still refuses is one line too
             written, reason = False, " ".join(str(e).split())[-200:]
         else:
             reason = "the folder changed since it was checked, or the disk is full"
+        if not written and os.path.exists(tmp):
+            os.unlink(tmp)
         if not written:
             print(
                 f"illuminet relight: --preview {args.preview}: cannot write it ({reason}); the npz was written",
