@@ -235,6 +235,23 @@ def test_relight_cli_reads_a_uint16_npy_as_millimetres_like_a_png(tmp_path, caps
     np.testing.assert_allclose(npy["T_cam_obj"], png["T_cam_obj"], atol=1e-6)
 
 
+def test_relight_reads_a_jpeg_as_stored_whatever_its_exif_orientation(tmp_path, capsys):
+    """OpenCV turns a JPEG by its EXIF orientation; the depth and intrinsics describe the stored pixels, so a
+    phone photo tagged "rotate 90" was refused as not aligned with its depth (a square one lit turned)."""
+    import struct
+
+    _small_inputs(tmp_path)
+    cv2.imwrite(str(tmp_path / "c.jpg"), np.full((48, 64, 3), 128, np.uint8))
+    jpg = (tmp_path / "c.jpg").read_bytes()
+    ifd = struct.pack("<H", 1) + struct.pack("<HHIHH", 0x0112, 3, 1, 6, 0) + struct.pack("<I", 0)  # Orientation 6
+    exif = b"Exif\x00\x00" + b"II*\x00" + struct.pack("<I", 8) + ifd
+    (tmp_path / "rot.jpg").write_bytes(jpg[:2] + b"\xff\xe1" + struct.pack(">H", len(exif) + 2) + exif + jpg[2:])
+    assert main(_small_argv(tmp_path, color="{tmp}/c.jpg")) == 0
+    plain = dict(np.load(tmp_path / "r.npz"))
+    assert main(_small_argv(tmp_path, color="{tmp}/rot.jpg")) == 0, capsys.readouterr().err
+    np.testing.assert_allclose(dict(np.load(tmp_path / "r.npz"))["radiance"], plain["radiance"])
+
+
 def test_relight_leaves_the_previous_npz_when_a_write_fails(tmp_path, capsys, monkeypatch):
     """A full disk mid-write left a truncated npz in place of the previous result."""
     import errno

@@ -208,7 +208,10 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
     dpath = _input_file(depth_path, "--depth")
     _check_image_header(cpath, "--color")
     _check_jpeg_complete(cpath, "--color")
-    bgr = cv2.imread(color_path, cv2.IMREAD_COLOR)
+    # the pixels as stored: the depth and the intrinsics describe the sensor's grid, and OpenCV otherwise turns
+    # a JPEG by its EXIF orientation (a phone photo: colour 200x320 against depth 320x200, refused as not
+    # aligned; a square one silently lit from a quarter-turned picture)
+    bgr = cv2.imread(color_path, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if bgr is None:
         raise ValueError(
             f"--color {color_path}: cannot read an image from it (empty, cut short, or not an image format "
