@@ -570,6 +570,7 @@ def _relight_inputs(tmp_path):
     cv2.imwrite(str(tmp_path / "d65535.png"), np.full((48, 64), 65535, np.uint16))
     (tmp_path / "K_deep.json").write_text('{"fx": ' + "[" * 100000 + "]" * 100000 + "}")
     (tmp_path / "empty.png").write_bytes(b"")
+    cv2.imwrite(str(tmp_path / "lin.hdr"), np.full((48, 64, 3), 0.2, np.float32))  # linear: read as 8-bit sRGB
     with open(tmp_path / "big.npy", "wb") as f:  # a complete 8000x8000 float64 array: 512 MB read, then copied
         np.lib.format.write_array_header_1_0(f, {"descr": "<f8", "fortran_order": False, "shape": (8000, 8000)})
         f.truncate(f.tell() + 8000 * 8000 * 8)  # sparse: no disk space used
@@ -621,6 +622,7 @@ BAD_RELIGHT = [
     ({"--anchor": "64,10"}, "--anchor 64,10: (64, 10) is outside the 64x48 image"),  # was "anchor pixel"
     ({"--preview": "{tmp}/c.png"}, "--preview {tmp}/c.png: is the --color input file"),  # replaced the photo
     ({"--out": "{tmp}/d.npz", "--depth": "{tmp}/d.npz"}, "--out {tmp}/d.npz: is the --depth input file"),
+    ({"--color": "{tmp}/lin.hdr"}, "--color {tmp}/lin.hdr: a Radiance HDR image (linear floating-point)"),
     ({"--depth": "{tmp}/big.npy"}, "--depth {tmp}/big.npy: the array header says 8000x8000 pixels, over the limit"),
 ]
 

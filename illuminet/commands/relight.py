@@ -159,6 +159,23 @@ def _check_jpeg_complete(p: Path, flag: str) -> None:
         )
 
 
+#: magic bytes of floating-point (linear HDR) image formats OpenCV reads and would squeeze into 8 bits
+_FLOAT_IMAGES = ((b"#?", "a Radiance HDR"), (b"PF", "a PFM"), (b"Pf", "a PFM"), (b"\x76\x2f\x31\x01", "an OpenEXR"))
+
+
+def _check_not_float_image(p: Path, flag: str) -> None:
+    """Refuse a linear floating-point picture as the colour image: OpenCV reads it as 8 bits (a linear .hdr
+    in [0, 1] came out 3x too dark and was taken as sRGB, a .pfm black) and relight lit the object from it."""
+    with open(p, "rb") as f:
+        head = f.read(4)
+    for magic, kind in _FLOAT_IMAGES:
+        if head.startswith(magic):
+            raise ValueError(
+                f"{flag} {p}: {kind} image (linear floating-point); expected an 8-bit sRGB colour image such as a "
+                f"PNG or JPEG: tone-map or convert it first"
+            )
+
+
 def _load_npy(p: Path, flag: str) -> np.ndarray:
     with open(p, "rb") as f:
         magic = f.read(6)
@@ -208,6 +225,7 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
     dpath = _input_file(depth_path, "--depth")
     _check_image_header(cpath, "--color")
     _check_jpeg_complete(cpath, "--color")
+    _check_not_float_image(cpath, "--color")
     # the pixels as stored: the depth and the intrinsics describe the sensor's grid, and OpenCV otherwise turns
     # a JPEG by its EXIF orientation (a phone photo: colour 200x320 against depth 320x200, refused as not
     # aligned; a square one silently lit from a quarter-turned picture)
