@@ -5,14 +5,14 @@ Example::
     illuminet relight --color C.png --depth D.png --intrinsics 500,500,320,180 --anchor 320,250 \\
         --bundle builtin:vase --out result.npz
 
-``--depth`` is a 16-bit PNG in millimetres (0 = invalid) or a float ``.npy`` in metres, aligned to the
-colour image: the same field of view, at the colour's or another resolution (a stereo camera's
-640x400 for 1280x800 colour is resized nearest-neighbour to the colour size). ``--intrinsics`` is
-``fx,fy,cx,cy`` or a JSON file with those keys (plus optional width/height; scaled to the colour
-size when they differ; another aspect ratio is refused). The npz format is documented in docs/models.md
-("relight npz"); an ``--out`` name without ``.npz`` gets it appended (numpy's rule), and the message
-names the file written. ``--exposure US,ISO``: exposure time in microseconds and ISO (e.g. 8000,400).
-``--preview PNG`` also writes the lit object composited into the colour image (the runtime's
+``--depth`` is a 16-bit PNG in millimetres (0 = invalid) or a float ``.npy`` in metres (a uint16 one:
+millimetres), aligned to the colour image: the same field of view, at the colour's or another resolution
+(a stereo camera's 640x400 for 1280x800 colour is resized nearest-neighbour to the colour size).
+``--intrinsics`` is ``fx,fy,cx,cy`` or a JSON file with those keys (plus optional width/height; scaled
+to the colour size when they differ; another aspect ratio is refused). The npz format is documented in
+docs/models.md ("relight npz"); an ``--out`` name without ``.npz`` gets it appended (numpy's rule), and
+the message names the file written. ``--exposure US,ISO``: exposure time in microseconds and ISO (e.g.
+8000,400). ``--preview PNG`` also writes the lit object composited into the colour image (the runtime's
 renderer: shading, cast shadow, occlusion; needs OpenGL via EGL).
 """
 
