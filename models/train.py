@@ -217,10 +217,21 @@ def load_tree(path: Path, like):
     import jax
     import jax.numpy as jnp
 
-    with np.load(path, allow_pickle=False) as z:
+    try:
+        z = np.load(path, allow_pickle=False)
+    except Exception as e:  # a damaged file (BadZipFile, EOFError...): a traceback on resume
+        raise ValueError(
+            f"checkpoint {path}: cannot read it ({type(e).__name__}: {e}); delete it (or the work folder) to start "
+            "that stage over"
+        ) from None
+    with z:
         leaves, treedef = jax.tree_util.tree_flatten(like)
         new = []
         for i, ref in enumerate(leaves):
+            if f"leaf_{i}" not in z.files:
+                raise ValueError(
+                    f"checkpoint {path}: no leaf {i} (a different configuration? delete the work folder to start over)"
+                )
             a = z[f"leaf_{i}"]
             if a.shape != np.shape(ref):
                 raise ValueError(
@@ -289,14 +300,23 @@ class Trainer:
         for split, n, seed in (("train", c.n_train, c.seed * 1000 + 1), ("val", c.n_val, c.seed * 1000 + 2)):
             path = self.work / f"data_{split}.npz"
             if path.is_file():
-                with np.load(path, allow_pickle=False) as z:
-                    d = {k: z[k] for k in z.files}
-                if len(d["plane"]) == n and d["oi"].shape[1] == V:
+                try:
+                    with np.load(path, allow_pickle=False) as z:
+                        d = {k: z[k] for k in z.files}
+                    usable = len(d["plane"]) == n and d["oi"].shape[1] == V
+                except Exception as e:  # cut short by a kill or a full disk: a BadZipFile traceback on resume
+                    log.warning(
+                        "%s: cannot read it (%s: %s); making the %s data again", path, type(e).__name__, e, split
+                    )
+                    usable = False
+                if usable:
                     self.data[split] = d
                     continue
             bar = Progress(f"data {split}", n, self.show)
             d = datagen.generate(self.scene, n, seed, c.kinds, hdr, c.hdr_share if hdr else 0.0, progress=bar)
-            np.savez(path, **d)
+            tmp = path.with_name(f".{path.name}.tmp.npz")  # moved into place whole: a kill leaves no half file
+            np.savez(tmp, **d)
+            tmp.replace(path)
             self.data[split] = d
         self.timings["data_s"] = time.time() - t0
 

@@ -64,6 +64,14 @@ def test_tiny_training_to_bundle_and_relight(tmp_path):
     res = relight(color, depth, K, (160, 130), defaults(), bundle=str(out))
     assert res.radiance.shape == (len(b.vertices), 3) and np.isfinite(res.radiance).all()
     assert path.name == "bundle.json"
+    # work files cut short (a kill or a full disk mid-write) were a BadZipFile traceback on resume: the data
+    # is made again (the same samples: seeded), a checkpoint is one line saying what to delete
+    (out / "work" / "data_val.npz").write_bytes(b"PK\x03\x04 cut short")
+    (out / "work" / "finetune.npz").write_bytes(b"PK\x03\x04 cut short")
+    with pytest.raises(ValueError, match=r"checkpoint .*finetune\.npz: cannot read it \(BadZipFile.*delete it"):
+        Trainer(cfg, out, show_progress=False).train()
+    with np.load(out / "work" / "data_val.npz") as z:
+        assert np.array_equal(z["plane"], tr.data["val"]["plane"])
 
 
 def test_eval_metrics_and_oracle():
