@@ -122,6 +122,8 @@ def _bad_geometry_files(tmp_path):
     lines = [f"v {x} {y} {z}" for x, y, z in v] + ["f 1 1 1", "f 2 2 3"]
     (tmp_path / "degenerate.obj").write_text("\n".join(lines))
     (tmp_path / "collinear.obj").write_text("v 0 0 0\nv 1 1 1\nv 2 2 2\nf 1 2 3\n")
+    lines = [f"v {x} {y} {z}" for x, y, z in v] + [f"f {a} {b} {c}" for a, b, c in f] + ["f 0 1 2 # zero"]
+    (tmp_path / "zero_index.obj").write_text("\n".join(lines))
     scene = trimesh.Scene()
     scene.add_geometry(box, transform=np.diag([1e300, 1e300, 1e300, 1.0]))
     (tmp_path / "far.glb").write_bytes(trimesh.exchange.gltf.export_glb(scene))
@@ -132,6 +134,8 @@ BAD_GEOMETRY = [
     # a bundle of nothing to draw or light, exit 0
     ("degenerate.obj", "degenerate.obj: all its 2 triangle(s) have zero area (repeated or collinear corners)"),
     ("collinear.obj", "collinear.obj: all its 1 triangle(s) have zero area"),
+    # read as -1 (the last vertex): a triangle across the box, without a word
+    ("zero_index.obj", "zero_index.obj: line 21 ('f 0 1 2 # zero') uses vertex index 0; expected OBJ indices from 1"),
     ("far.glb", "far.glb: 8 vertex/vertices lie 1e+299 units"),  # after ten lines of numpy overflow warnings
 ]
 

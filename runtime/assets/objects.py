@@ -18,6 +18,7 @@ from __future__ import annotations
 import errno
 import io
 import os
+import re
 import stat
 import struct
 from pathlib import Path
@@ -333,6 +334,24 @@ def _check_binary_stl(path: Path) -> None:
         )
 
 
+#: an OBJ face line with a vertex index 0 (``f 0 1 2``, ``f 0/1 ...``): OBJ counts from 1 (or from -1 backwards)
+_OBJ_ZERO_INDEX = re.compile(rb"^[ \t]*f[ \t][^\n#]*?(?<=[ \t])0(?:/[^ \t\r\n#]*)?(?=[ \t\r\n#]|$)", re.M)
+
+
+def _check_obj_indices(data: bytes, path: Path) -> None:
+    """Refuse an OBJ face with vertex index 0: trimesh read it as -1, the last vertex, and made a triangle
+    across the object without a word."""
+    m = _OBJ_ZERO_INDEX.search(data)
+    if m:
+        line = data.count(b"\n", 0, m.start()) + 1
+        end = data.find(b"\n", m.start())
+        text = data[m.start() : end if end >= 0 else len(data)].decode("utf-8", "replace").strip()[:40]
+        raise ObjectLoadError(
+            f"{path}: line {line} ({text!r}) uses vertex index 0; expected OBJ indices from 1 (or negative, counted "
+            "back from the last vertex): fix or re-export the mesh"
+        )
+
+
 def read_mesh(path: Path, process: bool = True, label: str | None = None):
     """``trimesh.load`` of a mesh file with every failure as one :class:`ObjectLoadError` line.
 
@@ -349,6 +368,8 @@ def read_mesh(path: Path, process: bool = True, label: str | None = None):
             _check_binary_stl(path)
         if ext in TEXT_FORMATS:
             data = _text_safe(path.read_bytes(), ext)
+            if ext == ".obj":
+                _check_obj_indices(data, path)
             return trimesh.load(io.BytesIO(data), file_type=ext[1:], resolver=_TextResolver(str(path)), process=process)
         if ext == ".glb":
             check_glb(path)
