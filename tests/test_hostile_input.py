@@ -639,6 +639,24 @@ def test_bad_relight_inputs_are_one_line_each(tmp_path, capsys, change, expect):
     assert not list(tmp_path.glob("r.npz*")) and not (tmp_path / "missing").exists()  # nothing written
 
 
+def test_a_damaged_image_is_one_line_without_opencv_log_lines(tmp_path, capfd):
+    """OpenCV logs its own decoder errors on the process's stderr: a BMP cut short printed two to five
+    ``[ERROR:0@0.1] global loadsave.cpp ...`` lines around relight's one."""
+    import struct
+
+    _relight_inputs(tmp_path)
+    w = h = 3000
+    head = struct.pack("<IHHI", 54 + w * h * 3, 0, 0, 54) + struct.pack(
+        "<IiiHHIIiiII", 40, w, h, 1, 24, 0, 0, 0, 0, 0, 0
+    )
+    (tmp_path / "cut.bmp").write_bytes(b"BM" + head + b"\0" * 4096)
+    capfd.readouterr()
+    assert main(relight_argv(tmp_path, {"--color": "{tmp}/cut.bmp"})) == 2
+    err = capfd.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and f"--color {tmp_path}/cut.bmp: cannot read an image from it" in lines[0], err
+
+
 # --------------------------------------------------------------------- class 6: server hardening
 
 

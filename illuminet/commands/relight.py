@@ -207,6 +207,19 @@ def _load_npy(p: Path, flag: str) -> np.ndarray:
     return a.astype(np.float32)
 
 
+def _imread(path: str, flags: int):
+    """``cv2.imread`` without OpenCV's own log lines: a damaged TIFF or BMP printed three to five
+    ``[ERROR:0@0.1] global loadsave.cpp ...`` lines around relight's one line saying what is wrong."""
+    import cv2
+
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        return cv2.imread(path, flags)
+    finally:
+        cv2.utils.logging.setLogLevel(level)
+
+
 def _whole(v) -> int | float:
     """A JSON width/height as an int when it is whole (``640``, ``640.0``), else as given, for
     :func:`~illuminet.runtime.relight.check_intrinsics` to refuse (``640.5``, ``1e30`` stays a number)."""
@@ -229,7 +242,7 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
     # the pixels as stored: the depth and the intrinsics describe the sensor's grid, and OpenCV otherwise turns
     # a JPEG by its EXIF orientation (a phone photo: colour 200x320 against depth 320x200, refused as not
     # aligned; a square one silently lit from a quarter-turned picture)
-    bgr = cv2.imread(color_path, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+    bgr = _imread(color_path, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if bgr is None:
         raise ValueError(
             f"--color {color_path}: cannot read an image from it (empty, cut short, or not an image format "
@@ -242,7 +255,7 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
         depth = _load_npy(dpath, "--depth")  # an .npz is named as one (was "cannot read an image from it")
     else:
         _check_image_header(dpath, "--depth")
-        d = cv2.imread(depth_path, cv2.IMREAD_UNCHANGED)
+        d = _imread(depth_path, cv2.IMREAD_UNCHANGED)
         if d is None:
             raise ValueError(
                 f"--depth {depth_path}: cannot read an image from it (empty, cut short, or not an image format "
