@@ -508,6 +508,8 @@ def load_calibration(path: str | Path) -> Calibration:
         message names the file and the key.
     """
     path = Path(path)
+    if path.exists() and not path.is_file():  # a FIFO: reading it waited for ever
+        raise CalibrationError(f"{path}: not a regular file (a folder, pipe or device); expected a calibration JSON")
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:

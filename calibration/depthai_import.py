@@ -263,6 +263,10 @@ def import_depthai(path: str | Path, left_socket: int | None = None, right_socke
         names the file and the key).
     """
     path = Path(path)
+    if path.exists() and not path.is_file():  # a FIFO: reading it waited for ever
+        raise CalibrationError(
+            f"{path}: not a regular file (a folder, pipe or device); expected a DepthAI calibration JSON export"
+        )
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:

@@ -111,6 +111,11 @@ def exposure_times_from_names(paths: Sequence[Path], times_json: Path | None = N
         cand = Path(paths[0]).parent / "exposures.json"
         times_json = cand if cand.is_file() else None
     if times_json is not None:
+        if Path(times_json).exists() and not Path(times_json).is_file():  # a FIFO: reading it waited for ever
+            raise CalibrationError(
+                f'{times_json}: not a regular file (a folder, pipe or device); expected an exposure table {{"file '
+                'name": seconds}}'
+            )
         try:
             raw = json.loads(Path(times_json).read_text(encoding="utf-8"))
         except (OSError, ValueError) as e:  # ValueError: not JSON, or not UTF-8 text

@@ -529,6 +529,8 @@ def load(path: str | Path | None = None) -> Config:
     if path is None:
         return defaults()
     path = Path(path)
+    if path.exists() and not path.is_file() and not path.is_dir():  # a FIFO: reading it waited for ever
+        raise ConfigError(f"{path}: not a regular file (a pipe or device?); expected a TOML file such as config.toml")
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:

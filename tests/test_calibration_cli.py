@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import zlib
 
@@ -123,6 +124,7 @@ def test_intrinsics_cli_writes_calibration(tmp_path, capsys):
     assert c.meta["board"]["squares_x"] == 9
 
 
+@pytest.mark.timeout(120)  # a pipe given as a file waited for a writer for ever
 def test_cli_errors_are_one_line_exit_2(tmp_path, capsys):
     _write_views(tmp_path / "views", 2)
     args = ["--squares", "9x6", "--square-mm", "30", "--marker-mm", "22", "--dictionary", "DICT_4X4_50"]
@@ -139,6 +141,14 @@ def test_cli_errors_are_one_line_exit_2(tmp_path, capsys):
     assert main(["calibrate", "import-depthai", str(binary), "-o", str(tmp_path / "x.json")]) == 2
     err = capsys.readouterr().err
     assert "photo.json: not a text file" in err and len(err.strip().splitlines()) == 1
+    os.mkfifo(tmp_path / "pipe.json")
+    for argv in (
+        ["calibrate", "import-depthai", str(tmp_path / "pipe.json"), "-o", str(tmp_path / "x.json")],
+        ["calibrate", "board", "--board", str(tmp_path / "pipe.json"), "-o", str(tmp_path / "b.png")],
+    ):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "pipe.json: not a regular file" in err and len(err.strip().splitlines()) == 1, err
     deep = tmp_path / "deep.json"
     deep.write_text('{"cameraData": ' + "[" * 100000 + "]" * 100000 + "}")  # was a RecursionError traceback
     assert main(["calibrate", "import-depthai", str(deep), "-o", str(tmp_path / "x.json")]) == 2
@@ -420,6 +430,9 @@ def test_photometric_flags_are_checked(tmp_path, capsys):
         assert main([*cmd, "--times", str(times)]) == 2, value
         err = _one_line(capsys)
         assert f'{times}: "img_5ms.png": expected the exposure time in seconds' in err, err
+    os.mkfifo(tmp_path / "pipe.json")  # waited for a writer for ever
+    assert main([*cmd, "--times", str(tmp_path / "pipe.json")]) == 2
+    assert "pipe.json: not a regular file" in _one_line(capsys)
     times.write_text("[" * 100000 + "]" * 100000)  # was a RecursionError traceback
     assert main([*cmd, "--times", str(times)]) == 2
     assert f"{times}: JSON nested too deeply" in _one_line(capsys)

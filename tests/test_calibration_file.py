@@ -91,9 +91,15 @@ def test_bad_file_names_key(tmp_path, mutate, message, recwarn):
     assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]  # |1e300| overflowed, a warning
 
 
+@pytest.mark.timeout(60)  # a pipe given as the file waited for a writer for ever
 def test_not_json_and_missing_and_depthai_hint(tmp_path):
+    import os
+
     with pytest.raises(CalibrationError, match="not found"):
         load_calibration(tmp_path / "missing.json")
+    os.mkfifo(tmp_path / "pipe.json")
+    with pytest.raises(CalibrationError, match="pipe.json: not a regular file"):
+        load_calibration(tmp_path / "pipe.json")
     p = tmp_path / "x.json"
     p.write_text("{nope")
     with pytest.raises(CalibrationError, match="not valid JSON"):

@@ -9,6 +9,7 @@ program wait for minutes or build huge tables. Class 7: output paths are checked
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import time
@@ -111,7 +112,7 @@ BAD_INPUTS += [
     (_TRAIN + ["--hdr", "{tmp}/hdr3"], 2, "--hdr {tmp}/hdr3: none of its training maps (3 of every 4 .hdr files) has"),
     (_TRAIN + ["--out", "{tmp}/afile"], 2, "--out {tmp}/afile: is a file, expected a folder"),
     # a folder that holds something else (was filled with bundle.json, mesh.npz, *.onnx and work/, exit 0)
-    (_TRAIN + ["--out", "{tmp}"], 2, "--out {tmp} holds afile, bad.toml, binary.toml and 1 more: expected a new"),
+    (_TRAIN + ["--out", "{tmp}"], 2, "--out {tmp} holds afile, bad.toml, binary.toml and 2 more: expected a new"),
     (_TRAIN_CAT + ["builtin:sphere", "--out", "{tmp}/hdr3"], 2, "--out {tmp}/hdr3 holds a.hdr, b.hdr, c.hdr: expected"),
     # blank lists: '' trained builtin:vase into the --out root, ',,' was "0 objects: 0 trained", exit 0
     (_TRAIN_CAT + [""], 2, "--objects '': the list names no objects; expected a folder of mesh files"),
@@ -135,9 +136,13 @@ BAD_INPUTS += [
     (_DATAGEN + ["--out", "/proc/dg.npz"], 2, "--out /proc/dg.npz: cannot write files there (No such file"),
     (_TRAIN + ["--out", "/proc/t"], 2, "--out /proc/t: cannot write files there"),
     (_EVAL + ["--out", "/proc/ev"], 2, "--out /proc/ev: cannot write files there"),
+    # a pipe where a file is read waited for a writer for ever
+    (["--config", "{tmp}/hdrpipe/config.toml", "config"], 2, "config.toml: not a regular file (a pipe or device?)"),
+    (_DATAGEN + ["--hdr", "{tmp}/hdrpipe"], 2, "--hdr {tmp}/hdrpipe: none of its training maps"),
 ]
 
 
+@pytest.mark.timeout(120)
 @pytest.mark.parametrize("argv,code,expect", BAD_INPUTS, ids=[" ".join(a) for a, _, _ in BAD_INPUTS])
 def test_a_mistake_is_one_line_with_its_exit_status(tmp_path, capsys, argv, code, expect):
     (tmp_path / "bad.toml").write_text("[render]\nmsaa = 64\n")
@@ -146,6 +151,9 @@ def test_a_mistake_is_one_line_with_its_exit_status(tmp_path, capsys, argv, code
     (tmp_path / "hdr3").mkdir()
     for name in "abc":  # three maps: none of them is held out for eval (every 4th is)
         (tmp_path / "hdr3" / f"{name}.hdr").write_bytes(b"#?RADIANCE\n")
+    (tmp_path / "hdrpipe").mkdir()  # pipes: reading one waited for a writer for ever
+    os.mkfifo(tmp_path / "hdrpipe" / "a.hdr")
+    os.mkfifo(tmp_path / "hdrpipe" / "config.toml")
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
     t0 = time.monotonic()
     assert main(argv) == code

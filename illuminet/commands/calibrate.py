@@ -40,6 +40,11 @@ def _spec(args):
     from illuminet.calibration.calibfile import CalibrationError
 
     if getattr(args, "board", None):
+        if Path(args.board).exists() and not Path(args.board).is_file():  # a FIFO: reading it waited for ever
+            raise CalibrationError(
+                f"{args.board}: not a regular file (a folder, pipe or device); expected a board file from "
+                "`illuminet calibrate board`"
+            )
         try:
             d = json.loads(Path(args.board).read_text(encoding="utf-8"))
         except (OSError, ValueError, RecursionError) as e:  # not JSON, not UTF-8 text, nested too deeply
@@ -60,6 +65,8 @@ def _camera_ref(ref: str):
 
     path, _, cam = ref.partition(":") if not Path(ref).exists() else (ref, "", "")
     try:
+        if Path(path).exists() and not Path(path).is_file():
+            raise OSError("not a regular file")  # a FIFO: reading it waited for ever; load_calibration says what
         text = json.loads(Path(path).read_text(encoding="utf-8"))
         is_dai = isinstance(text, dict) and "cameraData" in text
     except (OSError, ValueError, RecursionError):

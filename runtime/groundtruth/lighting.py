@@ -451,6 +451,8 @@ def hdr_header_size(path: str | Path) -> tuple[int, int] | None:
         :data:`MAX_HDR_PIXELS` pixels, or the file is too short to hold the pixels it claims.
     """
     path = Path(path)
+    if path.exists() and not path.is_file():  # a FIFO named x.hdr: opening it waited for ever
+        raise ValueError(f"{path}: not a regular file (a folder, pipe or device); expected a Radiance .hdr map")
     with open(path, "rb") as f:
         head = f.read(65536)
         size = f.seek(0, 2)
