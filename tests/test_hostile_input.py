@@ -620,6 +620,7 @@ BAD_RELIGHT = [
     ({"--intrinsics": "{tmp}/nope.json"}, "--intrinsics {tmp}/nope.json: no such file; expected a JSON file"),
     ({"--color": "{tmp}/cut.jpg"}, "--color {tmp}/cut.jpg: the JPEG is cut short"),
     ({"--color": "/dev/null"}, "--color /dev/null: not a regular file"),  # was "no such file"
+    ({"--intrinsics": "/dev/null"}, "--intrinsics /dev/null: not a regular file"),  # "expected 4 ... numbers"
     ({"--depth": "{tmp}/d.npz"}, "--depth {tmp}/d.npz: an .npz archive; expected one float array"),
     ({"--depth": "{tmp}/empty.png"}, "--depth {tmp}/empty.png: cannot read an image from it (empty, cut short"),
     # what the planes stage refused with a warning, then "no real plane observed under the anchor pixel"

@@ -309,9 +309,15 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
         check_intrinsics(K, f"--intrinsics {intr}")
         K = fit_intrinsics(K, w, h, f"--intrinsics {intr}")  # proportional size: scaled; else refused
     else:
-        if intr.lower().endswith(".json") or ("," not in intr and Path(intr).suffix):
+        if Path(intr).exists() or intr.lower().endswith(".json") or ("," not in intr and Path(intr).suffix):
             # a file name that is not there: "expected 4 comma-separated numbers" sent users looking in the wrong place
-            what = "is a folder" if Path(intr).is_dir() else "no such file"
+            what = (
+                "is a folder"
+                if Path(intr).is_dir()
+                else "not a regular file (a pipe or device?)"
+                if Path(intr).exists()
+                else "no such file"
+            )
             raise ValueError(
                 f"--intrinsics {intr}: {what}; expected a JSON file with fx, fy, cx, cy or four numbers FX,FY,CX,CY"
             )
