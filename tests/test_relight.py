@@ -327,3 +327,17 @@ def test_relight_names_an_overexposed_plane_under_the_anchor():
     color, depth, K = floor_rgbd()
     with pytest.raises(ValueError, match=r"overexposed: 100 % of the pixels around it are clipped"):
         relight(np.full_like(color, 255), depth, K, (160, 130), defaults(), bundle="builtin:vase")
+
+
+def test_a_png_cut_short_is_one_line_without_libpng_s_own(tmp_path, capfd):
+    """libpng writes 'libpng error: Read Error' straight to file descriptor 2, past OpenCV's logging:
+    the user saw it above relight's one line. Captured at the descriptor level here."""
+    _small_inputs(tmp_path)
+    rng = np.random.default_rng(0)
+    cv2.imwrite(str(tmp_path / "big.png"), rng.integers(0, 256, (200, 320, 3), dtype=np.uint8))
+    data = (tmp_path / "big.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[: len(data) // 2])
+    assert main(_small_argv(tmp_path, color=str(tmp_path / "cut.png"))) == 2
+    err = capfd.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "cannot read an image from it" in lines[0] and "libpng" not in err, err

@@ -19,7 +19,9 @@ renderer: shading, cast shadow, occlusion; needs OpenGL via EGL).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -215,9 +217,34 @@ def _imread(path: str, flags: int):
     level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:
-        return cv2.imread(path, flags)
+        with _native_stderr_silenced():
+            return cv2.imread(path, flags)
     finally:
         cv2.utils.logging.setLogLevel(level)
+
+
+@contextlib.contextmanager
+def _native_stderr_silenced():
+    """File descriptor 2 pointed at /dev/null for the block: libpng and libjpeg write their own
+    ``libpng error: Read Error`` line straight to it, past OpenCV's logging and Python's sys.stderr (a
+    PNG cut short printed it above relight's one line). The relight command reads its images before
+    any other thread runs; without a usable descriptor 2 nothing is changed."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):
+        yield
+        return
+    try:
+        null = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(null, 2)
+        finally:
+            os.close(null)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def _whole(v) -> int | float:
