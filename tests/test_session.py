@@ -218,6 +218,15 @@ def test_manifest_not_json(tmp_path):
         SessionReader(tmp_path / "s")
 
 
+def test_manifest_json_that_python_refuses_is_one_session_error(tmp_path):
+    # json refuses ints of over 4300 digits with a bare ValueError, past the JSONDecodeError handler:
+    # a traceback instead of the file's name
+    make_session(tmp_path / "s", 2)
+    (tmp_path / "s" / "manifest.json").write_text('{"width": ' + "9" * 5000 + "}")
+    with pytest.raises(SessionError, match=r"manifest.json: not valid JSON \(.*4300 digits"):
+        SessionReader(tmp_path / "s")
+
+
 def test_unknown_version_is_named(tmp_path):
     make_session(tmp_path / "s", 2)
     _set_manifest(tmp_path / "s", version=99)
@@ -334,6 +343,36 @@ def test_malformed_middle_line(tmp_path):
     _index(tmp_path / "s").write_text("\n".join(lines) + "\n")
     r = _check_skips(tmp_path / "s", 2, "malformed index line")
     assert any("line 3" in p for p in r.problems)
+
+
+def test_an_index_line_with_a_5000_digit_int_is_one_skipped_frame(tmp_path):
+    # json raises ValueError (not JSONDecodeError) for it: it ended the whole replay with a traceback
+    make_session(tmp_path / "s", 6)
+    lines = _lines(tmp_path / "s")
+    lines[2] = lines[2].replace('"seq":2', '"seq":' + "9" * 5000)
+    assert "9" * 5000 in lines[2]
+    _index(tmp_path / "s").write_text("\n".join(lines) + "\n")
+    r = _check_skips(tmp_path / "s", 2, "malformed index line (ValueError")
+    assert any("line 3" in p for p in r.problems)
+
+
+def test_a_frame_path_with_a_lone_surrogate_is_one_skipped_frame(tmp_path):
+    # "\ud800" is valid JSON but no file name: resolving it raised UnicodeEncodeError, a traceback
+    make_session(tmp_path / "s", 6)
+    lines = _lines(tmp_path / "s")
+    lines[3] = lines[3].replace('"frames/000003.color.png"', '"frames/\\ud800.png"')
+    _index(tmp_path / "s").write_text("\n".join(lines) + "\n")
+    _check_skips(tmp_path / "s", 3, "is not a valid file name")
+
+
+def test_estimates_sidecar_json_that_python_refuses_is_skipped(tmp_path, caplog):
+    make_session(tmp_path / "s", 3)
+    (tmp_path / "s" / "estimates.jsonl").write_text(
+        "[" * 100_000 + "\n" + '{"i": ' + "9" * 5000 + ', "estimate": {}}\n{"i": 1, "estimate": {"a": 1}}\n'
+    )
+    r = SessionReader(tmp_path / "s")
+    assert r.estimates() == {1: {"a": 1}}
+    assert "2 line(s) of estimates.jsonl skipped" in caplog.text
 
 
 def test_missing_key_in_index_line(tmp_path):

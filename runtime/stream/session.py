@@ -164,6 +164,8 @@ def safe_relpath(root: Path, rel: Any, what: str) -> Path:
     full = root.joinpath(*p.parts)
     try:
         inside = full.resolve().is_relative_to(root.resolve())
+    except UnicodeEncodeError:  # a lone surrogate ("\ud800" in the JSON) is no file name on a UTF-8 system
+        raise SessionError(f"{what}: path {rel!r} is not a valid file name (not encodable as UTF-8)") from None
     except (OSError, RuntimeError) as e:  # a symlink loop (RuntimeError before Python 3.13, OSError after)
         raise SessionError(f"{what}: path {rel!r} cannot be resolved ({e}); a symlink loop?") from None
     if not inside:
@@ -721,6 +723,10 @@ class SessionReader:
             raise SessionError(f"{mpath}: not valid JSON ({e})") from None
         except RecursionError:  # [[[[...]]]] thousands deep: a traceback from the JSON decoder
             raise SessionError(f"{mpath}: JSON nested too deeply; expected the session's manifest object") from None
+        except ValueError as e:  # an int of over 4300 digits: json raises a bare ValueError (a traceback)
+            raise SessionError(f"{mpath}: not valid JSON ({e})") from None
+        except OSError as e:
+            raise SessionError(f"{mpath}: cannot read the manifest: {e.strerror or e}") from None
         if not isinstance(m, dict):
             raise SessionError(f"{mpath}: expected a JSON object, got {type(m).__name__}")
         where = str(mpath)
@@ -789,10 +795,11 @@ class SessionReader:
                 if not isinstance(d, dict):
                     raise SessionError(f"{where}: expected a JSON object, got {type(d).__name__}")
                 parsed.append(self._entry(d, no, where))
-            except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as ex:
-                problems.append((no, f"{where}: malformed index line ({type(ex).__name__}: {ex}); frame skipped"))
-            except SessionError as ex:
+            except SessionError as ex:  # before ValueError: a SessionError is one
                 problems.append((no, f"{ex}; frame skipped"))
+            except (ValueError, RecursionError) as ex:
+                # ValueError also covers an integer of over 4300 digits, which json refuses to convert
+                problems.append((no, f"{where}: malformed index line ({type(ex).__name__}: {ex}); frame skipped"))
         # Timestamps must increase. One corrupt timestamp must cost one frame, not every frame after it
         # (a far-future value would otherwise make all later frames "not increase"): the frames kept
         # are the longest increasing run of timestamps, so the fewest are skipped.
@@ -1048,7 +1055,7 @@ class SessionReader:
             try:
                 d = json.loads(raw.decode("utf-8"))
                 i, est = d["i"], d["estimate"]
-            except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, RecursionError):
+            except (ValueError, RecursionError, KeyError, TypeError):  # ValueError: also a 4300-digit int
                 bad += 1
                 continue
             if isinstance(i, int) and not isinstance(i, bool) and i in intact and isinstance(est, dict):
