@@ -441,6 +441,16 @@ def test_symlink_out_of_the_folder_is_refused(tmp_path):
     _check_skips(tmp_path / "s", 1, "resolves outside the session folder")
 
 
+def test_an_estimates_sidecar_symlinked_out_of_the_folder_is_not_read(tmp_path, caplog):
+    # "nothing in the folder can make the reader open a file outside it": the sidecar was followed
+    make_session(tmp_path / "s", 3)
+    outside = tmp_path / "elsewhere.jsonl"
+    outside.write_text('{"i": 1, "estimate": {"from": "outside"}}\n')
+    (tmp_path / "s" / "estimates.jsonl").symlink_to(outside)
+    assert SessionReader(tmp_path / "s").estimates() == {}
+    assert "estimates.jsonl not read" in caplog.text and "resolves outside the session folder" in caplog.text
+
+
 def test_manifest_index_path_escaping_is_refused(tmp_path):
     make_session(tmp_path / "s", 2)
     _set_manifest(tmp_path / "s", index="../frames.jsonl")

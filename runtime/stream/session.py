@@ -1046,6 +1046,11 @@ class SessionReader:
         path = self.path / ESTIMATES
         if not path.is_file():
             return {}
+        try:  # like every file of a session: never followed out of the folder by a symlink
+            safe_relpath(self.path, ESTIMATES, str(path))
+        except SessionError as e:
+            log.warning("session %s: %s not read: %s", self.path, ESTIMATES, e)
+            return {}
         intact = {e.i for e in self.entries}
         out: dict[int, dict[str, Any]] = {}
         bad = 0
