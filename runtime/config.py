@@ -524,6 +524,11 @@ def validate(data: Mapping[str, Any], where: str = "<config>") -> Config:
     return Config(cfg, where)
 
 
+#: largest config file read (bytes); config.toml with every key documented is ~15 kB. A bound, so that
+#: ``--config /dev/zero`` (or any endless stream) is refused instead of read until memory runs out
+MAX_CONFIG_BYTES = 1 << 20
+
+
 def load(path: str | Path | None = None) -> Config:
     """Load and validate a TOML file; ``None`` gives the defaults."""
     if path is None:
@@ -532,7 +537,14 @@ def load(path: str | Path | None = None) -> Config:
     if path.exists() and not path.is_file() and not path.is_dir():  # a FIFO: reading it waited for ever
         raise ConfigError(f"{path}: not a regular file (a pipe or device?); expected a TOML file such as config.toml")
     try:
-        text = path.read_text(encoding="utf-8")
+        with open(path, "rb") as f:
+            raw = f.read(MAX_CONFIG_BYTES + 1)
+        if len(raw) > MAX_CONFIG_BYTES:
+            raise ConfigError(
+                f"{path}: larger than {MAX_CONFIG_BYTES >> 20} MiB, not a config file (or an endless stream such "
+                "as a device); expected a TOML file such as config.toml"
+            )
+        text = raw.decode("utf-8")
     except FileNotFoundError:
         raise ConfigError(f"{path}: config file not found") from None
     except IsADirectoryError:
@@ -549,7 +561,18 @@ def load(path: str | Path | None = None) -> Config:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path}: not valid TOML: {e}") from None
+    except (ValueError, RecursionError) as e:  # an int of over 4300 digits; arrays nested thousands deep
+        raise ConfigError(f"{path}: not valid TOML: {_unparsable(e)}") from None
     return validate(data, str(path))
+
+
+def _unparsable(e: BaseException) -> str:
+    """Why tomllib could not turn a value into Python (beyond TOMLDecodeError), in a few words."""
+    if isinstance(e, RecursionError):
+        return "arrays or tables nested too deep"
+    if "digits" in str(e):  # Python's own advice (sys.set_int_max_str_digits) is no fix for a config
+        return "an integer of over 4300 digits"
+    return f"a value Python cannot hold ({e})"
 
 
 def parse_override(item: str) -> tuple[str, str, Any]:
@@ -562,6 +585,11 @@ def parse_override(item: str) -> tuple[str, str, Any]:
         value = tomllib.loads(f"v = {rhs.strip()}")["v"]
     except tomllib.TOMLDecodeError:
         value = rhs.strip()
+    except (ValueError, RecursionError) as e:  # valid TOML Python cannot hold: a traceback before
+        shown = rhs.strip() if len(rhs.strip()) <= 40 else rhs.strip()[:40] + "..."
+        raise ConfigError(
+            f"override {lhs.strip()}={shown}: {_unparsable(e)}; expected a value such as 1, 0.5, true or [1, 2]"
+        ) from None
     return section, key, value
 
 

@@ -77,6 +77,37 @@ def test_missing_file_and_bad_toml(tmp_path):
         C.load(p)
 
 
+@pytest.mark.parametrize(
+    "toml, expect",
+    [
+        ("[source]\nmax_frames = " + "9" * 5000 + "\n", "an integer of over 4300 digits"),
+        ("[anchor]\npixel = " + "[" * 5000 + "]" * 5000 + "\n", "nested too deep"),
+    ],
+    ids=["huge-int", "deep"],
+)
+def test_toml_that_python_cannot_hold_is_one_config_error(tmp_path, toml, expect):
+    # valid TOML, but tomllib raised ValueError / RecursionError past the TOMLDecodeError handler
+    p = tmp_path / "c.toml"
+    p.write_text(toml)
+    with pytest.raises(C.ConfigError, match=rf"c.toml: not valid TOML: .*{expect}"):
+        C.load(p)
+    value = toml.split(" = ", 1)[1].strip()
+    section_key = "source.max_frames" if "max_frames" in toml else "anchor.pixel"
+    with pytest.raises(C.ConfigError, match=rf"override {section_key}=.*\.\.\.: .*{expect}"):
+        C.apply_overrides(C.defaults(), [f"{section_key}={value}"])
+
+
+def test_a_config_larger_than_any_config_is_refused_not_read_whole(tmp_path):
+    # a huge file given by mistake (an image, a log) was read whole before TOML refused it
+    p = tmp_path / "big.toml"
+    with open(p, "wb") as f:
+        f.truncate(2 << 20)  # sparse: no disk space used
+    with pytest.raises(C.ConfigError, match=r"big.toml: larger than 1 MiB, not a config file"):
+        C.load(p)
+    with pytest.raises(C.ConfigError, match=r"/dev/zero: not a regular file"):  # pipes and devices: refused first
+        C.load("/dev/zero")
+
+
 def test_illuminet_config_piped_into_head_ends_quietly():
     """`illuminet config | head` ended in a BrokenPipeError traceback once head had its lines: here the
     reader leaves before the first line."""
