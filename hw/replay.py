@@ -25,7 +25,7 @@ from urllib.parse import unquote, urlsplit
 
 import numpy as np
 
-from illuminet.hw import SourceError, parse_query, query_bool, query_choice, query_int
+from illuminet.hw import SourceError, SourceURLError, parse_query, query_bool, query_choice, query_int
 from illuminet.runtime.config import Config
 from illuminet.runtime.frame import Frame
 from illuminet.runtime.scene import REPLAY_POSITION
@@ -248,7 +248,8 @@ def session_folder(url: str) -> Path | None:
     except ValueError:  # "Invalid IPv6 URL" for an unbalanced '[' (synthetic://[): a traceback before
         return None
     path = unquote(parts.netloc + parts.path)
-    return Path(path) if parts.scheme == "replay" and path else None
+    # a NUL byte (%00) names no folder: open_url refuses it with its line
+    return Path(path) if parts.scheme == "replay" and path and "\x00" not in path else None
 
 
 def open_url(url: str, config: Config) -> ReplaySource:
@@ -257,6 +258,8 @@ def open_url(url: str, config: Config) -> ReplaySource:
     path = unquote(parts.netloc + parts.path)
     if not path:
         raise SourceError(f"{url}: no session path; expected replay://PATH (relative) or replay:///ABS/PATH")
+    if "\x00" in path:  # %00: every file call raised "embedded null byte" as a traceback
+        raise SourceURLError(f"{url}: the session path contains a NUL byte (%00); expected replay://PATH to a folder")
     src = config.source
     q = parse_query(
         url, {"timing": query_choice(*TIMINGS), "loop": query_bool, "max_frames": query_int(lo=0)}, error=SourceError

@@ -500,6 +500,11 @@ def _check_value(where: str, section: str, key: str, value: Any) -> Any:
         ok = fld.in_range(value)
     if ok and isinstance(value, list) and fld.item is None:
         ok = all(fld.in_range(v) for v in value)
+    strings = [value] if isinstance(value, str) else value if isinstance(value, list) else []
+    if ok and any(isinstance(v, str) and "\x00" in v for v in strings):
+        # TOML's "\u0000": no path, URL, address or name holds one, and every file call raised a
+        # ValueError traceback ("embedded null byte") on it
+        raise ConfigError(f"{where}: [{section}] {key}: {value!r} contains a NUL byte; expected {fld.type_name()}")
     if not ok:
         # a value that must not be empty: say what the key is for, since "" gives no hint of it
         hint = f" ({fld.doc})" if fld.nonempty else ""

@@ -70,6 +70,19 @@ BAD_INPUTS = [
     (["run", "synthetic://indoor", "--stats-json", "{tmp}"], 2, "is a folder"),
     (["run", "synthetic://indoor", "--png-dir", "{tmp}/afile/pngs"], 2, "afile"),
     (["replay", "{tmp}/no-session"], 1, "no-session"),
+    # a NUL byte (TOML "\u0000", URL %00) reached os calls: "ValueError: embedded null byte" tracebacks
+    (
+        ["run", "synthetic://indoor", "--set", 'output.video="a\\u0000.mp4"'],
+        2,
+        "[output] video: 'a\\x00.mp4' contains a NUL",
+    ),
+    (
+        ["run", "synthetic://indoor", "--set", 'output.png_dir="p\\u0000"'],
+        2,
+        "[output] png_dir: 'p\\x00' contains a NUL",
+    ),
+    (["run", "synthetic://indoor", "--set", 'output.allowed_hosts=["h\\u0000"]'], 2, "[output] allowed_hosts"),
+    (["run", "replay://{tmp}/s%00x"], 2, "the session path contains a NUL byte (%00)"),
 ]
 
 # the offline jobs (bundle, datagen, train, eval): every flag refused before any mesh, data or JAX work
