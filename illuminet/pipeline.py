@@ -109,10 +109,19 @@ def check_output_paths(cfg: Config, reads: Path | None = None, also: tuple[tuple
     inside = reads.resolve() if reads is not None else None
     record = Path(cfg.output.record).resolve() if cfg.output.record else None
     named = [(f"[{section}] {key}", key, cfg[section][key]) for section, key, _ in _OUTPUT_FILES + _OUTPUT_DIRS]
+    taken: dict[Path, str] = {}  # each output's resolved path -> the option that writes it
     for label, key, value in named + [(flag, "also", value) for flag, value in also]:
         if not value or (key == "estimates" and value == "-"):
             continue
         p = Path(value).resolve()
+        if p in taken:
+            # two outputs on one file: the last to close replaced the other (--video x --estimates x kept
+            # the video; --estimates x --stats-json x lost every estimate), with exit status 0
+            raise OutputPathError(
+                f"{label}: {value} is also the path of {taken[p]}; one output would overwrite the other: "
+                "give each output its own path"
+            )
+        taken[p] = label
         if inside is not None and (p == inside or inside in p.parents):
             raise OutputPathError(
                 f"{label}: {value} is inside the session being replayed ({reads}); writing there "

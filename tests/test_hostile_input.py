@@ -70,6 +70,10 @@ BAD_INPUTS = [
     (["run", "synthetic://indoor", "--stats-json", "{tmp}"], 2, "is a folder"),
     (["run", "synthetic://indoor", "--png-dir", "{tmp}/afile/pngs"], 2, "afile"),
     (["replay", "{tmp}/no-session"], 1, "no-session"),
+    # two outputs on one path: the one closed last replaced the other (the estimates lost), exit status 0
+    (["run", "synthetic://indoor", "--video", "{tmp}/x.mp4", "--estimates", "{tmp}/x.mp4"], 2, "also the path of"),
+    (["run", "synthetic://indoor", "--estimates", "{tmp}/s.json", "--stats-json", "{tmp}/./s.json"], 2, "also the"),
+    (["run", "synthetic://indoor", "--png-dir", "{tmp}/o", "--estimates", "{tmp}/o"], 2, "{tmp}/o is also the path"),
     # a NUL byte (TOML "\u0000", URL %00) reached os calls: "ValueError: embedded null byte" tracebacks
     (
         ["run", "synthetic://indoor", "--set", 'output.video="a\\u0000.mp4"'],
