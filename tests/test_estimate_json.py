@@ -162,6 +162,19 @@ def test_jsonl_sink_writes_one_valid_line_per_frame_with_an_estimate(tmp_path):
         EstimateSink(tmp_path / "no" / "x.jsonl").open()
 
 
+def test_an_estimates_file_on_a_full_disk_names_the_file_at_close():
+    # the last lines' flush raised a bare OSError: the run's last line was "illuminet: [Errno 28] No space
+    # left on device", naming no output
+    from illuminet.runtime.stream.sinks import SinkError
+
+    sink = EstimateSink("/dev/full")
+    sink.open()
+    with pytest.raises(OSError):  # each frame's line fails (the loop counts it as a sink failure)
+        sink.write(_with_light(frames(1)[0]))
+    with pytest.raises(SinkError, match=r"estimates /dev/full: cannot write the last lines: No space left"):
+        sink.close()
+
+
 def test_recorder_writes_the_estimates_sidecar_and_the_reader_tolerates_its_absence(tmp_path):
     fs = frames(6)
     with SessionRecorderSink(tmp_path / "s", fsync=False) as sink:

@@ -142,6 +142,58 @@ def test_bad_composite_is_refused():
         output_picture(f)
 
 
+def test_an_opencv_video_on_a_full_disk_is_a_sink_failure_not_silence(tmp_path, monkeypatch):
+    # cv2.VideoWriter.write reports nothing: on a full disk FFmpeg printed "Failed to write frame" and the
+    # run exited 0 with no sink failure, the video cut short
+    import collections
+    import shutil
+
+    (tmp_path / "v.avi").symlink_to("/dev/full")  # a file that never grows
+    usage = collections.namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10**6, 10**6, 0))
+    sink = VideoSink(tmp_path / "v.avi", fps=30)
+    sink.open()
+    fs = frames(4, w=160, h=120)
+    sink.write(fs[0])  # one write that does not grow the file may be FFmpeg's buffer
+    with pytest.raises(SinkError, match=r"v.avi: the disk is full \(0 bytes free in .*\); OpenCV's writer cannot"):
+        sink.write(fs[1])
+    with pytest.raises(SinkError, match=r"the disk is full .*the file's end, its index, may be missing"):
+        sink.close()
+
+
+def test_a_video_that_grows_is_not_taken_for_a_full_disk(tmp_path, monkeypatch):
+    import collections
+    import shutil
+
+    usage = collections.namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10**6, 10**6, 10**9))
+    sink = VideoSink(tmp_path / "v.avi", fps=30)
+    with sink:
+        for f in frames(6, w=160, h=120):
+            sink.write(f)
+    assert _count_video(tmp_path / "v.avi")[0] == 6
+
+
+def test_a_recorder_that_cannot_finalise_names_the_session_and_what_replays(tmp_path, monkeypatch):
+    # a full disk at close: the run's last line was "illuminet: [Errno 28] No space left on device"
+    import errno
+
+    from illuminet.runtime.stream.session import SessionWriter
+
+    rec = SessionRecorderSink(tmp_path / "rec", fsync=False)
+    rec.open()
+    rec.write(frames(1)[0])
+
+    def full(self):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(SessionWriter, "close", full)
+    with pytest.raises(SinkError, match=r"rec: cannot finalise the manifest: No space left on device; the 1 frames"):
+        rec.close()
+    monkeypatch.undo()
+    assert len(SessionReader(tmp_path / "rec")) == 1  # the committed frame replays
+
+
 def test_recorder_records_input_frames_not_results(tmp_path):
     fs = frames(20)
     # three encoders finish out of order; the writer must still commit in frame order

@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import os
 import queue
+import shutil
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -75,6 +76,9 @@ VIDEO_CODECS: dict[str, tuple[str, ...]] = {
 #: containers written as H.264 / yuv420p through PyAV when it is installed: what browsers (Chromium's
 #: <video>), phones and every player decode; OpenCV's mp4v (MPEG-4 part 2) does not play in browsers
 PYAV_CONTAINERS = (".mp4", ".m4v", ".mov", ".mkv")
+#: free bytes under an OpenCV video whose file stopped growing below which the disk counts as full (a frame
+#: of MJPG is tens of kB: less than this cannot take one)
+VIDEO_DISK_FULL_BYTES = 64 * 1024
 #: libx264 settings: "ultrafast" costs ~11 ms of CPU per 1280x800 frame on the 2-core build machine
 #: (superfast ~16 ms, veryfast ~29 ms) and runs on a writer thread (PyAV releases the GIL while
 #: encoding); crf 20 is visually lossless for a preview
@@ -215,6 +219,24 @@ class VideoSink(Sink):
         self._writer = None
         self._size: tuple[int, int] | None = None
         self.frames = 0
+        self._bytes = 0  # the OpenCV writer's file size after the last write that grew it
+        self._stalled = 0  # writes since then
+
+    def _disk_full(self) -> str | None:
+        """Why OpenCV's writer is losing frames, when the disk under the video is full (else None).
+
+        ``cv2.VideoWriter.write`` reports nothing: on a full disk FFmpeg printed "Failed to write frame"
+        and the run ended with exit status 0 and no sink failure, the video cut short."""
+        try:
+            free = shutil.disk_usage(self.path.parent).free
+        except OSError:
+            return None
+        if free >= VIDEO_DISK_FULL_BYTES:
+            return None
+        return (
+            f"video {self.path}: the disk is full ({free} bytes free in {self.path.parent}); OpenCV's writer cannot "
+            "write frames: free some space or write the video elsewhere"
+        )
 
     def _create(self, path: Path, size: tuple[int, int]):
         if self.backend == "pyav":
@@ -280,6 +302,19 @@ class VideoSink(Sink):
                 raise SinkError(f"video {self.path}: encoding failed: {type(e).__name__}: {e}") from e
         else:
             self._writer.write(cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+            try:
+                size_now = self.path.stat().st_size
+            except OSError:
+                size_now = self._bytes
+            if size_now > self._bytes:
+                self._bytes, self._stalled = size_now, 0
+            else:
+                # FFmpeg buffers ~32 kB, so a small frame need not grow the file: look at the disk only
+                # when the file stopped growing
+                self._stalled += 1
+                why = self._disk_full() if self._stalled >= 2 else None
+                if why is not None:
+                    raise SinkError(why)
         self.frames += 1
 
     def close(self) -> None:
@@ -289,6 +324,9 @@ class VideoSink(Sink):
                 w.release()  # writes the container index (moov atom): the file is playable after this
             except Exception as e:
                 raise SinkError(f"video {self.path}: finishing the file failed: {type(e).__name__}: {e}") from e
+            why = self._disk_full() if self.backend == "opencv" else None  # PyAV raises; OpenCV is silent
+            if why is not None:
+                raise SinkError(f"{why} (the file's end, its index, may be missing)")
 
     def stats(self) -> dict:
         return {"frames": self.frames, "codec": self.codec, "backend": self.backend}
@@ -390,7 +428,10 @@ class EstimateSink(Sink):
     def close(self) -> None:
         fh, self._fh = self._fh, None
         if fh is not None and self.path != "-":
-            fh.close()
+            try:
+                fh.close()
+            except OSError as e:  # the last lines' flush on a full disk: it printed "[Errno 28] ..." alone
+                raise SinkError(f"estimates {self.path}: cannot write the last lines: {e.strerror or e}") from None
 
     def stats(self) -> dict:
         return {"frames": self.frames, "estimates": self.written}
@@ -497,7 +538,13 @@ class SessionRecorderSink(Sink):
             self._pool.shutdown(wait=True)
             self._pool = None
         if self._writer is not None:
-            self._writer.close()
+            try:
+                self._writer.close()
+            except OSError as e:  # a full disk: the line named neither the session nor what still replays
+                raise SinkError(
+                    f"session recorder {self.path}: cannot finalise the manifest: {e.strerror or e}; the "
+                    f"{self._writer.count} frames committed still replay (illuminet replay {self.path} --check)"
+                ) from None
             if self._error is not None:
                 log.error("session recorder %s: last frame failed: %s", self.path, self._error)
             log.info("session %s: %d frames recorded", self.path, self._writer.count)
