@@ -397,6 +397,9 @@ def test_bench_live_reports_drops_latency_quarters_and_bounded_queues(capsys):
     assert "per quarter" in capsys.readouterr().out
     with pytest.raises(ConfigError, match="--fps"):
         live.run(argparse.Namespace(quick=True, fps="0", seconds=1.0, size=None, pipeline=None), defaults())
+    # --seconds 0 ran the default 10 s per rate instead of being refused like any value outside 0.5..3600
+    with pytest.raises(ConfigError, match=r"--seconds: expected 0.5..3600, got 0.0"):
+        live.run(argparse.Namespace(quick=False, fps="100", seconds=0.0, size=None, pipeline=None), defaults())
 
 
 def test_gl_draws_without_the_gil_give_the_same_pictures(monkeypatch):

@@ -58,7 +58,8 @@ def run(args, cfg) -> dict:
 
     quick = bool(getattr(args, "quick", False))
     rates = _rates(getattr(args, "fps", None))
-    seconds = float(getattr(args, "seconds", None) or (3.0 if quick else 10.0))
+    given = getattr(args, "seconds", None)  # `or` took --seconds 0 for "not given": 10 s per rate, silently
+    seconds = float(given) if given is not None else (3.0 if quick else 10.0)
     if not 0.5 <= seconds <= 3600:
         raise ConfigError(f"--seconds: expected 0.5..3600, got {seconds!r}")
     w, h = parse_size(getattr(args, "size", None) or "640x400")
