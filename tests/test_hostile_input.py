@@ -61,6 +61,7 @@ BAD_INPUTS = [
     (["eval", "--cases", "-1"], 2, "--cases -1: expected a count >= 0"),
     (["eval", "--camera-scenes", "-3"], 2, "--camera-scenes -3"),
     (["record", "synthetic://indoor?frames=1", "/proc/no-session-here"], 1, "cannot create the session folder"),
+    (["record", "synthetic://indoor?frames=1", ""], 2, "OUT is empty"),  # recorded nothing, exit 0
     (["run", "synthetic://indoor", "--fps", "inf", "--video", "{tmp}/v.mp4"], 2, "[output] fps"),
     (["run", "synthetic://indoor", "--fps", "0", "--video", "{tmp}/v.mp4"], 2, "[output] fps"),
     # class 7: output paths, checked before the source opens

@@ -22,7 +22,7 @@ from urllib.parse import quote
 
 from illuminet.progress import StatusLine
 from illuminet.runtime.config import Config, ConfigError, apply_overrides
-from illuminet.runtime.errors import IllumiNetError
+from illuminet.runtime.errors import IllumiNetError, OutputPathError
 from illuminet.runtime.stream.loop import LoopStats, run_loop
 from illuminet.runtime.stream.session import SessionError, SessionReader
 
@@ -346,6 +346,9 @@ def cmd_record(args: argparse.Namespace, cfg: Config) -> int:
             file=sys.stderr,
         )
         return 2
+    if not str(args.out).strip():
+        # '' read as "no --record": the frames were processed, dropped, and the run exited 0
+        raise OutputPathError("record: OUT is empty; expected the new session folder to record into, e.g. sessions/s1")
     args.record = args.out
     cfg = config_with_flags(args, cfg)
     return _execute(cfg, args.source_url, with_stages=False)
