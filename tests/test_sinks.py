@@ -129,6 +129,23 @@ def test_png_sequence_writes_the_composite_exactly(tmp_path):
     assert np.array_equal(img, 255 - fs[1].color)
 
 
+def test_png_sequence_never_overwrites_a_frame_when_seq_repeats(tmp_path):
+    # a replayed session whose seq repeats (only its timestamps must increase): 6 frames left 1 PNG
+    fs = [f.replace(seq=s) for f, s in zip(frames(6), [5, 5, 5, 6, 2, 3])]
+    with PngSequenceSink(tmp_path / "p") as sink:
+        for f in fs:
+            sink.write(f)
+    names = sorted(p.name for p in (tmp_path / "p").iterdir())
+    assert names == [
+        "frame_000002_r3.png",
+        "frame_000003_r3.png",
+        "frame_000005.png",
+        "frame_000005_r1.png",
+        "frame_000005_r2.png",
+        "frame_000006_r2.png",
+    ]
+
+
 def test_png_sequence_without_composite_writes_the_camera_picture(tmp_path):
     f = frames(1)[0]
     with PngSequenceSink(tmp_path / "png") as sink:

@@ -349,6 +349,8 @@ class PngSequenceSink(Sink):
         self.directory = Path(directory)
         self.compression = int(compression)
         self.frames = 0
+        self._last_seq: int | None = None
+        self.laps = 0  # times the sequence number did not increase: later names get "_r<laps>"
 
     def open(self) -> None:
         try:
@@ -357,7 +359,21 @@ class PngSequenceSink(Sink):
             raise SinkError(f"PNG sequence: cannot create folder {self.directory}: {e}") from None
 
     def write(self, frame: Frame) -> None:
-        path = self.directory / f"frame_{frame.seq:06d}.png"
+        if self._last_seq is not None and frame.seq <= self._last_seq:
+            # a source whose sequence numbers repeat or go back (a session's seq is not checked; only its
+            # timestamps must increase) overwrote earlier PNGs: 6 frames of one seq left one file, exit 0
+            self.laps += 1
+            if self.laps == 1:
+                log.warning(
+                    "PNG sequence %s: frame seq %d does not follow %d; later files are named "
+                    "frame_<seq>_r<N>.png so that none is overwritten",
+                    self.directory,
+                    frame.seq,
+                    self._last_seq,
+                )
+        self._last_seq = frame.seq
+        lap = f"_r{self.laps}" if self.laps else ""
+        path = self.directory / f"frame_{frame.seq:06d}{lap}.png"
         bgr = cv2.cvtColor(output_picture(frame), cv2.COLOR_RGB2BGR)
         # fast filter set + Huffman-only: ~4x faster to encode than OpenCV's default, ~15 % larger
         params = [
