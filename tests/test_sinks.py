@@ -207,6 +207,10 @@ def test_a_recorder_that_cannot_finalise_names_the_session_and_what_replays(tmp_
     monkeypatch.setattr(SessionWriter, "close", full)
     with pytest.raises(SinkError, match=r"rec: cannot finalise the manifest: No space left on device; the 1 frames"):
         rec.close()
+    empty = SessionRecorderSink(tmp_path / "empty", fsync=False)
+    empty.open()  # no frame: no manifest yet, so the message must not promise a replay
+    with pytest.raises(SinkError, match=r"empty: cannot finalise the manifest: .*no manifest was written"):
+        empty.close()
     monkeypatch.undo()
     assert len(SessionReader(tmp_path / "rec")) == 1  # the committed frame replays
 

@@ -557,9 +557,13 @@ class SessionRecorderSink(Sink):
             try:
                 self._writer.close()
             except OSError as e:  # a full disk: the line named neither the session nor what still replays
+                if (self.path / "manifest.json").is_file():
+                    left = f"the {self._writer.count} frames committed still replay"
+                else:
+                    left = "no manifest was written, so nothing replays"
                 raise SinkError(
-                    f"session recorder {self.path}: cannot finalise the manifest: {e.strerror or e}; the "
-                    f"{self._writer.count} frames committed still replay (illuminet replay {self.path} --check)"
+                    f"session recorder {self.path}: cannot finalise the manifest: {e.strerror or e}; {left} "
+                    f"(illuminet replay {self.path} --check)"
                 ) from None
             if self._error is not None:
                 log.error("session recorder %s: last frame failed: %s", self.path, self._error)
