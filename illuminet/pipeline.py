@@ -147,6 +147,17 @@ def check_output_paths(cfg: Config, reads: Path | None = None, also: tuple[tuple
         parent = path.parent if str(path.parent) else Path(".")
         if path.is_dir():
             raise OutputPathError(f"[{section}] {key}: {value} is a folder; expected a {what} path")
+        try:
+            links = path.stat().st_nlink if path.is_file() else 1
+        except OSError:
+            links = 1
+        if links > 1:
+            # the file is truncated and rewritten in place: every other name of it changes too. A hard
+            # link to a session's manifest.json or frames.jsonl replaced the recording's own files
+            raise OutputPathError(
+                f"[{section}] {key}: {value} has {links} hard links; writing it would also change the same file "
+                "under its other names (a recording's manifest or index?): choose a new path"
+            )
         if not parent.is_dir():
             raise OutputPathError(
                 f"[{section}] {key}: folder {parent} of the {what} {value} does not exist; create it or "

@@ -252,6 +252,21 @@ def test_outputs_never_write_into_another_recorded_session(tmp_path, capsys, fla
     assert {p.relative_to(s): p.read_bytes() for p in s.rglob("*") if p.is_file()} == before
 
 
+@pytest.mark.parametrize("flag, name", [("--estimates", "frames.jsonl"), ("--stats-json", "manifest.json")])
+def test_an_output_hard_linked_to_a_sessions_file_is_refused(tmp_path, capsys, flag, name):
+    """A hard link outside the folder is the session's own file under another name: `replay S
+    --stats-json LINK` replaced S's manifest with the statistics (the session no longer opened)."""
+    s = tmp_path / "s"
+    make_session(s, 2)
+    before = {p.relative_to(s): p.read_bytes() for p in s.rglob("*") if p.is_file()}
+    link = tmp_path / "link.json"
+    os.link(s / name, link)
+    assert main(["replay", str(s), "--timing", "asap", flag, str(link)]) == 2
+    err = capsys.readouterr().err
+    assert f"{link} has 2 hard links; writing it would also change the same file" in err, err
+    assert {p.relative_to(s): p.read_bytes() for p in s.rglob("*") if p.is_file()} == before
+
+
 def test_outputs_never_write_into_the_session_being_recorded(tmp_path, capsys):
     """`run SRC --record R --estimates R/frames.jsonl` gave rc 0 and a session whose index had an
     estimate line in it (`--check`: "missing key 'i'"); the same with `--stats-json R/manifest.json`."""
