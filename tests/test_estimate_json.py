@@ -162,6 +162,18 @@ def test_jsonl_sink_writes_one_valid_line_per_frame_with_an_estimate(tmp_path):
         EstimateSink(tmp_path / "no" / "x.jsonl").open()
 
 
+def test_estimates_to_a_closed_stdout_is_refused_at_open(monkeypatch):
+    # `illuminet run ... --estimates - >&-`: sys.stdout is None, and each frame failed with the
+    # misleading "EstimateSink.write() before open()"
+    import sys
+
+    from illuminet.runtime.stream.sinks import SinkError
+
+    monkeypatch.setattr(sys, "stdout", None)
+    with pytest.raises(SinkError, match=r"estimates -: standard output is closed; give a file"):
+        EstimateSink("-").open()
+
+
 def test_an_estimates_file_on_a_full_disk_names_the_file_at_close():
     # the last lines' flush raised a bare OSError: the run's last line was "illuminet: [Errno 28] No space
     # left on device", naming no output

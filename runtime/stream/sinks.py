@@ -418,6 +418,8 @@ class EstimateSink(Sink):
         if self.path == "-":
             import sys
 
+            if sys.stdout is None:  # started with stdout closed (>&-): every frame failed "write() before open()"
+                raise SinkError("estimates -: standard output is closed; give a file (--estimates FILE) instead")
             self._fh = sys.stdout
             return
         p = Path(self.path)
