@@ -249,6 +249,12 @@ def test_wrong_format_name(tmp_path):
         ("intrinsics", {"fx": 1}, r"key 'intrinsics'"),
         ("color", {"encoding": "webp"}, r"color.encoding': expected one of"),
         ("depth", {"encoding": "float32"}, r"key 'depth': expected encoding 'png16'"),
+        # read loosely before: "false" made the session finalised, "32" skipped the frame-count check,
+        # "BGR" replayed red and blue swapped, 2.0 passed as version 2
+        ("finalized", "false", r"key 'finalized': expected bool, got str 'false'"),
+        ("frame_count", "2", r"key 'frame_count': expected int, got str '2'"),
+        ("color", {"encoding": "png", "channels": "BGR"}, r"key 'color.channels': expected 'RGB', got 'BGR'"),
+        ("version", 1.0, r"unknown session format version 1.0"),
     ],
 )
 def test_bad_manifest_keys(tmp_path, key, value, expect):

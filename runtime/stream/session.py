@@ -734,7 +734,7 @@ class SessionReader:
         if fmt != FORMAT_NAME:
             raise SessionError(f"{where}: key 'format': expected {FORMAT_NAME!r}, got {fmt!r}")
         ver = m.get("version")
-        if ver not in SUPPORTED_VERSIONS or isinstance(ver, bool):
+        if ver not in SUPPORTED_VERSIONS or not isinstance(ver, int) or isinstance(ver, bool):  # 2.0 passed as 2
             raise SessionError(
                 f"{where}: unknown session format version {ver!r}; this build of illuminet reads version(s) "
                 f"{', '.join(map(str, SUPPORTED_VERSIONS))} (a newer illuminet may read it)"
@@ -755,6 +755,13 @@ class SessionReader:
             raise SessionError(
                 f"{where}: key 'color.encoding': expected one of {COLOR_ENCODINGS}, got {color.get('encoding')!r}"
             )
+        if color.get("channels", "RGB") != "RGB":  # "BGR" replayed with red and blue swapped, silently
+            raise SessionError(f"{where}: key 'color.channels': expected 'RGB', got {color.get('channels')!r}")
+        # read with bool() and isinstance(int): "false" made a session finalised, "32" skipped the count check
+        if "finalized" in m:
+            _need(m, "finalized", (bool,), where)
+        if m.get("frame_count") is not None:
+            _need(m, "frame_count", (int,), where)
         depth = _need(m, "depth", (dict, type(None)), where)
         if depth is not None and (depth.get("encoding"), depth.get("unit")) != ("png16", "mm"):
             raise SessionError(f"{where}: key 'depth': expected encoding 'png16' with unit 'mm', got {depth!r}")
