@@ -186,6 +186,25 @@ def test_replay_check_lists_problems(tmp_path, capsys):
     assert rc == 1 and "problem:" in out and "000002.depth.png" in out and "4 intact frames" in out
 
 
+def test_replay_check_escapes_a_sessions_control_characters(tmp_path, capsys):
+    """A manifest's source and an index's file names went to the terminal raw: an escape sequence
+    in them could clear the screen or print a fake 'OK'."""
+    s = tmp_path / "s"
+    make_session(s, 3)
+    m = json.loads((s / "manifest.json").read_text())
+    m["source"] = "\x1b[2Jevil"
+    (s / "manifest.json").write_text(json.dumps(m))
+    lines = (s / "frames.jsonl").read_text().splitlines()
+    d = json.loads(lines[1])
+    d["color"] = "frames/\x1b[1A\rOK.png"
+    lines[1] = json.dumps(d)
+    (s / "frames.jsonl").write_text("\n".join(lines) + "\n")
+    rc = main(["replay", str(s), "--check"])
+    out = capsys.readouterr().out
+    assert rc == 1 and "\x1b" not in out and "\r" not in out, out
+    assert "source \\x1b[2Jevil" in out and "missing file" in out and "\\x1b[1A\\rOK.png" in out, out
+
+
 def test_replay_check_of_a_session_without_frames_is_not_ok(tmp_path, capsys):
     s = tmp_path / "s"
     make_session(s, 2)

@@ -24,7 +24,7 @@ from illuminet.progress import StatusLine
 from illuminet.runtime.config import Config, ConfigError, apply_overrides
 from illuminet.runtime.errors import IllumiNetError, OutputPathError
 from illuminet.runtime.stream.loop import LoopStats, run_loop
-from illuminet.runtime.stream.session import SessionError, SessionReader
+from illuminet.runtime.stream.session import SessionError, SessionReader, printable
 
 log = logging.getLogger("illuminet.run")
 
@@ -318,11 +318,13 @@ def cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
         if len(reader) == 0:  # replay then fails: "nothing to play" is the session's problem
             problems = [*problems, "no intact frame: nothing to replay"]
         m = reader.manifest
+        # a manifest's escape sequences went to the terminal as they were (clear the screen, fake "OK")
+        source = printable(str(m.get("source") or "?"))
         print(
             f"{args.session}: {m['format']} v{m['version']}, {reader.width}x{reader.height}, colour "
             f"{reader.color_encoding}, depth {_depth_summary(reader)}, "
             f"{len(reader)} intact frames, {'finalised' if reader.finalized else 'NOT finalised'}, "
-            f"source {m.get('source') or '?'}"
+            f"source {source}"
         )
         est = reader.estimates()
         if est:

@@ -145,6 +145,15 @@ def _atomic_write_json(path: Path, obj: Any, fsync: bool = True) -> None:
         _fsync_dir(path.parent)
 
 
+def printable(text: str) -> str:
+    """``text`` with every non-printable character escaped (``\\x1b``): a session's strings reach the
+    terminal in problem lines, and a file name or source holding escape sequences could clear the screen
+    or print a fake "OK"."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
+
+
 def safe_relpath(root: Path, rel: Any, what: str) -> Path:
     """Resolve ``rel`` inside the session folder ``root`` or raise :class:`SessionError`.
 
@@ -683,6 +692,8 @@ class SessionReader:
                 f"{self.path}: recording was not finalised (interrupted or killed); "
                 f"{len(self.entries)} complete frames are replayable",
             )
+        self.problems = [printable(p) for p in self.problems]
+        self.gaps = [printable(g) for g in self.gaps]
         count = m.get("frame_count")
         if self.finalized and isinstance(count, int) and count != self._index_lines:
             self.problems.append(
@@ -1090,5 +1101,5 @@ class SessionReader:
             try:
                 self.read(k)
             except CorruptFrame as ex:
-                problems.append(str(ex))
+                problems.append(printable(str(ex)))
         return problems
