@@ -417,6 +417,12 @@ class SessionWriter:
         frame = enc.frame
         if self._closed:
             raise SessionError(f"{self.path}: session writer is closed")
+        for key in ("t_device_ns", "t_host_ns"):
+            # the reader skips such a frame: written, it was lost without a word (a looped replay of a
+            # session stamped near 2**63 went past it, exit status 0)
+            t = getattr(frame, key)
+            if not 0 <= t <= MAX_TIMESTAMP_NS:
+                raise SessionError(f"{self.path}: frame {frame.seq} {key} {t} is outside 0..2**63-1 ns; not recorded")
         if self._manifest is None:
             self._start(frame)
         m = self._manifest
