@@ -252,6 +252,20 @@ def test_recorder_errors_reach_the_loop(tmp_path):
         SessionRecorderSink(tmp_path / "rec").open()
 
 
+def test_recorder_frames_that_fail_while_the_queue_drains_fail_the_close(tmp_path):
+    """Frames that failed after the loop's last write() were only logged at close: a recording that lost
+    its last queued frames (a disk full while draining) ended with exit status 0."""
+    fs = frames(3)
+    rec = SessionRecorderSink(tmp_path / "rec", fsync=False)
+    rec.open()
+    rec.write(fs[2])
+    rec.write(fs[0])  # timestamp goes back: the writer thread fails on it, after the last write()
+    with pytest.raises(SinkError, match=r"rec: 1 frame\(s\) queued at the end were not recorded: .*does not increase"):
+        rec.close()
+    assert rec.stats() == {"frames": 1, "lost": 1}
+    assert len(SessionReader(tmp_path / "rec", strict=True)) == 1  # finalised all the same
+
+
 def test_null_sink_counts():
     s = NullSink()
     for f in frames(3):

@@ -508,6 +508,8 @@ class SessionRecorderSink(Sink):
         self._queue: queue.Queue | None = None
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
+        self._unreported = 0  # frames that failed since the last error write() raised
+        self.lost = 0  # frames the writer thread could not commit
 
     def open(self) -> None:
         self._writer = SessionWriter(self.path, **self._writer_args)
@@ -528,11 +530,15 @@ class SessionRecorderSink(Sink):
                     self._writer.append_estimate(i, estimate)
             except BaseException as e:  # reported on the next write() in the loop thread
                 self._error = e
+                self._unreported += 1
+                self.lost += 1
 
     def write(self, frame: Frame) -> None:
         if self._error is not None:
             err, self._error = self._error, None
-            raise SinkError(f"session recorder {self.path}: {err}") from err
+            n, self._unreported = self._unreported, 0
+            more = f" ({n} frames not recorded since the last report)" if n > 1 else ""
+            raise SinkError(f"session recorder {self.path}: {err}{more}") from err
         estimate = None
         if frame.results:
             from illuminet.runtime.stream.estimate_json import frame_estimate
@@ -567,9 +573,15 @@ class SessionRecorderSink(Sink):
                     f"session recorder {self.path}: cannot finalise the manifest: {e.strerror or e}; {left} "
                     f"(illuminet replay {self.path} --check)"
                 ) from None
-            if self._error is not None:
-                log.error("session recorder %s: last frame failed: %s", self.path, self._error)
             log.info("session %s: %d frames recorded", self.path, self._writer.count)
+            if self._error is not None:
+                # frames still queued at the end that failed: only logged before, so a recording that
+                # lost them (a disk full while draining the queue) ended with exit status 0
+                err, self._error = self._error, None
+                n, self._unreported = self._unreported, 0
+                raise SinkError(
+                    f"session recorder {self.path}: {n} frame(s) queued at the end were not recorded: {err}"
+                ) from err
 
     def stats(self) -> dict:
-        return {"frames": self.frames}
+        return {"frames": self.frames, "lost": self.lost}
