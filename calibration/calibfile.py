@@ -498,6 +498,26 @@ def calibration_from_dict(d: Mapping[str, Any], where: str = "<calibration>", pa
     )
 
 
+#: largest calibration file read (bytes; ours are a few kB, DepthAI's EEPROM exports tens of kB): a bound,
+#: so that a device such as /dev/zero given as the file is refused instead of read until memory runs out
+MAX_CALIBRATION_BYTES = 16 << 20
+
+
+def read_calibration_text(path: Path) -> str:
+    """The UTF-8 text of a calibration file, read up to :data:`MAX_CALIBRATION_BYTES`.
+
+    Raises ``OSError`` / ``UnicodeDecodeError`` as ``Path.read_text`` does, :class:`CalibrationError` when
+    the file is larger."""
+    with open(path, "rb") as f:
+        raw = f.read(MAX_CALIBRATION_BYTES + 1)
+    if len(raw) > MAX_CALIBRATION_BYTES:
+        raise CalibrationError(
+            f"{path}: larger than {MAX_CALIBRATION_BYTES >> 20} MiB, not a calibration file (or an endless stream "
+            "such as a device); expected a calibration JSON"
+        )
+    return raw.decode("utf-8")
+
+
 def load_calibration(path: str | Path) -> Calibration:
     """Read a calibration file written by :func:`save_calibration` (or by hand, per the spec).
 
@@ -511,7 +531,7 @@ def load_calibration(path: str | Path) -> Calibration:
     if path.exists() and not path.is_file():  # a FIFO: reading it waited for ever
         raise CalibrationError(f"{path}: not a regular file (a folder, pipe or device); expected a calibration JSON")
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_calibration_text(path)
     except FileNotFoundError:
         raise CalibrationError(f"{path}: calibration file not found") from None
     except UnicodeDecodeError:
@@ -520,7 +540,7 @@ def load_calibration(path: str | Path) -> Calibration:
         raise CalibrationError(f"{path}: cannot read calibration file: {e}") from None
     try:
         data = json.loads(text)
-    except json.JSONDecodeError as e:
+    except ValueError as e:  # also an int of over 4300 digits, which json raises as a bare ValueError
         raise CalibrationError(f"{path}: not valid JSON: {e}") from None
     except RecursionError:
         raise CalibrationError(f"{path}: JSON nested too deeply to be a calibration file") from None

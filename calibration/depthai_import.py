@@ -25,7 +25,13 @@ from typing import Any
 
 import numpy as np
 
-from illuminet.calibration.calibfile import Calibration, CalibrationError, CameraCalib, StereoCalib
+from illuminet.calibration.calibfile import (
+    Calibration,
+    CalibrationError,
+    CameraCalib,
+    StereoCalib,
+    read_calibration_text,
+)
 
 CAMERA_TYPES = {0: "pinhole", 1: "fisheye"}
 
@@ -268,7 +274,7 @@ def import_depthai(path: str | Path, left_socket: int | None = None, right_socke
             f"{path}: not a regular file (a folder, pipe or device); expected a DepthAI calibration JSON export"
         )
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = json.loads(read_calibration_text(path))
     except FileNotFoundError:
         raise CalibrationError(f"{path}: DepthAI calibration file not found") from None
     except UnicodeDecodeError:
@@ -281,4 +287,8 @@ def import_depthai(path: str | Path, left_socket: int | None = None, right_socke
         raise CalibrationError(
             f"{path}: JSON nested too deeply to be a calibration; expected a DepthAI calibration JSON export"
         ) from None
+    except CalibrationError:  # larger than a calibration file: already says so
+        raise
+    except ValueError as e:  # an int of over 4300 digits: json raises a bare ValueError (a traceback)
+        raise CalibrationError(f"{path}: not valid JSON: {e}") from None
     return parse_depthai(data, str(path), left_socket, right_socket, path=path)

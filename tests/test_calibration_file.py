@@ -109,6 +109,19 @@ def test_not_json_and_missing_and_depthai_hint(tmp_path):
         load_calibration(p)
 
 
+def test_json_python_refuses_and_an_endless_file_are_calibration_errors(tmp_path):
+    # a 5000-digit int made json raise a bare ValueError (a traceback); /dev/zero was read until memory ran out
+    from illuminet.calibration.depthai_import import import_depthai
+
+    p = tmp_path / "huge.json"
+    p.write_text('{"format": ' + "9" * 5000 + "}")
+    for load in (load_calibration, import_depthai):
+        with pytest.raises(CalibrationError, match=r"huge.json: not valid JSON: .*4300 digits"):
+            load(p)
+        with pytest.raises(CalibrationError, match=r"/dev/zero: not a regular file"):
+            load("/dev/zero")
+
+
 def test_other_resolution_refused_or_scaled():
     c = _calib()
     c.check_size(640, 400)
