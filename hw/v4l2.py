@@ -555,7 +555,9 @@ def open_url(url: str, config: Config) -> V4l2Source:
             "[source] calibration (create one with `illuminet calibrate stereo`)"
         )
     if not os.path.isfile(calib):
-        raise V4l2Error(f"{url}: calibration file {calib} not found")
+        # a folder or a device was also "not found", sending the user looking for a file that is there
+        what = "is not a file (a folder or a device?)" if os.path.exists(calib) else "not found"
+        raise V4l2Error(f"{url}: calibration file {calib} {what}; expected the JSON of `illuminet calibrate stereo`")
     left = OpenCvCapture(o.device, o.size, o.fps, o.fourcc, o.exposure_us)
     right = OpenCvCapture(o.right, o.size, o.fps, o.fourcc, o.exposure_us) if o.stereo == "pair" else None
     reconnect = o.reconnect if o.reconnect is not None else config.source.reconnect

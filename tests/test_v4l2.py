@@ -125,6 +125,9 @@ def test_stereo_without_calibration_is_refused(tmp_path):
         v4l2.open_url("v4l2:///dev/video0?stereo=sbs", defaults())
     with pytest.raises(v4l2.V4l2Error, match="not found"):
         v4l2.open_url(f"v4l2:///dev/video0?stereo=sbs&calib={tmp_path}/none.json", defaults())
+    # a folder (or a device) was also "not found": the user looked for a file that is there
+    with pytest.raises(v4l2.V4l2Error, match=r"calibration file .* is not a file \(a folder or a device\?\)"):
+        v4l2.open_url(f"v4l2:///dev/video0?stereo=sbs&calib={tmp_path}", defaults())
 
 
 def test_open_url_takes_calibration_from_config(tmp_path):
