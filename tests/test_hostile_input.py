@@ -563,6 +563,17 @@ def test_a_malformed_bundle_json_is_one_line_naming_the_key(tmp_path, capsys, ed
     assert len(lines) == 1 and expect in lines[0], lines
 
 
+@pytest.mark.parametrize("text, expect", [('{"format": ' + "9" * 5000 + "}", "4300 digits")], ids=["huge-int"])
+def test_a_bundle_json_python_cannot_parse_is_one_line(tmp_path, capsys, text, expect):
+    # json raised a bare ValueError for an int of over 4300 digits, past the JSONDecodeError handler
+    d = tmp_path / "b"
+    d.mkdir()
+    (d / "bundle.json").write_text(text)
+    assert main(["--set", f"model.bundle={d}", "run", "synthetic://indoor?frames=1"]) == 2
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "bundle.json: not valid JSON" in lines[0] and expect in lines[0], lines
+
+
 def _relight_inputs(tmp_path):
     import cv2
     import numpy as np

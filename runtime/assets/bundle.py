@@ -233,6 +233,8 @@ def load_bundle(spec: str | Path, verify: bool = True) -> Bundle:
         raise BundleError(f"{mpath}: not valid JSON: {e}") from None
     except RecursionError:  # [[[[...]]]] thousands deep: a traceback from the JSON decoder
         raise BundleError(f"{mpath}: JSON nested too deeply to be a bundle's metadata; remake the bundle") from None
+    except ValueError as e:  # an int of over 4300 digits: json raises a bare ValueError (a traceback)
+        raise BundleError(f"{mpath}: not valid JSON: {e}") from None
     check_metadata(meta, mpath)
     required = [FILES["mesh"]] + ([FILES[k] for k in MODEL_FILES] if "onnx" in meta else [])
     for name in required:
