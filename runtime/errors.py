@@ -91,6 +91,11 @@ class SinkError(IllumiNetError, RuntimeError):
     """An output (video, PNG folder, server, recording) failed."""
 
 
+class OutputClosed(SinkError):
+    """The reader of an output has gone for good (``--estimates -`` piped into ``head``): the run ends,
+    as a Unix filter does when its reader leaves, instead of failing every frame for ever."""
+
+
 class PipelineError(IllumiNetError, ValueError):
     """The stages do not fit together (a required result nobody provides)."""
 

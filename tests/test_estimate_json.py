@@ -174,6 +174,27 @@ def test_estimates_to_a_closed_stdout_is_refused_at_open(monkeypatch):
         EstimateSink("-").open()
 
 
+def test_estimates_piped_into_a_reader_that_leaves_ends_the_run():
+    """``run LIVE --estimates - | head -1``: the run ends when its reader has gone (a live camera ran for
+    ever, every frame a sink failure), exit 0, one log line, no BrokenPipeError noise at exit."""
+    import subprocess
+    import sys
+
+    argv = [sys.executable, "-m", "illuminet", "run", "synthetic://lamp?frames=100000&size=160x100", "--estimates", "-"]
+    p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    first = p.stdout.readline()
+    p.stdout.close()  # what head does after its line
+    try:
+        err = p.stderr.read().decode()
+        rc = p.wait(timeout=120)
+    finally:
+        p.kill()
+    assert json.loads(first)["schema"] == "illuminet-light-estimate"
+    assert rc == 0, err
+    assert "the reader of standard output has gone; the run ends" in err
+    assert "Traceback" not in err and "Exception ignored" not in err and "BrokenPipe" not in err, err
+
+
 def test_an_estimates_file_on_a_full_disk_names_the_file_at_close():
     # the last lines' flush raised a bare OSError: the run's last line was "illuminet: [Errno 28] No space
     # left on device", naming no output

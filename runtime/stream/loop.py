@@ -60,6 +60,7 @@ from typing import Any
 
 import numpy as np
 
+from illuminet.runtime.errors import OutputClosed
 from illuminet.runtime.frame import Frame
 from illuminet.runtime.stage import EndOfStream, Sink, Source, Stage, StageChain
 from illuminet.runtime.stream.memtrim import HeapTrimmer
@@ -579,6 +580,7 @@ class _Loop:
         self.strict = strict
         self.max_frames = max_frames
         self.stop = stop
+        self.stop_reason: str | None = None  # why a sink asked the loop to end (OutputClosed)
         self.on_stats = on_stats
         self.stats = stats
         self.stats_interval_s = stats_interval_s
@@ -682,7 +684,7 @@ class _Loop:
         """The frame loop (serial); returns why it ended."""
         while True:
             if self.stop.is_set():
-                return "stopped"
+                return self.stop_reason or "stopped"
             if self.max_frames and self.stats.frames >= self.max_frames:
                 return "max_frames"
             try:
@@ -699,7 +701,7 @@ class _Loop:
         assert self.handoff is not None
         while True:
             if self.stop.is_set():
-                return "stopped"
+                return self.stop_reason or "stopped"
             if self.max_frames and self.stats.frames >= self.max_frames:
                 return "max_frames"
             item = self.handoff.take(timeout=0.1)
@@ -848,6 +850,11 @@ class _Loop:
             t0 = time.perf_counter()
             try:
                 sk.write(frame)
+            except OutputClosed as e:  # its reader has gone: the run ends here, not a failure
+                if self.stop_reason is None:
+                    self.stop_reason = str(e)
+                    log.info("%s", e)
+                self.stop.set()
             except Exception as e:
                 if self.strict:
                     raise

@@ -34,7 +34,7 @@ log = logging.getLogger(__name__)
 
 
 # defined in runtime/errors.py (one hierarchy for every error a user can meet); re-exported here
-from illuminet.runtime.errors import SinkError  # noqa: E402,F401
+from illuminet.runtime.errors import OutputClosed, SinkError  # noqa: E402,F401
 
 
 def output_picture(frame: Frame) -> np.ndarray:
@@ -392,6 +392,20 @@ class PngSequenceSink(Sink):
         return {"frames": self.frames}
 
 
+def _stdout_to_devnull():
+    """After a broken pipe on standard output: point its descriptor at /dev/null, so that Python's own
+    flush at exit does not print "Exception ignored ... BrokenPipeError" (the Python docs' recipe)."""
+    import sys
+
+    try:
+        fd = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(fd, sys.stdout.fileno())
+        os.close(fd)
+    except (OSError, ValueError, AttributeError):
+        pass
+    return sys.stdout
+
+
 class EstimateSink(Sink):
     """Write each frame's lighting estimate as one JSON line (JSONL) to a file (``--estimates FILE``).
 
@@ -439,8 +453,14 @@ class EstimateSink(Sink):
         d = frame_estimate(frame)
         if d is None:
             return
-        self._fh.write(to_line(d) + "\n")
-        self._fh.flush()
+        try:
+            self._fh.write(to_line(d) + "\n")
+            self._fh.flush()
+        except BrokenPipeError:
+            if self.path != "-":
+                raise
+            self._fh = _stdout_to_devnull()
+            raise OutputClosed("estimates -: the reader of standard output has gone; the run ends") from None
         self.written += 1
 
     def close(self) -> None:
