@@ -106,12 +106,17 @@ def check_output_paths(cfg: Config, reads: Path | None = None, also: tuple[tuple
     OutputPathError
         One line naming the key, the path and the fix.
     """
+    if cfg.output.estimates == "-" and cfg.logging.stats_json == "-":
+        raise OutputPathError(
+            "[logging] stats_json: - (standard output) is where --estimates - writes its JSON lines; give the "
+            "statistics a file (--stats-json FILE)"
+        )
     inside = reads.resolve() if reads is not None else None
     record = Path(cfg.output.record).resolve() if cfg.output.record else None
     named = [(f"[{section}] {key}", key, cfg[section][key]) for section, key, _ in _OUTPUT_FILES + _OUTPUT_DIRS]
     taken: dict[Path, str] = {}  # each output's resolved path -> the option that writes it
     for label, key, value in named + [(flag, "also", value) for flag, value in also]:
-        if not value or (key == "estimates" and value == "-"):
+        if not value or (key in ("estimates", "stats_json") and value == "-"):
             continue
         p = Path(value).resolve()
         if p in taken:
@@ -141,7 +146,7 @@ def check_output_paths(cfg: Config, reads: Path | None = None, also: tuple[tuple
             )
     for section, key, what in _OUTPUT_FILES:
         value = cfg[section][key]
-        if not value or (key == "estimates" and value == "-"):
+        if not value or (key in ("estimates", "stats_json") and value == "-"):
             continue
         path = Path(value)
         parent = path.parent if str(path.parent) else Path(".")

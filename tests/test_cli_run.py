@@ -451,3 +451,16 @@ def test_the_run_report_lists_each_stages_counters(tmp_path, capsys):
     assert main(argv) == 0
     out = capsys.readouterr().out
     assert "  imu: good=" in out and "implausible=" in out and "  planes: frames=2" in out, out[-600:]
+
+
+def test_stats_json_dash_is_standard_output_and_the_report_moves_to_stderr(tmp_path, capsys):
+    """--stats-json - wrote a file named '-'; it is stdout (as --estimates - is), the report on stderr;
+    both on stdout at once is refused."""
+    make_session(tmp_path / "src", 4)
+    url = f"replay://{tmp_path}/src?timing=asap"
+    assert main(["run", url, "--stats-json", "-"]) == 0
+    cap = capsys.readouterr()
+    assert json.loads(cap.out)["frames"] == 4 and "step" in cap.err
+    assert not (tmp_path / "-").exists()
+    assert main(["run", url, "--stats-json", "-", "--estimates", "-"]) == 2
+    assert "[logging] stats_json: - (standard output) is where --estimates - writes" in capsys.readouterr().err

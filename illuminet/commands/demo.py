@@ -117,7 +117,7 @@ def register(sub) -> None:
         default=DEFAULT_SESSION_SEED,
         help=f"seed of --make-default-session (default {DEFAULT_SESSION_SEED}, the shipped session)",
     )
-    p.add_argument("--stats-json", metavar="PATH", help="write the per-step timing statistics as JSON")
+    p.add_argument("--stats-json", metavar="PATH", help="write the per-step timing statistics as JSON (- = stdout)")
     p.add_argument("--strict", action="store_true", help="stop at the first failing frame with a traceback")
     from illuminet.commands.run import add_live_output_flags
 
@@ -545,6 +545,8 @@ def _print_report(stats, stages, probe: StillSink, cfg: Config, rc: int, out=Non
     )
     if cfg.logging.stats_json:
         try:
-            Path(cfg.logging.stats_json).write_text(stats.to_json() + "\n")
+            from illuminet.commands.run import write_stats_json
+
+            write_stats_json(cfg, stats)
         except OSError as e:  # checked before the start; the folder went away during the run
             print(f"illuminet demo: --stats-json: cannot write {cfg.logging.stats_json}: {e}", file=sys.stderr)

@@ -89,7 +89,9 @@ def _add_output_flags(p: argparse.ArgumentParser, *, record: bool = True) -> Non
         default=None,
         help="stop at the first failing frame with a traceback instead of counting it",
     )
-    g.add_argument("--stats-json", metavar="PATH", help="write the per-step timing statistics as JSON at the end")
+    g.add_argument(
+        "--stats-json", metavar="PATH", help="write the per-step timing statistics as JSON at the end (- = stdout)"
+    )
 
 
 def register(sub) -> None:
@@ -193,8 +195,19 @@ def note_server_flags(args: argparse.Namespace, cfg: Config) -> None:
 
 def report_stream(cfg: Config):
     """Where a run's report goes: stdout, or stderr when ``--estimates -`` streams JSON lines to stdout
-    (a report mixed into them broke every JSON reader downstream)."""
-    return sys.stderr if cfg.output.estimates == "-" else sys.stdout
+    or ``--stats-json -`` writes the statistics there (a report mixed into them broke every JSON reader
+    downstream)."""
+    return sys.stderr if "-" in (cfg.output.estimates, cfg.logging.stats_json) else sys.stdout
+
+
+def write_stats_json(cfg: Config, stats) -> None:
+    """``[logging] stats_json``: the statistics as JSON, to the file or (``-``) to stdout. OSError
+    propagates (the caller names the option)."""
+    if cfg.logging.stats_json == "-":
+        sys.stdout.write(stats.to_json() + "\n")
+        sys.stdout.flush()
+    else:
+        Path(cfg.logging.stats_json).write_text(stats.to_json() + "\n")
 
 
 def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
@@ -260,8 +273,9 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
             )
         if cfg.logging.stats_json:
             try:
-                Path(cfg.logging.stats_json).write_text(stats.to_json() + "\n")
-                print(f"statistics written to {cfg.logging.stats_json}", file=report_stream(cfg))
+                write_stats_json(cfg, stats)
+                if cfg.logging.stats_json != "-":
+                    print(f"statistics written to {cfg.logging.stats_json}", file=report_stream(cfg))
             except OSError as e:  # checked before the start; the folder went away during the run
                 print(f"illuminet: [logging] stats_json: cannot write {cfg.logging.stats_json}: {e}", file=sys.stderr)
                 rc = 1
