@@ -92,6 +92,30 @@ def test_a_source_shorter_than_frames_still_gives_a_still(tmp_path, capsys):
     assert f"still: {still} (the last frame, 2: the source ended first)" in text
 
 
+def test_a_demo_stopped_by_ctrl_c_says_so_at_its_still(tmp_path, capsys, monkeypatch):
+    """Ctrl-C before the middle frame: the last frame is the still, and the report said 'the source
+    ended first', which it did not (the user stopped the run)."""
+    import signal
+
+    from illuminet.commands.demo import StillSink
+
+    write = StillSink.write
+
+    def write_then_ctrl_c(self, frame):
+        write(self, frame)
+        if self.frames == 2:
+            signal.raise_signal(signal.SIGINT)  # the loop's handler: stop after this frame
+
+    monkeypatch.setattr(StillSink, "write", write_then_ctrl_c)
+    still = tmp_path / "s.png"
+    src = "synthetic://indoor?seed=0&frames=20&size=320x200"
+    rc = main(["demo", "--no-video", "--source", src, "--frames", "20", "--still", str(still)])
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    assert "ended: stopped" in text, text
+    assert f"still: {still} (the last frame, 1: the run was stopped first)" in text, text
+
+
 @pytest.mark.parametrize("name", ["st.xyz", "folder"])
 def test_a_still_that_cannot_be_written_is_refused_before_the_run(tmp_path, capsys, name):
     (tmp_path / "folder").mkdir()

@@ -532,9 +532,11 @@ def _print_report(stats, stages, probe: StillSink, cfg: Config, rc: int, out=Non
         print(f"video: {cfg.output.video}", file=out)
     if probe.written is not None:
         early = probe.written_frame < probe.index
+        # else Ctrl-C / SIGTERM, or an output whose reader left (--estimates - | head)
+        ended = stats.end_reason == "end of stream" or stats.end_reason.startswith("source error")
+        why = "the source ended first" if ended else "the run was stopped first"
         print(
-            f"still: {probe.written}"
-            + (f" (the last frame, {probe.written_frame}: the source ended first)" if early else ""),
+            f"still: {probe.written}" + (f" (the last frame, {probe.written_frame}: {why})" if early else ""),
             file=out,
         )
     rss = peak_rss_mb()
