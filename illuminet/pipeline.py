@@ -177,13 +177,21 @@ def check_output_paths(cfg: Config, reads: Path | None = None, also: tuple[tuple
         path = Path(value)
         if path.exists() and not path.is_dir():
             raise OutputPathError(f"[{section}] {key}: {value} exists and is not a folder; expected a {what}")
-        ancestor = path
-        while not ancestor.exists() and ancestor != ancestor.parent:
-            ancestor = ancestor.parent
-        if ancestor.exists() and (not ancestor.is_dir() or not os.access(ancestor, os.W_OK)):
-            raise OutputPathError(
-                f"[{section}] {key}: cannot create the {what} {value}: {ancestor} is not a writable folder"
-            )
+        check_creatable(path, f"[{section}] {key}: cannot create the {what} {value}")
+    # the extra files (the demo's --still) are written into a folder made for them when missing
+    for flag, value in also:
+        if value:
+            check_creatable(Path(value).parent, f"{flag} {value}: cannot create its folder")
+
+
+def check_creatable(path: Path, what: str) -> None:
+    """Refuse ``path`` (a folder, made with its parents) when its nearest existing ancestor is not a
+    writable folder: ``what`` begins the one-line message."""
+    ancestor = path if str(path) else Path(".")
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if ancestor.exists() and (not ancestor.is_dir() or not os.access(ancestor, os.W_OK)):
+        raise OutputPathError(f"{what}: {ancestor} is not a writable folder; choose another path")
 
 
 def build_sinks(

@@ -398,7 +398,7 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
     from illuminet.commands.run import lost_frames_status, report_stream
     from illuminet.hw import SourceError, open_source
     from illuminet.hw.replay import session_folder
-    from illuminet.pipeline import build_sinks, check_output_paths, session_root
+    from illuminet.pipeline import build_sinks, check_creatable, check_output_paths, session_root
     from illuminet.runtime.errors import OutputPathError
     from illuminet.runtime.stream.loop import LoopStats, run_loop
     from illuminet.runtime.stream.sinks import SinkError
@@ -435,7 +435,15 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
     try:
         if cfg.output.video and session_root(Path(cfg.output.video).resolve().parent) is None:
             # the default out/demo.mp4 must work in a fresh checkout: the video sink does not make folders
-            Path(cfg.output.video).parent.mkdir(parents=True, exist_ok=True)
+            folder = Path(cfg.output.video).parent
+            check_creatable(folder, f"--out {cfg.output.video}: cannot create its folder")
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+            except OSError as e:
+                raise OutputPathError(
+                    f"--out {cfg.output.video}: cannot create its folder {folder} ({e.strerror}); "
+                    "choose another --out (or --no-video)"
+                ) from None
         # before the source opens: no output inside a recording, every output's folder writable
         check_output_paths(cfg, reads=session_folder(url), also=(("--still", still),) if still else ())
         source = open_source(url, cfg)
