@@ -139,6 +139,25 @@ def test_writer_refuses_bad_input(tmp_path):
     assert len(SessionReader(tmp_path / "s", strict=True)) == 1
 
 
+def test_writer_refuses_a_folder_that_holds_other_files(tmp_path):
+    """`illuminet record URL sessions` (the folder of the user's sessions, or `.`) made that folder a
+    session: its frames/, index and manifest among the user's files, the sessions in it now inside a
+    recording. A new or empty folder (or the empty frames/ of a recording killed before its first
+    frame) is what a session goes into."""
+    fs = frames(1)
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("x")
+    with pytest.raises(SessionError, match=r"mine: the folder is not empty \(it holds notes.txt\); choose a new"):
+        SessionWriter(tmp_path / "mine")
+    assert sorted(p.name for p in (tmp_path / "mine").iterdir()) == ["notes.txt"]  # nothing added
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "killed" / "frames").mkdir(parents=True)
+    for name in ("empty", "killed"):
+        with SessionWriter(tmp_path / name) as w:
+            w.append(fs[0])
+        assert len(SessionReader(tmp_path / name, strict=True)) == 1
+
+
 # ---------------------------------------------------------------------------------- crash safety
 
 _WRITER = textwrap.dedent(

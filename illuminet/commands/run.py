@@ -130,7 +130,7 @@ def register(sub) -> None:
         "complete frame. Ctrl-C / SIGTERM stop and finalise it.",
     )
     p.add_argument("source_url", metavar="SOURCE_URL", help="frame source to record")
-    p.add_argument("out", metavar="OUT", help="new session folder")
+    p.add_argument("out", metavar="OUT", help="new (or empty) session folder")
     p.add_argument(
         "--color",
         choices=("raw", "png", "jpeg"),

@@ -225,7 +225,8 @@ class SessionWriter:
     Parameters
     ----------
     path : str or Path
-        The session folder; created. It must not already contain a session (no silent overwrite).
+        The session folder; created. It must be new or empty: not a session (no silent overwrite), nor
+        a folder holding other files (the session's would mix with them).
     source : str
         URL of the source being recorded, stored in the manifest.
     color : {"raw", "png", "jpeg"}
@@ -315,6 +316,20 @@ class SessionWriter:
         if (self.path / MANIFEST).exists() or (self.path / INDEX).exists():
             raise SessionError(
                 f"{self.path}: already contains a session; choose a new folder (recordings are never overwritten)"
+            )
+        # an existing folder must be empty (or hold only the empty frames/ of a recording killed before
+        # its first frame): a session's files would mix with what is there, and the sessions or
+        # outputs in it would end up inside a recording
+        others = sorted(
+            p.name
+            for p in (self.path.iterdir() if self.path.is_dir() else ())
+            if not (p.name == FRAMES_DIR and p.is_dir() and not any(p.iterdir()))
+        )
+        if others:
+            listed = ", ".join(others[:3]) + (f" and {len(others) - 3} more" if len(others) > 3 else "")
+            raise SessionError(
+                f"{self.path}: the folder is not empty (it holds {listed}); choose a new or empty folder "
+                "for the session"
             )
         try:
             (self.path / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
