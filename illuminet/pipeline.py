@@ -151,7 +151,8 @@ def check_output_paths(cfg: Config, reads: Path | None = None, also: tuple[tuple
         path = Path(value)
         parent = path.parent if str(path.parent) else Path(".")
         if path.is_dir():
-            raise OutputPathError(f"[{section}] {key}: {value} is a folder; expected a {what} path")
+            article = "an" if what[0] in "aeiou" else "a"
+            raise OutputPathError(f"[{section}] {key}: {value} is a folder; expected {article} {what} path")
         try:
             links = path.stat().st_nlink if path.is_file() else 1
         except OSError:

@@ -225,6 +225,17 @@ def test_replay_of_a_damaged_session_plays_the_intact_part(tmp_path, capsys):
 
 
 @pytest.mark.parametrize(
+    "flag, says",
+    [("--estimates", "an estimates file"), ("--stats-json", "a statistics file"), ("--video", "a video file")],
+)
+def test_an_output_file_that_is_a_folder_is_refused_in_one_line(tmp_path, capsys, flag, says):
+    """`--estimates out` (a folder) said 'expected a estimates file path'."""
+    rc = main(["run", "synthetic://indoor?frames=2&size=64x48", flag, str(tmp_path)])
+    err = capsys.readouterr().err
+    assert rc == 2 and f"{tmp_path} is a folder; expected {says} path" in err, err
+
+
+@pytest.mark.parametrize(
     "flag, name",
     [
         ("--estimates", "estimates.jsonl"),
