@@ -332,6 +332,26 @@ def test_a_bad_board_file_is_one_line(tmp_path, capsys, text, message):
     assert not (tmp_path / "b.png").exists()
 
 
+@pytest.mark.parametrize(
+    "make, says",
+    [
+        (lambda p: None, "no such file"),
+        (lambda p: p.mkdir(), "it is a folder"),
+        (lambda p: p.write_bytes(b"%PDF-1.4\n\xe2\xe3\xcf\xd3\n"), "not a text file"),  # the board's PDF
+    ],
+)
+def test_a_board_file_that_is_missing_a_folder_or_the_pdf_says_what_to_pass(tmp_path, capsys, make, says):
+    """`--board board.pdf` said "'utf-8' codec can't decode byte 0xe2 in position 10", a folder or a
+    missing file a bare "[Errno 21] Is a directory"; none said what --board wants."""
+    bd = tmp_path / "board.pdf"
+    make(bd)
+    _write_views(tmp_path / "views", 1)
+    assert main(["calibrate", "intrinsics", str(tmp_path / "views"), "--board", str(bd)]) == 2
+    err = _one_line(capsys)
+    assert f"{bd}: cannot read board file: {says}; expected the board JSON that `illuminet calibrate board`" in err
+    assert "Errno" not in err and "codec" not in err, err
+
+
 def test_a_board_file_may_leave_keys_out_or_write_whole_numbers_as_floats(tmp_path, capsys):
     bd = tmp_path / "bd.json"
     bd.write_text('{"squares_x": 9.0, "squares_y": 6, "square_mm": 30, "marker_mm": 22, "dictionary": "DICT_4X4_50"}')

@@ -40,15 +40,23 @@ def _spec(args):
     from illuminet.calibration.calibfile import CalibrationError
 
     if getattr(args, "board", None):
-        if Path(args.board).exists() and not Path(args.board).is_file():  # a FIFO: reading it waited for ever
+        board = Path(args.board)
+        want = "expected the board JSON that `illuminet calibrate board` writes next to its PDF/PNG"
+        if board.is_dir():
+            raise CalibrationError(f"{args.board}: cannot read board file: it is a folder; {want}")
+        if not board.exists():
+            raise CalibrationError(f"{args.board}: cannot read board file: no such file; {want}")
+        if not board.is_file():  # a FIFO: reading it waited for ever
             raise CalibrationError(
-                f"{args.board}: not a regular file (a folder, pipe or device); expected a board file from "
+                f"{args.board}: not a regular file (a pipe or device); expected a board file from "
                 "`illuminet calibrate board`"
             )
         try:
-            d = json.loads(Path(args.board).read_text(encoding="utf-8"))
-        except (OSError, ValueError, RecursionError) as e:  # not JSON, not UTF-8 text, nested too deeply
-            raise CalibrationError(f"{args.board}: cannot read board file: {e}") from None
+            d = json.loads(board.read_text(encoding="utf-8"))
+        except UnicodeDecodeError:  # the board's PDF or PNG
+            raise CalibrationError(f"{args.board}: cannot read board file: not a text file; {want}") from None
+        except (OSError, ValueError, RecursionError) as e:  # not JSON, nested too deeply
+            raise CalibrationError(f"{args.board}: cannot read board file: {e}; {want}") from None
         # the file `calibrate board` writes is {"board": {...}}; the bare {...} is accepted too
         return BoardSpec.from_dict(d["board"] if isinstance(d, dict) and "board" in d else d, args.board)
     try:
