@@ -77,6 +77,7 @@ def _broken_files(tmp_path):
     (tmp_path / "text.glb").write_text('{"asset": {"version": "2.0"}}')
     (tmp_path / "cut.ply").write_bytes(ply[:-20])
     (tmp_path / "cut.stl").write_bytes(stl[:100])
+    (tmp_path / "board.json").write_text('{"board": {"squares_x": 11}}')
     (tmp_path / "folder").mkdir()
     (tmp_path / "folder" / "chair.glb").write_bytes(glb)
     (tmp_path / "loop_a.obj").symlink_to(tmp_path / "loop_b.obj")
@@ -94,6 +95,8 @@ BROKEN = [
     ("folder", "folder: is a directory (it holds chair.glb); expected builtin:"),
     ("loop_a.obj", "loop_a.obj: a symlink loop"),
     ("dangling.obj", "dangling.obj: a broken symlink"),
+    # said "not a valid JSON file, or a truncated one (NotImplementedError: file_type 'json' not supported)"
+    ("board.json", "board.json: not a mesh file (unknown mesh kind '.json'); expected builtin:"),
 ]
 
 

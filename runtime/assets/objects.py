@@ -386,6 +386,10 @@ def read_mesh(path: Path, process: bool = True, label: str | None = None):
         where = e.filename or path
         raise ObjectLoadError(f"{path}: cannot read {where} ({e.strerror or e}); check the file is there") from None
     except Exception as e:  # trimesh raises many types for broken files
+        if ext not in MESH_KINDS:  # not a broken mesh: a file of another kind (a .json, a .png)
+            raise ObjectLoadError(
+                f"{path}: not a mesh file (unknown mesh kind {ext or 'without extension'!r}); {_WANT}"
+            ) from None
         raise ObjectLoadError(
             f"{path}: cannot read as a mesh: not a valid {kind} file, or a truncated one ({type(e).__name__}: {e}); "
             f"expected a complete {kind} file: export or copy it again"
