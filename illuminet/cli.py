@@ -13,6 +13,7 @@ line (``illuminet: MESSAGE``) with its exit status (2 usage/configuration, 1 run
 from __future__ import annotations
 
 import argparse
+import difflib
 import importlib
 import logging
 import os
@@ -55,6 +56,30 @@ class _Parser(argparse.ArgumentParser):
         if message.endswith("expected one argument"):
             message += "; if the value starts with '-', join it to the flag with '=' (e.g. --exposure=-5,100)"
         super().error(message)
+
+    def parse_args(self, args=None, namespace=None):
+        """An unknown option of a command (``illuminet demo --fames 3``) is that command's error, with
+        the option it is close to: argparse reported it with the top-level usage (``illuminet [-h] ...
+        COMMAND ...``), which lists none of the command's options."""
+        ns, extras = self.parse_known_args(args, namespace)
+        if extras:
+            parser = self
+            while True:  # down to the (sub)command that was chosen: calibrate board, ...
+                subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+                chosen = getattr(ns, subs[0].dest, None) if subs else None
+                if chosen not in (subs[0].choices if subs else {}):
+                    break
+                parser = subs[0].choices[chosen]
+            known = [o for a in parser._actions for o in a.option_strings if o.startswith("--")]
+            hints = []
+            for extra in extras:
+                flag = extra.split("=", 1)[0]
+                close = difflib.get_close_matches(flag, known, n=1) if flag.startswith("-") else []
+                if close:
+                    hints.append(f"{flag}: did you mean {close[0]}?")
+            hint = f" ({'; '.join(hints)})" if hints else f"; `{parser.prog} --help` lists the options"
+            parser.error(f"unrecognized arguments: {' '.join(extras)}{hint}")
+        return ns
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -54,6 +54,34 @@ def test_help(capsys, cmd, flags):
         assert f in out, f"{cmd} --help does not mention {f}"
 
 
+@pytest.mark.parametrize(
+    "argv, says",
+    [
+        (
+            ["demo", "--fames", "3"],
+            "illuminet demo: error: unrecognized arguments: --fames 3 (--fames: did you mean --frames?)",
+        ),
+        (
+            ["run", "--vido", "x.mp4"],
+            "illuminet run: error: unrecognized arguments: --vido (--vido: did you mean --video?)",
+        ),
+        (
+            ["calibrate", "board", "--sqares", "9x6"],
+            "illuminet calibrate board: error: unrecognized arguments: --sqares",
+        ),
+        (["demo", "extra"], "illuminet demo: error: unrecognized arguments: extra; `illuminet demo --help` lists"),
+    ],
+)
+def test_an_unknown_option_of_a_command_is_that_commands_error_with_the_close_option(capsys, argv, says):
+    """`illuminet demo --fames 3` printed the top-level usage (`illuminet [-h] ... COMMAND ...`, none of
+    demo's options) and 'illuminet: error: unrecognized arguments: --fames 3'."""
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and says in err, err
+    assert f"usage: illuminet {argv[0]}" in err, err
+
+
 def test_flags_override_the_config():
     args = build_parser().parse_args(
         [
