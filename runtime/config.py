@@ -518,6 +518,12 @@ def validate(data: Mapping[str, Any], where: str = "<config>") -> Config:
     """Validate a parsed TOML mapping against :data:`SCHEMA` and fill in defaults."""
     cfg = defaults().to_dict()
     for section, keys in data.items():
+        if section not in SCHEMA and not isinstance(keys, Mapping):  # `rate_hz = 5` above every [section]
+            owners = [f"[{name}]" for name, fields in SCHEMA.items() if section in fields]
+            fix = f"it is a key of {' and '.join(owners)}" if owners else f"known sections: {', '.join(SCHEMA)}"
+            raise ConfigError(
+                f"{where}: key {section!r} = {keys!r} is outside any section; put it under its [section] line ({fix})"
+            )
         if section not in SCHEMA:
             raise ConfigError(f"{where}: unknown section [{section}]; known sections: {', '.join(SCHEMA)}")
         if not isinstance(keys, Mapping):

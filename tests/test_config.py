@@ -42,6 +42,18 @@ def test_unknown_section_is_refused(tmp_path):
         C.load(p)
 
 
+def test_a_key_outside_any_section_says_so_and_names_its_section(tmp_path):
+    """`rate_hz = 5` at the top of config.toml (no [light] line above it) was refused as 'unknown
+    section [rate_hz]'."""
+    p = tmp_path / "c.toml"
+    p.write_text("rate_hz = 5\n[light]\nenabled = true\n")
+    with pytest.raises(C.ConfigError) as e:
+        C.load(p)
+    msg = str(e.value)
+    assert "key 'rate_hz' = 5 is outside any section; put it under its [section] line (it is a key of [light])" in msg
+    assert "unknown section" not in msg, msg
+
+
 @pytest.mark.parametrize(
     "toml, expect",
     [
