@@ -191,7 +191,9 @@ def check_creatable(path: Path, what: str) -> None:
     ancestor = path if str(path) else Path(".")
     while not ancestor.exists() and ancestor != ancestor.parent:
         ancestor = ancestor.parent
-    if ancestor.exists() and (not ancestor.is_dir() or not os.access(ancestor, os.W_OK)):
+    if ancestor.exists() and not ancestor.is_dir():
+        raise OutputPathError(f"{what}: {ancestor} is a file, not a folder; choose another path")
+    if ancestor.exists() and not os.access(ancestor, os.W_OK):
         raise OutputPathError(f"{what}: {ancestor} is not a writable folder; choose another path")
 
 

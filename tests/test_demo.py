@@ -125,17 +125,21 @@ def test_a_still_that_cannot_be_written_is_refused_before_the_run(tmp_path, caps
     assert rc == 2 and f"--still {tmp_path / name}: expected an image file path" in err, err
 
 
-@pytest.mark.parametrize("flag", ["--still", "--out"])
+@pytest.mark.parametrize("flag", ["--still", "--out", "--png-dir"])
 def test_an_output_under_a_file_is_refused_before_the_run(tmp_path, capsys, flag):
     """The still's (and the video's) folder is made when missing; under a file it cannot be: the
-    still failed only after the run, the video with a bare '[Errno 17] File exists'."""
-    (tmp_path / "notes.txt").write_text("x")
-    target = tmp_path / "notes.txt" / ("s.png" if flag == "--still" else "v.mp4")
+    still failed only after the run, the video with a bare '[Errno 17] File exists', and the PNG
+    folder said the file 'is not a writable folder'."""
+    notes = tmp_path / "notes.txt"
+    notes.write_text("x")
+    target = notes / {"--still": "s.png", "--out": "v.mp4", "--png-dir": "frames"}[flag]
     src = "synthetic://indoor?frames=2&size=64x48"
-    rc = main(["demo", "--source", src, flag, str(target)] + (["--no-video"] if flag == "--still" else []))
+    rc = main(["demo", "--source", src, flag, str(target)] + (["--no-video"] if flag != "--out" else []))
     cap = capsys.readouterr()
     assert rc == 2, cap.out + cap.err
-    assert f"{flag} {target}: cannot create its folder: {tmp_path / 'notes.txt'} is not a writable folder" in cap.err
+    assert f"{notes} is a file, not a folder; choose another path" in cap.err, cap.err
+    if flag != "--png-dir":
+        assert f"{flag} {target}: cannot create its folder: " in cap.err, cap.err
     assert "demo: source" not in cap.out + cap.err  # refused before anything ran
 
 
