@@ -168,9 +168,19 @@ def resolve_config(args: argparse.Namespace) -> Config:
     """Config file (explicit, or ./config.toml when present) + --set overrides + flag overrides."""
     args = _merge_global_options(args)
     path = args.config
-    if path is None and os.path.isfile("config.toml"):
+    implicit = path is None and os.path.isfile("config.toml")
+    if implicit:
         path = "config.toml"
-    cfg = load(path)
+    try:
+        cfg = load(path)
+    except ConfigError as e:
+        if not implicit:
+            raise
+        # the user may not know it was read at all (another tool's config.toml in this folder)
+        raise ConfigError(
+            f"{e} (./config.toml is read when no --config is given: correct it, pass --config FILE, "
+            "or run illuminet from another folder)"
+        ) from None
     overrides = list(args.overrides)
     if args.log_level:
         overrides.append(("logging", "level", args.log_level))

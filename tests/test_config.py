@@ -120,6 +120,21 @@ def test_a_config_larger_than_any_config_is_refused_not_read_whole(tmp_path):
         C.load("/dev/zero")
 
 
+def test_an_implicit_config_toml_that_is_refused_says_it_was_read_because_it_is_here(tmp_path, monkeypatch, capsys):
+    """Another tool's config.toml in the current folder stopped every command with 'config.toml:
+    unknown section [server]', and nothing said that illuminet reads ./config.toml by itself."""
+    from illuminet.cli import main
+
+    (tmp_path / "config.toml").write_text("[server]\nport = 80\n")
+    monkeypatch.chdir(tmp_path)
+    assert main(["config"]) == 2
+    err = capsys.readouterr().err
+    assert "config.toml: unknown section [server]" in err, err
+    assert "(./config.toml is read when no --config is given: correct it, pass --config FILE" in err, err
+    assert main(["--config", "config.toml", "config"]) == 2  # named: the user knows which file it is
+    assert "is read when no --config is given" not in capsys.readouterr().err
+
+
 def test_illuminet_config_piped_into_head_ends_quietly():
     """`illuminet config | head` ended in a BrokenPipeError traceback once head had its lines: here the
     reader leaves before the first line."""
