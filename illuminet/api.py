@@ -124,12 +124,20 @@ def _config(
                 where = (
                     f"it is in sections {', '.join(owners)}; write section__{name}=..."
                     if owners
-                    else "no section has it; see config.toml"
+                    else "no section has it; see config.toml" + _did_you_mean(name)
                 )
                 raise ConfigError(f"{who}: override {name}={value!r}: {where}")
             section, key = owners[0], name
         items.append((section, key, value))
     return apply_overrides(cfg, items)
+
+
+def _did_you_mean(name: str) -> str:
+    """`` (did you mean timing?)`` for a key close to ``name`` (`timng`), else ''."""
+    import difflib
+
+    close = difflib.get_close_matches(name, sorted({k for keys in SCHEMA.values() for k in keys}), n=1)
+    return f" (did you mean {close[0]}?)" if close else ""
 
 
 # --------------------------------------------------------------------------------------------------

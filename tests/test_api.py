@@ -61,6 +61,11 @@ def test_open_overrides_and_their_errors(tmp_path):
         illuminet.open("synthetic://indoor", url="x")
     with pytest.raises(ConfigError, match="nope=1: no section has it"):
         illuminet.open("synthetic://indoor", nope=1)
+    # a typo names the key it is close to (it said only 'no section has it; see config.toml')
+    with pytest.raises(
+        ConfigError, match=r"timng='asap': no section has it; see config.toml \(did you mean timing\?\)"
+    ):
+        illuminet.open("synthetic://indoor", timng="asap")
     with pytest.raises(ConfigError, match="timing"):
         illuminet.open("synthetic://indoor", timing="sometimes")
     (tmp_path / "c.toml").write_text('[source]\ntiming = "asap"\n')
