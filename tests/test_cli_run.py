@@ -360,6 +360,23 @@ def test_a_response_curve_that_cannot_be_read_is_one_line(tmp_path, capsys):
         assert "Traceback" not in err
 
 
+def test_replay_of_a_path_near_a_session_names_the_session(tmp_path, capsys):
+    """`replay S/manifest.json`, `replay S/frames` and `replay FOLDER_OF_SESSIONS` said only 'not a
+    folder' / 'manifest.json: missing; not a recorded session'; the session to give was right there."""
+    s = tmp_path / "runs" / "s1"
+    make_session(s, 2)
+    make_session(tmp_path / "runs" / "s2", 2)
+    for given in (s / "manifest.json", s / "frames"):
+        assert main(["replay", str(given)]) == 1
+        err = capsys.readouterr().err
+        assert f"; the session is {s}: give that folder" in err, err
+    assert main(["run", f"replay://{s / 'manifest.json'}"]) == 1
+    assert f"; the session is {s}: give that folder" in capsys.readouterr().err
+    assert main(["replay", str(tmp_path / "runs")]) == 1
+    err = capsys.readouterr().err
+    assert f"; it holds the session(s) s1, s2: give one of them, e.g. {s}" in err, err
+
+
 def test_clear_errors(tmp_path, capsys):
     assert main(["replay", str(tmp_path / "nope")]) == 1
     assert "is not a folder" in capsys.readouterr().err

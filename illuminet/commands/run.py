@@ -348,7 +348,13 @@ def cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
         print("OK" if not problems else f"{len(problems)} problem(s)")
         return 0 if not problems else 1
     if not Path(args.session).is_dir():
-        print(f"illuminet: replay: {args.session} is not a folder (expected a recorded session)", file=sys.stderr)
+        from illuminet.runtime.stream.session import session_hint
+
+        print(
+            f"illuminet: replay: {args.session} is not a folder (expected a recorded session)"
+            + session_hint(args.session),
+            file=sys.stderr,
+        )
         return 1
     url = "replay://" + quote(str(args.session), safe="/")
     return _execute(cfg, url, with_stages=True)

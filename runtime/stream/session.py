@@ -219,6 +219,24 @@ class EncodedFrame:
     depth: bytes | None
 
 
+def session_hint(path: str | os.PathLike) -> str:
+    """For a path that is not a session: ``"; the session is S: give that folder"`` when it is a file
+    or folder inside session S (``S/manifest.json``, ``S/frames``), ``"; it holds the sessions a, b:
+    give one of them"`` for a folder of sessions, else ``""``."""
+    path = Path(path)
+    for d in path.parents if path.exists() else ():
+        if (d / MANIFEST).is_file():
+            return f"; the session is {d}: give that folder"
+    try:
+        inside = sorted(c.name for c in path.iterdir() if (c / MANIFEST).is_file()) if path.is_dir() else []
+    except OSError:
+        inside = []
+    if inside:
+        listed = ", ".join(inside[:3]) + (f" and {len(inside) - 3} more" if len(inside) > 3 else "")
+        return f"; it holds the session(s) {listed}: give one of them, e.g. {path / inside[0]}"
+    return ""
+
+
 class SessionWriter:
     """Append frames to a new session folder, crash-safely (see the module docstring).
 
@@ -696,7 +714,10 @@ class SessionReader:
         # problems of reading (strict readers accept them), but check() reports them
         self.gaps: list[str] = []
         if not self.path.is_dir():
-            raise SessionError(f"{self.path}: not a session folder (expected a folder with {MANIFEST} and {INDEX})")
+            raise SessionError(
+                f"{self.path}: not a session folder (expected a folder with {MANIFEST} and {INDEX})"
+                + session_hint(self.path)
+            )
         self.manifest = self._read_manifest()
         m = self.manifest
         self.width, self.height = int(m["width"]), int(m["height"])
@@ -747,7 +768,7 @@ class SessionReader:
         if not mpath.is_file():
             raise SessionError(
                 f"{mpath}: missing; not a recorded session, or the recording was killed before its first "
-                f"frame was written"
+                f"frame was written" + session_hint(self.path)
             )
         try:
             m = json.loads(mpath.read_text(encoding="utf-8"))
