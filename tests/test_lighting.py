@@ -172,6 +172,12 @@ def test_load_hdr_errors_name_the_file(tmp_path):
     bad.write_bytes(b"not an image")
     with pytest.raises(ValueError, match="bad.hdr"):
         L.load_hdr(bad)
+    # an 8-bit picture was read as if its display levels (0-255) were linear radiance
+    cv2 = pytest.importorskip("cv2")
+    ldr = tmp_path / "sky.png"
+    cv2.imwrite(str(ldr), np.full((8, 16, 3), 200, np.uint8))
+    with pytest.raises(ValueError, match=r"sky.png: an 8-bit image, not an HDR map .*expected a Radiance .hdr or .exr"):
+        L.load_hdr(ldr)
 
 
 def test_load_hdr_reads_the_header_size_before_the_pixels(tmp_path):

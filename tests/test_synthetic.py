@@ -232,6 +232,21 @@ def test_outdoor_with_a_real_hdr_map(shared_data):
     assert float(sc.sky.radiance(-d[None])[0] @ L._LUMA) < 0.01 * towards
 
 
+def test_an_hdr_folder_or_picture_is_refused_saying_what_hdr_wants(tmp_path):
+    """`hdr=FOLDER` said 'HDR map not found: FOLDER' (it is there: a folder), and `hdr=sky.png`, an
+    8-bit picture, lit the scene with its display levels as radiance."""
+    import cv2
+
+    (tmp_path / "a.hdr").write_bytes(b"x")
+    with pytest.raises(
+        SyntheticError, match=rf"hdr={tmp_path} is a folder; expected one HDR map file .*hdr={tmp_path}/a.hdr"
+    ):
+        open_url(f"synthetic://outdoor?hdr={tmp_path}")
+    cv2.imwrite(str(tmp_path / "sky.png"), np.full((8, 16, 3), 200, np.uint8))
+    with pytest.raises(ValueError, match="sky.png: an 8-bit image, not an HDR map"):
+        open_url(f"synthetic://outdoor?hdr={tmp_path / 'sky.png'}&frames=1&size=64x48")
+
+
 def test_table_never_hides_the_object():
     for seed in range(4):
         src = open_url(f"synthetic://indoor?seed={seed}&path=orbit&frames=6&size=160x100")

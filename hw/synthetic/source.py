@@ -523,6 +523,10 @@ def open_url(url: str, config=None) -> SyntheticSource:
     hdr = q.get("hdr")
     if hdr is not None and kind != "outdoor":
         raise SyntheticError(f"{url!r}: hdr= applies to the outdoor scene only")
+    if hdr is not None and Path(hdr).is_dir():
+        maps = sorted(Path(hdr).glob("*.hdr"))
+        example = f" (e.g. hdr={maps[0]})" if maps else ""
+        raise SyntheticError(f"{url!r}: hdr={hdr} is a folder; expected one HDR map file (.hdr or .exr){example}")
     if hdr is not None and not Path(hdr).is_file():
         raise SyntheticError(f"{url!r}: HDR map not found: {hdr}")
     size = q.get("size") or (q.get("width", 640), q.get("height", 400))  # or the width=640&height=400 spelling

@@ -515,6 +515,12 @@ def load_hdr(path: str | Path) -> np.ndarray:
         raise ValueError(f"{path}: cannot read as an HDR image (OpenCV: {msg})") from None
     if img is None or img.ndim != 3 or img.shape[2] != 3:
         raise ValueError(f"{path}: cannot read as an HDR image (expected a Radiance .hdr or .exr with 3 channels)")
+    if not np.issubdtype(img.dtype, np.floating):  # a PNG/JPEG: display values, not linear radiance
+        bits = img.dtype.itemsize * 8
+        raise ValueError(
+            f"{path}: {'an' if bits == 8 else 'a'} {bits}-bit image, not an HDR map (its values are display "
+            "levels, not linear radiance); expected a Radiance .hdr or .exr"
+        )
     rgb = np.ascontiguousarray(img[..., ::-1], dtype=np.float32)
     if not np.all(np.isfinite(rgb)) or rgb.min() < 0:
         rgb = np.nan_to_num(np.maximum(rgb, 0), nan=0.0, posinf=0.0)
