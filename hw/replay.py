@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import os
 import threading
 import time
 from concurrent.futures import CancelledError, ThreadPoolExecutor
@@ -247,15 +248,22 @@ def session_folder(url: str) -> Path | None:
         parts = urlsplit(url)
     except ValueError:  # "Invalid IPv6 URL" for an unbalanced '[' (synthetic://[): a traceback before
         return None
-    path = unquote(parts.netloc + parts.path)
+    path = _url_path(parts)
     # a NUL byte (%00) names no folder: open_url refuses it with its line
     return Path(path) if parts.scheme == "replay" and path and "\x00" not in path else None
+
+
+def _url_path(parts) -> str:
+    """The session path of a split ``replay://`` URL, ``~`` expanded (no shell expands it inside a
+    URL: ``replay://~/sessions/s1`` was looked for in a folder named ``~``)."""
+    path = unquote(parts.netloc + parts.path)
+    return os.path.expanduser(path) if path.startswith("~") and "\x00" not in path else path
 
 
 def open_url(url: str, config: Config) -> ReplaySource:
     """``replay://PATH[?timing=recorded|asap][&loop=1][&max_frames=N]`` -> unopened :class:`ReplaySource`."""
     parts = urlsplit(url)
-    path = unquote(parts.netloc + parts.path)
+    path = _url_path(parts)
     if not path:
         raise SourceError(f"{url}: no session path; expected replay://PATH (relative) or replay:///ABS/PATH")
     if "\x00" in path:  # %00: every file call raised "embedded null byte" as a traceback

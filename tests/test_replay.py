@@ -100,6 +100,18 @@ def test_url_query_overrides_config(tmp_path, monkeypatch):
     assert len(got) == 4
 
 
+def test_a_home_relative_session_path_is_expanded(tmp_path, monkeypatch):
+    """No shell expands ~ inside a URL: `replay://~/sessions/s` was looked for in a folder named '~'
+    ('~/sessions/s: not a session folder'), and `run --video ~/...` beside it worked."""
+    from illuminet.hw.replay import session_folder
+
+    make_session(tmp_path / "sessions" / "s", 3)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    got, _ = _read_all(open_source("replay://~/sessions/s?timing=asap", defaults()))
+    assert len(got) == 3
+    assert session_folder("replay://~/sessions/s") == tmp_path / "sessions" / "s"  # output checks see it too
+
+
 @pytest.mark.parametrize(
     "query, expect",
     [
