@@ -472,6 +472,11 @@ def test_a_run_without_any_output_says_so(tmp_path, capsys):
     assert "no output was given, so the frames were processed and dropped" in capsys.readouterr().err
     assert main(["run", src, "--timing", "asap", "--estimates", str(tmp_path / "e.jsonl")]) == 0
     assert "no output was given" not in capsys.readouterr().err
+    # a live source (a camera) runs until Ctrl-C: the note comes at the start, once, not after the run
+    assert main(["run", "synthetic://indoor?live=1&fps=60&frames=3&size=64x48"]) == 0
+    err = capsys.readouterr().err
+    assert "note: no output is given, so the frames are processed and dropped; add --video" in err, err
+    assert err.count("processed and dropped") == 1, err
 
 
 def test_server_flags_without_mjpeg_get_a_note(tmp_path, capsys):

@@ -229,7 +229,25 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
     sinks = build_sinks(cfg, stats=stats.snapshot, source_url=url)
     stages = build_stages(cfg) if with_stages else []
     rc = 0
+    o = cfg.output
+    no_output = not (o.video or o.png_dir or o.record or o.estimates or o.mjpeg or cfg.logging.stats_json)
+    # a camera runs until Ctrl-C: a note only at the end came after all that time. Said once the first
+    # frames are through (not before the source opens: a source that fails says only why)
+    told = no_output and source.live
     status = StatusLine()  # a live line on a terminal; nothing when piped
+    note = [told]
+
+    def on_stats(snap: dict) -> None:
+        if note[0] and snap.get("frames"):
+            note[0] = False
+            status.clear()  # the note on its own line, not inside the status line
+            print(
+                "illuminet: note: no output is given, so the frames are processed and dropped; add "
+                "--video FILE, --png-dir DIR, --record DIR, --estimates FILE or --mjpeg",
+                file=sys.stderr,
+            )
+        status.update(snap)
+
     try:
         run_loop(
             source,
@@ -238,7 +256,7 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
             strict=cfg.logging.strict,
             max_frames=cfg.source.max_frames,
             stats=stats,
-            on_stats=status.update,
+            on_stats=on_stats,
             stats_interval_s=0.5,
             pipeline=cfg.loop.pipeline,
             depth=cfg.loop.depth,
@@ -263,8 +281,7 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
             # each stage's own counters, as the demo prints them (the serial IMU's skipped lines, the
             # planes' bad depth, the anchor's placements ...: docs/runtime.md points users here)
             print_stage_counters(stages, report_stream(cfg))
-        o = cfg.output
-        if stats.frames and not (o.video or o.png_dir or o.record or o.estimates or o.mjpeg or cfg.logging.stats_json):
+        if stats.frames and no_output and not told:
             # a first `illuminet run SOURCE` processed its frames and showed only a timing table: say why
             print(
                 "illuminet: no output was given, so the frames were processed and dropped; add --video FILE, "
