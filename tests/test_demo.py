@@ -162,6 +162,8 @@ def test_demo_frames_and_live_config():
 
 
 def test_demo_rejects_bad_arguments(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path / "x.mp4"), "--no-video"]) == 2  # --out was ignored silently
+    assert "--no-video writes none; drop one of them" in capsys.readouterr().err
     assert main(["demo", "--frames", "0"]) == 2
     assert "--frames must be at least 1" in capsys.readouterr().err
     rc = main(["demo", "--frames", "1", "--source", "nope://x", "--no-video", "--still", ""])

@@ -50,6 +50,10 @@ DEFAULT_SESSION_JPEG_QUALITY = 85
 SYNTHETIC_SOURCE = "synthetic://indoor?seed=0&frames={frames}&size=1280x800&path=orbit"
 
 
+#: the demo's video when --out is not given
+DEFAULT_VIDEO = "out/demo.mp4"
+
+
 def default_session_source_url(seed: int = DEFAULT_SESSION_SEED, frames: int = DEFAULT_SESSION_FRAMES) -> str:
     """The ``synthetic://`` URL the default session records (see :func:`make_default_session`)."""
     w, h = DEFAULT_SESSION_SIZE
@@ -88,7 +92,7 @@ def register(sub) -> None:
     )
     p.add_argument(
         "--out",
-        default="out/demo.mp4",
+        default=None,
         metavar="PATH",
         help="video file to write (.mp4, .m4v, .mov, .mkv, .avi; default out/demo.mp4; --no-video for none)",
     )
@@ -368,7 +372,7 @@ def demo_config(args: argparse.Namespace, cfg: Config) -> Config:
     (in real time while serving ``--mjpeg``: a viewer wants the scene's pace, not a blur)."""
     live = bool(getattr(args, "mjpeg", None))
     over = [
-        ("output", "video", "" if args.no_video else args.out),
+        ("output", "video", "" if args.no_video else (args.out or DEFAULT_VIDEO)),
         ("source", "timing", "recorded" if live else "asap"),
         ("source", "max_frames", demo_frames(args)),
     ]
@@ -415,6 +419,16 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
     if args.frames is not None and args.frames < 1:
         print(f"illuminet demo: --frames must be at least 1, got {args.frames}", file=sys.stderr)
         return 2
+    if args.no_video and args.out is not None:
+        # --out was ignored without a word, and the still went to out/demo_still.png, not beside it
+        print(
+            f"illuminet demo: --out {args.out} names the video and --no-video writes none; drop one of them "
+            "(--still PATH places the still picture)",
+            file=sys.stderr,
+        )
+        return 2
+    if args.out is None:
+        args.out = DEFAULT_VIDEO
     frames = demo_frames(args)
     cfg = demo_config(args, cfg)
     url = _source_url(args, frames)
@@ -522,7 +536,7 @@ def _still_path(args: argparse.Namespace) -> str:
     if args.still is not None:
         return args.still
     if not args.no_video:
-        p = Path(args.out)
+        p = Path(args.out or DEFAULT_VIDEO)
         return str(p.with_name(p.stem + "_still.png"))
     return "out/demo_still.png"
 
