@@ -508,13 +508,14 @@ def read_calibration_text(path: Path) -> str:
 
     Raises ``OSError`` / ``UnicodeDecodeError`` as ``Path.read_text`` does, :class:`CalibrationError` when
     the file is larger."""
-    with open(path, "rb") as f:
-        raw = f.read(MAX_CALIBRATION_BYTES + 1)
-    if len(raw) > MAX_CALIBRATION_BYTES:
+    from illuminet.runtime.files import FileTooLarge, read_bounded
+
+    try:
+        raw = read_bounded(path, MAX_CALIBRATION_BYTES)
+    except FileTooLarge as e:
         raise CalibrationError(
-            f"{path}: larger than {MAX_CALIBRATION_BYTES >> 20} MiB, not a calibration file (or an endless stream "
-            "such as a device); expected a calibration JSON"
-        )
+            f"{e}, not a calibration file (or an endless stream such as a device); expected a calibration JSON"
+        ) from None
     return raw.decode("utf-8")
 
 

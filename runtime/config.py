@@ -25,6 +25,7 @@ else:  # pragma: no cover
 
 # defined in runtime/errors.py (one hierarchy for every error a user can meet); re-exported here
 from illuminet.runtime.errors import ConfigError  # noqa: E402,F401
+from illuminet.runtime.files import FileTooLarge, read_bounded  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -548,13 +549,13 @@ def load(path: str | Path | None = None) -> Config:
     if path.exists() and not path.is_file() and not path.is_dir():  # a FIFO: reading it waited for ever
         raise ConfigError(f"{path}: not a regular file (a pipe or device?); expected a TOML file such as config.toml")
     try:
-        with open(path, "rb") as f:
-            raw = f.read(MAX_CONFIG_BYTES + 1)
-        if len(raw) > MAX_CONFIG_BYTES:
+        try:
+            raw = read_bounded(path, MAX_CONFIG_BYTES)
+        except FileTooLarge as e:
             raise ConfigError(
-                f"{path}: larger than {MAX_CONFIG_BYTES >> 20} MiB, not a config file (or an endless stream such "
-                "as a device); expected a TOML file such as config.toml"
-            )
+                f"{e}, not a config file (or an endless stream such as a device); expected a TOML file such as "
+                "config.toml"
+            ) from None
         text = raw.decode("utf-8")
     except FileNotFoundError:
         raise ConfigError(f"{path}: config file not found") from None

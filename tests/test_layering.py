@@ -56,6 +56,7 @@ FLOOR_MAY_IMPORT = (
     "illuminet.runtime.config",
     "illuminet.runtime.sh",
     "illuminet.runtime.errors",
+    "illuminet.runtime.files",
 )
 
 
