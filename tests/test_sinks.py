@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 
 import cv2
@@ -144,6 +145,20 @@ def test_png_sequence_never_overwrites_a_frame_when_seq_repeats(tmp_path):
         "frame_000005_r2.png",
         "frame_000006_r2.png",
     ]
+
+
+def test_png_sequence_says_when_its_folder_holds_an_earlier_runs_frames(tmp_path, caplog):
+    """A --png-dir reused after a longer run kept that run's extra frames among this run's, unannounced."""
+    caplog.set_level(logging.WARNING)
+    with PngSequenceSink(tmp_path / "p") as sink:
+        for f in frames(5):
+            sink.write(f)
+    assert "earlier run" not in caplog.text
+    with PngSequenceSink(tmp_path / "p") as sink:
+        for f in frames(2):
+            sink.write(f)
+    assert "already holds 5 frame_*.png from an earlier run" in caplog.text
+    assert len(list((tmp_path / "p").glob("frame_*.png"))) == 5  # nothing deleted
 
 
 def test_png_sequence_without_composite_writes_the_camera_picture(tmp_path):

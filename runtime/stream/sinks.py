@@ -357,6 +357,18 @@ class PngSequenceSink(Sink):
             self.directory.mkdir(parents=True, exist_ok=True)
         except OSError as e:
             raise SinkError(f"PNG sequence: cannot create folder {self.directory}: {e}") from None
+        try:
+            earlier = sum(1 for _ in self.directory.glob("frame_*.png"))
+        except OSError:
+            earlier = 0
+        if earlier:
+            # a folder reused after a longer run kept that run's last frames among this run's, unannounced
+            log.warning(
+                "PNG sequence %s already holds %d frame_*.png from an earlier run: this run's frames replace "
+                "those of the same number and the others stay; use an empty folder to keep the runs apart",
+                self.directory,
+                earlier,
+            )
 
     def write(self, frame: Frame) -> None:
         if self._last_seq is not None and frame.seq <= self._last_seq:
