@@ -146,6 +146,7 @@ BAD_INPUTS += [
     (_EVAL + ["--hdr", "{tmp}/hdr3"], 2, "holds 3 .hdr map(s), but eval uses only the held-out ones"),
     (_EVAL + ["--seed", "-1"], 2, "--seed -1"),
     (_EVAL + ["--camera-frames", "1"], 2, "--camera-frames 1: expected a count >= 2"),
+    (_EVAL + ["--camera-scenes", "1", "--camera-suites", ","], 2, "--camera-suites ',': expected a comma-separated"),
     (_EVAL + ["--object-albedo", "nan"], 2, "--object-albedo: expected a number in [0, 1), got nan"),
     (_EVAL + ["--crosscheck-spp", "0"], 2, "--crosscheck-spp 0"),
     (_EVAL + ["--crosscheck-bounces", "-1"], 2, "--crosscheck-bounces -1: expected a count from 0 to 16"),

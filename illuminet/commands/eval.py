@@ -297,6 +297,11 @@ def _run(args: argparse.Namespace, cfg) -> int:
     suites = [s for s in args.camera_suites.split(",") if s]
     known = CAMERA_SUITES + CAMERA_SUITES_ON_REQUEST
     bad = [s for s in suites if s not in known]
+    if not suites and args.camera_scenes > 0:  # ',' or '': the camera suites ran none, without a word
+        raise _usage(
+            f"--camera-suites {args.camera_suites!r}: expected a comma-separated list of "
+            f"{', '.join(known)} (or --camera-scenes 0 to skip them)"
+        )
     if bad:
         print(
             f"illuminet eval: unknown camera suite(s) {', '.join(bad)}; known: {', '.join(known)}",
