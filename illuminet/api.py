@@ -465,6 +465,7 @@ def render_preview(
     :func:`relight` checks them (a ValueError naming the argument) before any rendering.
     """
     from illuminet.runtime.relight import RelightResult
+    from illuminet.runtime.render.gl import using
     from illuminet.runtime.render.shadow import dominant_light
     from illuminet.runtime.render.stage import RenderStage
     from illuminet.runtime.scene import ObjectShading
@@ -499,10 +500,11 @@ def render_preview(
         render_irradiance=np.asarray(result.irradiance, np.float32),
     )
     stage = RenderStage(cfg)
-    stage.open()
-    try:
-        irr = stage.render_irradiance(shading)
-        light, share = dominant_light(shading, stage.comp.mesh.normals, irr)
-        return stage.comp.draw(color, d, K.K, T, irr, float(result.exposure_scale), light, share)
-    finally:
-        stage.close()
+    with using(None, cfg.render.gl_backend, cfg.render.gl_api):  # one thread at a time draws (gl.using)
+        stage.open()
+        try:
+            irr = stage.render_irradiance(shading)
+            light, share = dominant_light(shading, stage.comp.mesh.normals, irr)
+            return stage.comp.draw(color, d, K.K, T, irr, float(result.exposure_scale), light, share)
+        finally:
+            stage.close()

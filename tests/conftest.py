@@ -99,6 +99,7 @@ def gl(gl_ctx):
     make_current(gl_ctx)  # another test may have created and released a context of its own
     assert gl_ctx.error == "GL_NO_ERROR", f"GL error left by an earlier test: {gl_ctx.error}"
     yield gl_ctx
+    make_current(gl_ctx)  # the renderer lets the context go after drawing (gl.using): read its errors
     err = gl_ctx.error
     assert err == "GL_NO_ERROR", f"test left a GL error: {err}"
 

@@ -367,3 +367,49 @@ def test_open_refuses_bad_arguments_naming_them(args, kw, match):
     _one_line(e)
     s = illuminet.open("synthetic://indoor", render=np.bool_(False), strict=True)
     assert s.render is False and s.strict is True
+
+
+#: render_preview on the main thread, a worker, the main thread again, then two previews and two streams
+#: at once (a fresh process: no test fixture has made the context current on its main thread)
+_ANY_THREAD = """
+import threading, numpy as np, illuminet
+from tests._learn_helpers import floor_rgbd
+color, depth, K = floor_rgbd()
+res = illuminet.relight(color, depth, K, (160, 130), "builtin:vase")
+out = {}
+def preview(i):
+    try:
+        out[i] = illuminet.render_preview(color, depth, K, res)
+    except Exception as e:
+        out[i] = e
+def stream(i):
+    try:
+        with illuminet.open("synthetic://lamp?frames=6&size=160x100", timing="asap") as s:
+            out[i] = [r.composite is not None for r in s]
+    except Exception as e:
+        out[i] = e
+def run(*targets):
+    ts = [threading.Thread(target=f, args=(i,)) for i, f in targets]
+    [t.start() for t in ts]
+    [t.join() for t in ts]
+preview("first")
+run(("worker", preview))
+preview("main")
+run((0, preview), (1, preview), (2, stream), (3, stream))
+for i in ("first", "worker", "main", 0, 1):
+    assert isinstance(out[i], np.ndarray) and out[i].shape == color.shape, (i, out[i])
+    assert np.array_equal(out[i], out["first"]), i
+assert out[2] == [True] * 6 and out[3] == [True] * 6, (out[2], out[3])
+print("ok")
+"""
+
+
+@pytest.mark.gl
+def test_render_preview_and_streams_draw_from_any_thread(gl_ctx):
+    # the shared GL context stayed current on the thread that drew last: EGL would not make it current
+    # on another, and every later draw there (the main thread after a worker, or two threads at once)
+    # failed with moderngl's "cannot create texture"
+    p = subprocess.run(
+        [sys.executable, "-c", _ANY_THREAD], cwd=REPO, env=env(), capture_output=True, text=True, timeout=300
+    )
+    assert p.returncode == 0 and p.stdout.split() == ["ok"], p.stderr[-2000:]

@@ -115,6 +115,7 @@ class _Lib:
             "eglCreatePbufferSurface": (vp, [vp, vp, vp]),
             "eglMakeCurrent": (u, [vp, vp, vp, vp]),
             "eglGetCurrentContext": (vp, []),
+            "eglGetCurrentDisplay": (vp, []),
             "eglDestroyContext": (u, [vp, vp]),
             "eglDestroySurface": (u, [vp, vp]),
         }

@@ -24,6 +24,7 @@ mode) and raises :class:`GLError` saying where it happened.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import re
@@ -46,6 +47,9 @@ BACKENDS = ("egl", "default")
 GL_APIS = ("auto", "gl", "gles")
 
 _lock = threading.Lock()
+#: held by the thread that draws with the shared context (:func:`using`): one thread at a time
+_use_lock = threading.RLock()
+_use_depth = threading.local()
 _shared = None
 _shared_backend: str | None = None
 _shared_api: str | None = None
@@ -419,6 +423,45 @@ def make_current(ctx) -> None:
     it costs well under a microsecond when it already is.
     """
     ctx.__enter__()
+
+
+@contextlib.contextmanager
+def using(ctx=None, backend: str | None = None, api: str | None = None):
+    """Draw with ``ctx`` (default the shared one, :func:`get_context`) from the calling thread: one
+    thread at a time, and the context let go after.
+
+    A GL context is current on at most one thread; EGL refuses to make it current on a second thread
+    while the first still holds it, and every GL call there then fails ("cannot create texture") or
+    draws into nothing. Two threads rendering (two streams, ``illuminet.render_preview`` from a web
+    server's worker) therefore take turns on a process-wide lock, and the outermost ``using`` makes
+    the context no longer current on its thread when it ends, so that any thread can take it next.
+    Re-entrant within one thread.
+    """
+    with _use_lock:
+        depth = getattr(_use_depth, "n", 0)
+        _use_depth.n = depth + 1
+        try:
+            if ctx is None:
+                ctx = get_context(backend, api)
+            make_current(ctx)
+            yield ctx
+        finally:
+            _use_depth.n = depth
+            if depth == 0:
+                _let_go()
+
+
+def _let_go() -> None:
+    """Make no EGL context current on the calling thread (nothing for a non-EGL context)."""
+    try:
+        from illuminet.runtime.render.egl import _Lib
+
+        egl = _Lib.get().egl
+    except Exception:  # no libEGL: the context is GLX/WGL/CGL, which stays current on its thread
+        return
+    dpy = egl.eglGetCurrentDisplay()
+    if dpy:
+        egl.eglMakeCurrent(dpy, None, None, None)
 
 
 def park(ctx) -> None:

@@ -90,10 +90,14 @@ class RenderStage(Stage):
 
     def open(self) -> None:
         """Create (or take) the GL context, load the object and upload it to the GPU once."""
-        from illuminet.runtime.render.gl import get_context
+        from illuminet.runtime.render.gl import using
 
         r = self.cfg.render
-        ctx = self._ctx if self._ctx is not None else get_context(r.gl_backend, r.gl_api)
+        with using(self._ctx, r.gl_backend, r.gl_api) as ctx:
+            self._open(ctx)
+
+    def _open(self, ctx) -> None:
+        r = self.cfg.render
         mesh_src, carry = self._mesh_src, self._carry
         if mesh_src is None:
             spec = self.cfg.model.bundle
@@ -143,9 +147,12 @@ class RenderStage(Stage):
 
     def close(self) -> None:
         """Free the GPU objects (the shared context stays); safe to call twice."""
+        from illuminet.runtime.render.gl import using
+
         if self.comp is not None:
             self._fb_final = (self.comp.framebuffer_size, self.comp.grows)  # stats() after close (reports)
-            self.comp.release()
+            with using(self.comp.ctx):
+                self.comp.release()
             self.comp = None
 
     def render_irradiance(self, shading: ObjectShading) -> np.ndarray:
@@ -173,8 +180,14 @@ class RenderStage(Stage):
         return out
 
     def process(self, frame: Frame) -> Frame:
+        from illuminet.runtime.render.gl import using
+
         if self.comp is None:
             raise RuntimeError("RenderStage.process called before open()")
+        with using(self.comp.ctx):
+            return self._process(frame)
+
+    def _process(self, frame: Frame) -> Frame:
         anchor, shading = self.require(frame, ANCHOR), self.require(frame, SHADING)
         irr = self.render_irradiance(shading)
         scale = _exposure_scale(frame)
