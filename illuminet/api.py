@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -203,6 +204,9 @@ class Stream:
         self._source = self._chain = None
         self._sinks: list = []
         self._done = False
+        # a frame in progress and close() exclude each other: close() from another thread (a stop
+        # button) waits for the frame instead of closing the stages and sinks under it
+        self._busy = threading.RLock()
 
     def open(self) -> Stream:
         """Open the source, the stages and the sinks (done by ``with`` or the first ``next``)."""
@@ -239,6 +243,10 @@ class Stream:
         return self
 
     def __next__(self) -> Result:
+        with self._busy:
+            return self._next()
+
+    def _next(self) -> Result:
         if self._done:
             raise StopIteration
         self.open()
@@ -257,11 +265,13 @@ class Stream:
         return Result(frame)
 
     def close(self) -> None:
-        """Close sinks, stages and source (outputs are finalised). Idempotent."""
-        stack, self._stack = self._stack, None
-        self._done = True
-        if stack is not None:
-            stack.close()
+        """Close sinks, stages and source (outputs are finalised). Idempotent; from another thread it
+        waits for the frame in progress, and the iteration then ends."""
+        with self._busy:
+            stack, self._stack = self._stack, None
+            self._done = True
+            if stack is not None:
+                stack.close()
 
     @property
     def stages(self) -> list:

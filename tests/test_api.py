@@ -413,3 +413,39 @@ def test_render_preview_and_streams_draw_from_any_thread(gl_ctx):
         [sys.executable, "-c", _ANY_THREAD], cwd=REPO, env=env(), capture_output=True, text=True, timeout=300
     )
     assert p.returncode == 0 and p.stdout.split() == ["ok"], p.stderr[-2000:]
+
+
+def test_stream_closed_from_another_thread_waits_for_the_frame_in_progress():
+    # close() from another thread (an app's stop button) closed the stages and sinks while next() was
+    # still running them on the iterating thread: the rest of that frame ran on closed stages
+    import threading
+    import time
+
+    from illuminet.commands.demo import DEFAULT_SESSION
+
+    events: list[str] = []
+    s = illuminet.open(f"replay://{DEFAULT_SESSION}", render=False, timing="asap", max_frames=20)
+    with s:
+        next(s)
+        first = s.stages[0]
+        process = first.process
+
+        def slow(frame):
+            events.append("frame started")
+            closer.start()
+            time.sleep(0.3)  # the other thread calls close() meanwhile
+            out = process(frame)
+            events.append("frame done")
+            return out
+
+        def close():
+            s.close()
+            events.append("closed")
+
+        closer = threading.Thread(target=close)
+        first.process = slow
+        r = next(s)
+        closer.join(10)
+        assert events == ["frame started", "frame done", "closed"]
+        assert r.frame.seq == 1 and r.estimate is not None
+        assert list(s) == []  # closed: the iteration ends
