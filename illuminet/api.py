@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import os
 import threading
+import weakref
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -207,6 +208,7 @@ class Stream:
         # a frame in progress and close() exclude each other: close() from another thread (a stop
         # button) waits for the frame instead of closing the stages and sinks under it
         self._busy = threading.RLock()
+        self._finalizer: weakref.finalize | None = None
 
     def open(self) -> Stream:
         """Open the source, the stages and the sinks (done by ``with`` or the first ``next``)."""
@@ -231,6 +233,10 @@ class Stream:
             stack.close()
             raise
         self._stack, self._source, self._chain, self._sinks = stack, source, chain, sinks
+        # a stream dropped or left open without close() (a `for` without `with`, then a break) is
+        # closed when it is garbage-collected or at the latest when the interpreter exits, as a
+        # generator is: the outputs are finalised (a video's index) and the sinks' threads end
+        self._finalizer = weakref.finalize(self, stack.close)
         return self
 
     def __enter__(self) -> Stream:
@@ -270,6 +276,9 @@ class Stream:
         with self._busy:
             stack, self._stack = self._stack, None
             self._done = True
+            if self._finalizer is not None:
+                self._finalizer.detach()
+                self._finalizer = None
             if stack is not None:
                 stack.close()
 

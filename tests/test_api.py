@@ -449,3 +449,38 @@ def test_stream_closed_from_another_thread_waits_for_the_frame_in_progress():
         assert events == ["frame started", "frame done", "closed"]
         assert r.frame.seq == 1 and r.estimate is not None
         assert list(s) == []  # closed: the iteration ends
+
+
+def test_a_stream_left_open_is_closed_when_dropped_and_at_exit(tmp_path):
+    # a stream never closed (a `for` without `with`, then a break) kept its sinks' threads running after
+    # it was dropped, and at exit the video had no index (48 bytes, unplayable): close() never ran
+    import gc
+    import threading
+
+    import av
+
+    def frames_in(path):
+        with av.open(str(path)) as c:
+            return sum(1 for _ in c.decode(video=0))
+
+    url = "synthetic://lamp?frames=20&size=160x100"
+    s = illuminet.open(url, render=False, timing="asap", output__video=str(tmp_path / "gc.mp4"))
+    for r in s:
+        if r.frame.seq == 2:
+            break
+    del s, r
+    gc.collect()
+    assert not [t.name for t in threading.enumerate() if t.name.startswith("illuminet-")]
+    assert frames_in(tmp_path / "gc.mp4") == 3
+    code = (
+        "import illuminet, sys\n"
+        f"s = illuminet.open({url!r}, render=False, timing='asap', output__video=sys.argv[1])\n"
+        "for r in s:\n"
+        "    if r.frame.seq == 2:\n"
+        "        break\n"
+    )
+    p = subprocess.run(
+        [sys.executable, "-c", code, str(tmp_path / "exit.mp4")], env=env(), capture_output=True, text=True, timeout=120
+    )
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert frames_in(tmp_path / "exit.mp4") == 3
