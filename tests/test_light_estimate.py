@@ -11,6 +11,7 @@ from illuminet.pipeline import build_stages
 from illuminet.runtime.config import apply_overrides, defaults
 from illuminet.runtime.scene import LIGHT, LightEstimate
 from illuminet.runtime.stage import StageChain
+from illuminet.runtime.stages.light_estimate import EnvMap, Samples
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 
@@ -85,6 +86,55 @@ def test_static_scene_does_not_flicker_and_follows_a_switch():
     assert after < 0.5 * before
     moved = (before - lum[36 + 15]) / (before - after)
     assert moved > 0.9, (moved, lum[30:66])
+
+
+def test_a_light_switched_off_is_followed_within_half_a_second():
+    """The room goes dark (the light to 1 %, the exposure metadata unchanged) at frame 36: within 0.5 s
+    (15 frames) the estimate has moved 95 % of the way. The environment map kept 90 % of each bin in view
+    per update, so a dark room stayed lit in the map: 0.87 of the way, the estimate still 13x too bright."""
+    src = open_url("synthetic://lamp?seed=3&frames=70")
+    lum = []
+    with src:
+        chain, stages = _chain(src)
+        for i in range(60):
+            f = src.read()
+            if i >= 36:
+                lin = (f.color.astype(np.float32) / 255.0) ** 2.2 * 0.01
+                f = f.replace(color=np.clip(np.rint(lin ** (1 / 2.2) * 255), 0, 255).astype(np.uint8))
+            est = chain(f).results[LIGHT.name]
+            assert np.isfinite(est.sh9).all() and np.isfinite(est.primary_rgb).all()
+            lum.append(float(est.sh9[0] @ LUMA) * 0.282 + float(est.primary_rgb @ LUMA))
+        light = [s for s in stages if s.name == "light"][0]
+        for s in stages:
+            s.close()
+    lum = np.array(lum)
+    before, after = lum[24:36].mean(), lum[56:].mean()
+    assert after < 0.05 * before
+    moved = (before - lum[36 + 15]) / (before - after)
+    assert moved > 0.95, (moved, lum[30:])
+    assert light.env.light_changes >= 1
+
+
+def test_env_map_bins_in_view_follow_a_switched_light_and_keep_their_memory_otherwise():
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(4000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    lit = rng.uniform(0.5, 1.5, (4000, 3))
+
+    def samples(rad):
+        return Samples(
+            radiance=rad, direction=d, position=None, plane=np.full(4000, -1), saturated=np.zeros(4000, bool)
+        )
+
+    env = EnvMap()
+    for _ in range(3):
+        env.update(samples(lit * rng.uniform(0.98, 1.02, lit.shape)))  # noise: no light change
+    assert env.light_changes == 0
+    steady = env.radiance.copy()
+    env.update(samples(lit * 0.01))  # switched off
+    assert env.light_changes == 1
+    seen = env.seen
+    np.testing.assert_allclose(env.radiance[seen], 0.01 * steady[seen], rtol=0.05)
 
 
 def test_cues_can_be_switched_off_and_depthless_frames_work():
