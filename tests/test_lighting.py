@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import trimesh
@@ -110,6 +112,16 @@ def test_environment_brightness_ranges():
     out = L.sample_lights("outdoor", rng)
     # the sun is the first and by far the strongest light unless overcast
     assert np.linalg.norm(out.positions[0]) == pytest.approx(L.OUTDOOR_DISTANCE)
+
+
+def test_outdoor_with_one_light_is_the_sun_alone_without_a_warning():
+    """synthetic://outdoor?lights=1 (valid: 1 is the smallest count) printed numpy's "divide by zero"
+    RuntimeWarning: the empty sky's irradiance was normalised by its own 0."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        lights = L.sample_lights("outdoor", np.random.default_rng(3), n=1)
+    assert lights.positions.shape == (1, 3) and np.isfinite(lights.intensities).all()
+    assert (lights.intensities > 0).all()
 
 
 def test_spatial_scene_has_several_positions_with_different_light():

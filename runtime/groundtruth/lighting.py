@@ -339,7 +339,9 @@ def _outdoor(rng: np.random.Generator, n: int, object_size: float) -> PointLight
     sky_e = sky_rgb * radiance[:, None]
     # total sky irradiance on the horizontal: 10-25 % of the clear sun's (more share when overcast)
     sky_h = (sky_e * np.maximum(dirs[:, 1:2], 0)).sum(axis=0) @ _LUMA
-    sky_e *= e_sun * rng.uniform(0.1, 0.25) / sky_h
+    share = rng.uniform(0.1, 0.25)  # drawn with or without a sky: the same stream either way
+    if m > 0:  # n = 1 is the sun alone: 0 / 0 warned "divide by zero" for an empty sky
+        sky_e *= e_sun * share / sky_h
     return directional_lights(np.vstack([sun_dir, dirs]), np.vstack([sun_e, sky_e]), OUTDOOR_DISTANCE)
 
 
