@@ -268,6 +268,12 @@ def test_check_depth_messages():
     # a replayed depth PNG of 65535s is read as 65.535 m: not "convert millimetres", which it already is
     kind, msg = check_depth(np.full((100, 100), 65535, np.uint16) * np.float32(1e-3))
     assert kind == "units_mm" and "'no depth' seems written as 65535" in msg and "depth_from_mm" not in msg
+    # a sparse map (0.5 % valid) is refused as too sparse, not as "all values are 0"
+    sparse = np.zeros((200, 200), np.float32)
+    sparse.reshape(-1)[::200] = 1.5
+    kind, msg = check_depth(sparse)
+    assert kind == "invalid" and "all values are 0" not in msg and "under 1 %" in msg, msg
+    assert check_depth(np.zeros((100, 100), np.float32))[1].count("all values are 0") == 1
 
 
 # ---------------------------------------------------------------------------------------- anchor

@@ -91,7 +91,13 @@ def check_depth(depth: np.ndarray | None, sample: np.ndarray | None = None) -> t
     valid = finite & (s > 0)
     frac = float(valid.mean()) if s.size else 0.0
     if frac < 0.01:
-        n_nan = int((~finite).sum())
+        n_nan, n_valid = int((~finite).sum()), int(valid.sum())
+        if n_valid:
+            # a sparse map (0.9 % valid) was told "all values are 0"
+            return "invalid", (
+                f"depth map has too few valid pixels: {n_valid} of {s.size} sampled values ({100 * frac:.2g} %), "
+                "under 1 %; expected metres > 0 with 0 = invalid over at least 1 % of the map"
+            )
         what = f"{n_nan} of {s.size} sampled values are NaN/inf, the rest 0" if n_nan else "all values are 0"
         return "invalid", f"depth map has no valid pixels ({what}); expected metres > 0 with 0 = invalid"
     med = float(np.median(s[valid]))
