@@ -302,6 +302,17 @@ def check_depth(depth: np.ndarray, what: str = "depth") -> None:
     problem = planes_check_depth(d.astype(np.float32, copy=False))
     if problem is not None:
         raise ValueError(f"{what}: {problem[1]}")
+    # depth beyond the planes' range (a wall 20 m off) is no cloud point: said here, not as "no real plane
+    # observed under the anchor pixel ... needs the plane to be visible" for a plane in full view
+    from illuminet.runtime.stages.plane_fit import MAX_DEPTH_M, MIN_DEPTH_M
+
+    dv = d[valid]
+    inside = float(np.mean((dv > MIN_DEPTH_M) & (dv < MAX_DEPTH_M)))
+    if inside < 0.01:
+        raise ValueError(
+            f"{what}: {100 * (1 - inside):.0f} % of the valid depths lie outside {MIN_DEPTH_M:g}-{MAX_DEPTH_M:g} m, "
+            f"the range planes are fitted in (median {med:g} m); expected a scene within it"
+        )
 
 
 def check_exposure(exposure, what: str = "exposure") -> None:

@@ -305,6 +305,9 @@ def test_relight_runtime_refuses_bad_exposure_depth_and_intrinsics():
         relight(color, depth / 1000, K, (160, 130), cfg)
     with pytest.raises(ValueError, match="depth: depth map is 16x10; expected at least 32x24"):
         relight(color[:10, :16], depth[:10, :16], Intrinsics(16, 16, 8, 5, 16, 10), (8, 6), cfg)
+    # a plane in full view but 20 m off (beyond the planes' 0.1-15 m) was "no real plane observed"
+    with pytest.raises(ValueError, match=r"depth: 100 % of the valid depths lie outside 0.1-15 m.*median 20 m"):
+        relight(color, np.full_like(depth, 20.0), K, (160, 130), cfg)
     with pytest.raises(ValueError, match="intrinsics: principal point cx=-5000, cy=99.5 is outside the 320x200"):
         relight(color, depth, Intrinsics(K.fx, K.fy, -5000.0, K.cy, K.width, K.height), (160, 130), cfg)
 
