@@ -29,7 +29,8 @@ URL
               never hiding it: real objects casting shadows (``scene.info["boxes"]`` lists them)
 
 What a frame holds
-    ``color``: the scene's radiance (Lambertian, direct light only: ``albedo * E / pi``), times the
+    ``color``: the scene's radiance (Lambertian: ``albedo * E / pi``, E the direct light plus 8 bounces
+    between the planes by default, ``bounce=N``; :mod:`~illuminet.hw.synthetic.bounce`), times the
     auto exposure's scale ``k = exposure_s * ISO / 100`` (``Exposure.scale``, so dividing linear
     pixels by it gives scene-referred radiance), plus sensor noise (shot + read, growing with ISO),
     clipped, sRGB-encoded to 8 bits. No white balance is applied (``wb_gains = (1, 1, 1)``).

@@ -508,7 +508,7 @@ MAX_BAKE_WORK = 512
 def bake_work(kind: str, lights: int, boxes: int | None, table: bool | None, size: tuple[int, int]) -> float:
     """The bake cost of a scene in :data:`MAX_BAKE_WORK` units (an upper estimate from its parameters)."""
     n_boxes = boxes if boxes is not None else (4 if kind == "cluttered" else 0)
-    n_table = 1 if (table if table is not None else kind == "indoor") else 0
+    n_table = 1 if (table if table is not None else kind in ("indoor", "cluttered")) else 0  # as build_scene
     return lights * (1 + n_boxes + n_table) * math.sqrt(size[0] * size[1] / (640 * 400))
 
 

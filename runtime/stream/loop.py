@@ -10,7 +10,7 @@ latency")::
     non-live source (replay asap, synthetic) ──read in the loop thread──▶ stages ──▶ sinks
                                               (nothing dropped)
 
-    threads ([loop] pipeline = "threads", or "auto" with >= 2 CPUs):
+    threads ([loop] pipeline = "threads", or "auto" with >= 4 CPUs: AUTO_THREADS_MIN_CPUS):
     source ──▶ [front thread] stages before the first thread-bound one ──▶ hand-off ──▶ [loop thread]
                (planes, anchor, plane_light, light, shading:                  (depth     render (GL) ──▶ sinks
                 frame N+1 while the loop thread renders frame N)               frames)
@@ -926,8 +926,8 @@ def run_loop(
         Install SIGINT/SIGTERM handlers (only effective in the main thread).
     pipeline : {"serial", "threads", "auto"}
         ``[loop] pipeline``: one thread, or the stages before the first thread-bound one (the
-        renderer) on a worker thread one frame ahead (module docstring); ``auto`` pipelines with two
-        or more CPUs. The output is the same either way.
+        renderer) on a worker thread one frame ahead (module docstring); ``auto`` pipelines with
+        :data:`AUTO_THREADS_MIN_CPUS` (4) or more CPUs. The output is the same either way.
     depth : int
         Pipelined: most frames finished by the worker and waiting for the loop thread (``[loop] depth``).
     trim_memory_s : float
