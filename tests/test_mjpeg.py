@@ -197,6 +197,26 @@ def test_close_stops_the_server_and_ends_streams():
         socket.create_connection(("127.0.0.1", port), timeout=1).close()
 
 
+def test_close_also_ends_kept_alive_connections():
+    """A page polling /stats.json holds a kept-alive connection; after close() it must not be answered
+    any more (it was, by its still-running handler thread, for up to the 30 s idle timeout)."""
+    sink = MjpegSink(port=0)
+    sink.open()
+    sink.write(_frame(0))
+    conn = http.client.HTTPConnection("127.0.0.1", sink.port, timeout=5)
+    conn.request("GET", "/stats.json")
+    r = conn.getresponse()
+    assert r.status == 200 and r.read()
+    sink.close()
+    t0 = time.perf_counter()
+    with pytest.raises((http.client.HTTPException, OSError)):
+        conn.request("GET", "/stats.json")
+        conn.getresponse().read()
+    assert time.perf_counter() - t0 < 2  # closed at once, not after the idle timeout
+    conn.close()
+    assert sink.status()["sink"]["connections"] == 0 or _wait_for(lambda: sink.status()["sink"]["connections"] == 0)
+
+
 def test_bad_input_is_refused_with_a_clear_message():
     with pytest.raises(ValueError, match="quality"):
         MjpegSink(quality=0)

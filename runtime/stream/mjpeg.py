@@ -662,6 +662,10 @@ class _Server(ThreadingHTTPServer):
         self.sink = sink
         self._refuse_q: queue.Queue = queue.Queue(maxsize=REFUSE_QUEUE)
         self._refuser: threading.Thread | None = None
+        # the sockets of the connections being served: server_close() shuts them down, or a kept-alive
+        # connection (a page polling /stats.json) would go on being answered after close()
+        self._live: set[socket.socket] = set()
+        self._live_lock = threading.Lock()
         super().__init__(address, handler)  # on a failed bind this calls server_close() and raises
         self._refuser = threading.Thread(target=self._refuse_loop, name="illuminet-mjpeg-refuse", daemon=True)
         self._refuser.start()
@@ -675,9 +679,13 @@ class _Server(ThreadingHTTPServer):
             else:
                 sink.connections += 1
         if not busy:
+            with self._live_lock:
+                self._live.add(request)
             try:
                 super().process_request(request, client_address)  # a thread for this connection
             except Exception:
+                with self._live_lock:
+                    self._live.discard(request)
                 with sink._count_lock:
                     sink.connections -= 1
                 raise
@@ -692,6 +700,8 @@ class _Server(ThreadingHTTPServer):
         try:
             super().process_request_thread(request, client_address)
         finally:
+            with self._live_lock:
+                self._live.discard(request)
             with self.sink._count_lock:
                 self.sink.connections -= 1
 
@@ -731,6 +741,13 @@ class _Server(ThreadingHTTPServer):
 
     def server_close(self) -> None:
         super().server_close()
+        with self._live_lock:
+            live = list(self._live)
+        for request in live:  # wakes a handler waiting for the next request on a kept-alive connection
+            try:
+                request.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass  # already closed by its thread
         if self._refuser is None:
             return
         try:
