@@ -91,6 +91,47 @@ def test_stream_page_shows_frames_and_the_light_overlay(page):
     assert page.problems == []
 
 
+def test_stream_page_says_when_the_server_stops_backs_off_and_reopens_the_stream(page):
+    """The server going away froze the picture silently while /stats.json was fetched twice a second
+    forever; when it came back the <img> stayed frozen (an ended MJPEG stream fires no event)."""
+    sink = MjpegSink(port=0)
+    sink.open()
+    port = sink.port
+    requests: list[str] = []
+    page.on("request", lambda r: requests.append(r.url))
+    with _Feeder(sink):
+        page.goto(f"http://127.0.0.1:{port}/")
+        page.wait_for_function("document.getElementById('lightinfo').textContent.includes('elevation')", timeout=10000)
+        assert page.evaluate("document.getElementById('conn').hidden")
+    sink.close()
+    page.wait_for_function("!document.getElementById('conn').hidden", timeout=5000)
+    assert "not answering" in page.evaluate("document.getElementById('conn').textContent")
+    n = len(requests)
+    page.wait_for_timeout(4500)
+    polls = [u for u in requests[n:] if u.endswith("/stats.json")]
+    assert 1 <= len(polls) <= 4, polls  # backing off (1, 2, 4 s), not 9 tries at 0.5 s
+    sink2 = MjpegSink(port=port)  # the server is back (same port)
+    sink2.open()
+    try:
+        with _Feeder(sink2):
+            page.wait_for_function("document.getElementById('conn').hidden", timeout=10000)
+            assert _wait(lambda: sink2.status()["sink"]["clients"] == 1)  # the stream was reopened
+            page.wait_for_function("document.getElementById('stream').complete", timeout=5000)
+    finally:
+        sink2.close()
+    # the failed fetches while it was down are the browser's own console lines, nothing else
+    assert [p for p in page.problems if "ERR_CONNECTION_REFUSED" not in p] == []
+
+
+def _wait(cond, timeout: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(0.05)
+    return cond()
+
+
 def _side_ratio(img: np.ndarray) -> float:
     """Mean brightness of the model's left half over its right half (the model stands in the middle)."""
     h, w = img.shape
