@@ -123,6 +123,23 @@ def test_stream_page_says_when_the_server_stops_backs_off_and_reopens_the_stream
     assert [p for p in page.problems if "ERR_CONNECTION_REFUSED" not in p] == []
 
 
+def test_stream_page_overlay_fits_a_phone_and_shows_server_text_as_text(page):
+    """The overlay (~650 px tall) ran off a landscape phone's screen with no way to scroll (body
+    overflow: hidden); strings from /stats.json were inserted as HTML."""
+    page.set_viewport_size({"width": 667, "height": 375})
+    stats = {"fps": 30.0, "frames": 10, "stages_ms": {f"stage{i}": 1.0 for i in range(8)}, "source": {"<b>x</b>": 1}}
+    with MjpegSink(port=0, stats=lambda: stats) as sink, _Feeder(sink):
+        page.goto(f"http://127.0.0.1:{sink.port}/")
+        page.wait_for_function("document.getElementById('stages').textContent.includes('stage7')", timeout=10000)
+        box = page.evaluate(
+            "(() => { const o = document.getElementById('overlay'), r = o.getBoundingClientRect();"
+            " return [r.bottom, innerHeight, o.scrollHeight > o.clientHeight, getComputedStyle(o).overflowY]; })()"
+        )
+        assert box[0] <= box[1] and box[2] and box[3] == "auto", box
+        assert "source <b>x</b>" in page.evaluate("document.getElementById('summary').textContent")
+    assert page.problems == []
+
+
 def _wait(cond, timeout: float = 5.0) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
