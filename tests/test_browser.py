@@ -212,6 +212,75 @@ def test_viewer_over_the_camera_picture_draws_the_model_where_the_anchor_project
     assert page.problems == []
 
 
+def test_viewer_keeps_a_model_error_on_screen_with_the_servers_reason(page):
+    """A /model.glb the server cannot make: the error line was overwritten by the next estimate's figures
+    (and named only the status code)."""
+    with MjpegSink(port=0) as sink, _Feeder(sink):
+
+        def broken():
+            raise ValueError("broken mesh file")
+
+        sink.model_bytes = broken
+        page.goto(f"http://127.0.0.1:{sink.port}/viewer")
+        page.wait_for_function("window.illuminetViewer && illuminetViewer.estimates >= 5", timeout=20000)
+        text = page.evaluate("document.getElementById('status').textContent")
+        state = page.evaluate("illuminetViewer")
+    assert "could not load the model" in text and "broken mesh file" in text, text
+    assert "estimates" in text  # the live figures still show below it
+    assert not state["modelLoaded"] and any("broken mesh file" in e for e in state["errors"])
+    assert [p for p in page.problems if "500" not in p] == []  # only the browser's line for the 500
+
+
+def test_viewer_says_when_estimates_stop_and_retries_a_refused_event_stream(page):
+    """A 503 (a busy server) on /estimates made EventSource give up for good: "waiting for estimates…"
+    for ever. After the server went away the last figures stayed up as if live."""
+    answers = []
+
+    def first_refused(route):
+        answers.append(route.request.url)
+        if len(answers) == 1:
+            route.fulfill(status=503, body="busy", headers={"Retry-After": "2"})
+        else:
+            route.continue_()
+
+    sink = MjpegSink(port=0)
+    sink.open()
+    try:
+        with _Feeder(sink):
+            page.route("**/estimates", first_refused)
+            page.goto(f"http://127.0.0.1:{sink.port}/viewer")
+            page.wait_for_function("window.illuminetViewer && illuminetViewer.estimates >= 3", timeout=20000)
+            assert page.evaluate("illuminetViewer.reconnects") == 1 and len(answers) >= 2
+            page.unroute("**/estimates")
+    finally:
+        sink.close()
+    page.wait_for_function("document.getElementById('status').textContent.includes('connection to the server is lost')")
+    assert [p for p in page.problems if "503" not in p and "ERR_CONNECTION_REFUSED" not in p] == []
+
+
+def test_viewer_without_webgl_says_so(page):
+    """No WebGL (disabled, blocklisted GPU): the page said "loading…" for ever."""
+    page.add_init_script(
+        "const gc = HTMLCanvasElement.prototype.getContext;"
+        "HTMLCanvasElement.prototype.getContext = function (t, ...a) {"
+        " return /webgl/.test(t) ? null : gc.call(this, t, ...a); };"
+    )
+    with MjpegSink(port=0) as sink:
+        page.goto(f"http://127.0.0.1:{sink.port}/viewer?ui=0")
+        page.wait_for_function("document.getElementById('status').textContent.includes('WebGL is not available')")
+        assert page.evaluate("getComputedStyle(document.getElementById('status')).display") != "none"
+
+
+def test_viewer_status_line_wraps_within_a_phone_screen(page):
+    page.set_viewport_size({"width": 320, "height": 568})
+    with MjpegSink(port=0) as sink, _Feeder(sink):
+        page.goto(f"http://127.0.0.1:{sink.port}/viewer")
+        page.wait_for_function("window.illuminetViewer && illuminetViewer.estimates >= 2", timeout=20000)
+        right = page.evaluate("document.getElementById('status').getBoundingClientRect().right")
+    assert right <= 320, right  # the figures ran past the right edge (white-space: pre)
+    assert page.problems == []
+
+
 def test_viewer_receives_the_pipelines_estimates(page, tmp_path):
     """The real chain (planes -> anchor -> plane light -> light) on the default session -> MJPEG sink -> SSE."""
     from illuminet.commands.demo import default_source_url

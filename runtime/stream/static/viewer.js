@@ -32,6 +32,13 @@ window.addEventListener("error", (e) => state.errors.push(String(e.message || e)
 const stage = document.getElementById("stage");
 const statusEl = document.getElementById("status");
 if (!showUi) statusEl.style.display = "none";
+// the status line: a problem (the model, WebGL) stays on it, shown even with ui=0, above the
+// connection's state and the latest estimate's figures
+const status = { problem: "", connection: "", estimate: "loading…" };
+function showStatus() {
+  statusEl.textContent = [status.problem, status.connection, status.estimate].filter(Boolean).join("\n");
+  if (status.problem) statusEl.style.display = "";
+}
 
 // ---- camera picture behind the model (background=1)
 let bgImage = null;
@@ -43,7 +50,14 @@ if (withBackground) {
 }
 
 // ---- renderer, scene, lights
-const renderer = new THREE.WebGLRenderer({ antialias: true, alpha: withBackground });
+let renderer;
+try {
+  renderer = new THREE.WebGLRenderer({ antialias: true, alpha: withBackground });
+} catch (err) {  // no WebGL (disabled, blocklisted GPU): say so rather than "loading…" for ever
+  status.problem = "this browser cannot draw the viewer: WebGL is not available (" + (err.message || err) + ")";
+  showStatus();
+  throw err;
+}
 renderer.setPixelRatio(Math.min(window.devicePixelRatio, 2));
 renderer.outputColorSpace = THREE.SRGBColorSpace;
 renderer.toneMapping = tonemap;
@@ -105,17 +119,24 @@ function frameModel(object) {
   s.updateProjectionMatrix();
 }
 
-new GLTFLoader().load("/model.glb", (gltf) => {
+function modelFailed(why) {
+  state.errors.push("model: " + why);
+  status.problem = "could not load the model (/model.glb): " + why;
+  showStatus();
+}
+// fetched here rather than by GLTFLoader.load so that a refusal shows the server's reason (e.g. a
+// broken --viewer-model file), not only its status code
+fetch("/model.glb").then(async (r) => {
+  if (!r.ok) throw new Error("HTTP " + r.status + ": " + (await r.text()).trim().slice(0, 300));
+  return r.arrayBuffer();
+}).then((buf) => new GLTFLoader().parse(buf, "", (gltf) => {
   gltf.scene.traverse((o) => {
     if (o.isMesh) { o.castShadow = true; o.receiveShadow = true; }
   });
   scene.add(gltf.scene);
   frameModel(gltf.scene);
   state.modelLoaded = true;
-}, undefined, (err) => {
-  state.errors.push("model: " + err);
-  statusEl.textContent = "could not load /model.glb: " + err;
-});
+}, (err) => modelFailed(err.message || err))).catch((err) => modelFailed(err.message || err));
 
 // ---- the estimate
 function applyEstimate(est) {
@@ -137,7 +158,8 @@ function applyEstimate(est) {
   if (showUi) {
     const amb = est.ambientIntensity.toFixed(3);
     const prim = est.hasPrimaryLight ? Math.max(p.x, p.y, p.z).toFixed(3) : "none";
-    statusEl.textContent = `frame ${est.frameId}  estimates ${state.estimates}  primary ${prim}  ambient ${amb}`;
+    status.estimate = `frame ${est.frameId}  estimates ${state.estimates}  primary ${prim}  ambient ${amb}`;
+    showStatus();
   }
 }
 
@@ -163,11 +185,39 @@ function poseFromCamera(est) {
   if (bgAspect !== W / H) { bgAspect = W / H; resize(); }
 }
 
-const events = new EventSource("/estimates");
-events.onmessage = (e) => {
-  try { applyEstimate(JSON.parse(e.data)); } catch (err) { state.errors.push("estimate: " + err); }
-};
-events.onerror = () => { if (showUi && state.estimates === 0) statusEl.textContent = "waiting for estimates…"; };
+// The browser reconnects an event stream that drops by itself (after the server's "retry: 1000"), but
+// gives up for good on an answer that is not a stream (503 when the server is busy, a proxy's error
+// page): then reconnect here, waiting 1 s, 2 s ... up to 10 s. Either way the status line says so;
+// the last figures would otherwise stay up as if live.
+const RECONNECT_MS = 1000, RECONNECT_MAX_MS = 10000;
+let reconnectMs = RECONNECT_MS;
+state.reconnects = 0;
+function connect() {
+  const events = new EventSource("/estimates");
+  events.onopen = () => {
+    reconnectMs = RECONNECT_MS;
+    status.connection = state.estimates === 0 ? "waiting for estimates…" : "";
+    showStatus();
+  };
+  events.onmessage = (e) => {
+    if (status.connection) { status.connection = ""; showStatus(); }
+    try { applyEstimate(JSON.parse(e.data)); } catch (err) { state.errors.push("estimate: " + err); }
+  };
+  events.onerror = () => {
+    if (events.readyState === EventSource.CLOSED) {
+      events.close();
+      status.connection = `no estimates: the server refused the connection; retrying in ${reconnectMs / 1000} s`;
+      setTimeout(connect, reconnectMs);
+      reconnectMs = Math.min(reconnectMs * 2, RECONNECT_MAX_MS);
+      state.reconnects += 1;
+    } else {
+      status.connection = state.estimates === 0 ? "waiting for estimates…"
+        : "the connection to the server is lost: the light is not live; reconnecting…";
+    }
+    showStatus();
+  };
+}
+connect();
 
 // ---- layout and render loop
 function resize() {
