@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from illuminet.runtime.files import written_whole
+
 log = logging.getLogger(__name__)
 
 STAGES = ("plane_gae", "object_gae", "colour_gae", "gan", "finetune")
@@ -207,9 +209,8 @@ def save_tree(path: Path, tree, meta: dict | None = None) -> None:
     leaves = jax.tree_util.tree_leaves(tree)
     arrays = {f"leaf_{i}": np.asarray(x) for i, x in enumerate(leaves)}
     arrays["meta"] = np.frombuffer(json.dumps(meta or {}).encode(), dtype=np.uint8)
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, **arrays)
-    tmp.replace(path)
+    with written_whole(path) as tmp:
+        np.savez(tmp, **arrays)
 
 
 def load_tree(path: Path, like):
@@ -314,9 +315,8 @@ class Trainer:
                     continue
             bar = Progress(f"data {split}", n, self.show)
             d = datagen.generate(self.scene, n, seed, c.kinds, hdr, c.hdr_share if hdr else 0.0, progress=bar)
-            tmp = path.with_name(f".{path.name}.tmp.npz")  # moved into place whole: a kill leaves no half file
-            np.savez(tmp, **d)
-            tmp.replace(path)
+            with written_whole(path) as tmp:  # moved into place whole: a kill leaves no half file
+                np.savez(tmp, **d)
             self.data[split] = d
         self.timings["data_s"] = time.time() - t0
 

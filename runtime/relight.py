@@ -15,7 +15,6 @@ frame's transfer curve (sRGB unless a response curve is configured) gives pixel 
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import os
@@ -24,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from illuminet.runtime.config import Config, apply_overrides
+from illuminet.runtime.files import written_whole
 from illuminet.runtime.frame import Exposure, Frame, Intrinsics
 from illuminet.runtime.physics import INV_PI
 from illuminet.runtime.scene import ANCHOR, LIGHT, PLANE_LIGHT, LightEstimate
@@ -62,17 +62,9 @@ class RelightResult:
         if written is None:
             self._write(path, extra)
             return None
-        # written beside itself and moved into place: a write that failed (a full disk) left a truncated npz
-        # in place of the previous result
-        folder, name = os.path.split(written)
-        tmp = os.path.join(folder, f".{name}.tmp-{os.getpid()}.npz")
-        try:
+        # a write that failed (a full disk) left a truncated npz in place of the previous result
+        with written_whole(written) as tmp:
             self._write(tmp, extra)
-            os.replace(tmp, written)
-        except BaseException:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-            raise
         return written
 
     def _write(self, path, extra: dict) -> None:

@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import sys
 import time
 from pathlib import Path
@@ -116,14 +115,13 @@ def merge(store: cluster.ShardStore, shards: list[cluster.Shard]):
 
 def write(out: Path, arrays, meta: dict) -> None:
     from illuminet.models.datagen import data_bytes
+    from illuminet.runtime.files import written_whole
 
-    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        tmp.write_bytes(data_bytes(arrays, meta))
-        os.replace(tmp, out)
+        with written_whole(out) as tmp:
+            tmp.write_bytes(data_bytes(arrays, meta))
     except OSError as e:  # a disk that filled up since --out was checked: one line, and no half-written file
-        tmp.unlink(missing_ok=True)
         raise JobError(
             f"--out {out}: cannot write the data file ({e.strerror or e}); free space or choose another --out"
         ) from None

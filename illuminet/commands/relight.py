@@ -115,8 +115,6 @@ def _check_output(path: str, flag: str, image: bool = False) -> None:
 def _check_not_an_input(args: argparse.Namespace, out: str) -> None:
     """Refuse an output that is one of the inputs: ``--preview`` naming the ``--color`` image replaced the
     photograph with the composite."""
-    import os
-
     from illuminet.runtime.errors import OutputPathError
 
     inputs = [("--color", args.color), ("--depth", args.depth), ("--intrinsics", args.intrinsics)]
@@ -412,22 +410,16 @@ def run(args: argparse.Namespace, cfg) -> int:
                 file=sys.stderr,
             )
             return 1
-        import os
+        from illuminet.runtime.files import written_whole
 
-        # written beside itself (same extension: it picks the encoder) and moved into place: a write that
-        # failed (a full disk) left a truncated picture in place of the previous one
-        folder, name = os.path.split(args.preview)
-        tmp = os.path.join(folder, f".{Path(name).stem}.tmp-{os.getpid()}{Path(name).suffix}")
+        # a write that failed (a full disk) left a truncated picture in place of the previous one
+        written, reason = True, ""
         try:
-            written = cv2.imwrite(tmp, np.ascontiguousarray(pic[:, :, ::-1]))
-            if written:
-                os.replace(tmp, args.preview)
+            with written_whole(args.preview) as tmp:
+                if not cv2.imwrite(str(tmp), np.ascontiguousarray(pic[:, :, ::-1])):
+                    raise OSError("the folder changed since it was checked, or the disk is full")
         except (cv2.error, OSError) as e:  # checked up front; an encoder that still refuses is one line too
             written, reason = False, " ".join(str(e).split())[-200:]
-        else:
-            reason = "the folder changed since it was checked, or the disk is full"
-        if not written and os.path.exists(tmp):
-            os.unlink(tmp)
         if not written:
             print(
                 f"illuminet relight: --preview {args.preview}: cannot write it ({reason}); the npz was written",
