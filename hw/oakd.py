@@ -25,7 +25,9 @@ How it is split, so that everything but the device itself is tested on a machine
   timestamp and its non-blocking output queue; it runs in a host-only pipeline too (tests feed it
   ``dai.ImgFrame`` messages built on the host).
 * :class:`FrameConverter` turns a synced ``dai.MessageGroup`` (colour ``dai.ImgFrame`` + depth
-  ``dai.ImgFrame``) and ``dai.IMUData`` into :class:`~illuminet.runtime.frame.Frame`.
+  ``dai.ImgFrame``) and ``dai.IMUData`` into :class:`~illuminet.runtime.frame.Frame`; the camera
+  matrix comes from each colour frame's ``ImgTransformation`` (:func:`intrinsics_from_transformation`),
+  the calibration's being the fallback.
 * :func:`build_device_pipeline` adds the on-device nodes (Camera CAM_A, mono cameras CAM_B/CAM_C,
   StereoDepth aligned to CAM_A, IMU); it needs a device (DepthAI refuses device nodes otherwise).
 * :class:`OakdSource` ties them together and handles a lost device (clear error, or reconnection
@@ -305,6 +307,54 @@ def intrinsics_from_calibration(
     )
 
 
+#: colour intrinsics from the frame and from the calibration further apart than this are reported (once)
+INTRINSICS_TOLERANCE = 0.03
+
+
+def intrinsics_from_transformation(
+    tr: dai.ImgTransformation, width: int, height: int, dist: tuple[float, ...] = ()
+) -> Intrinsics | None:
+    """Intrinsics of a frame from its ``ImgTransformation``; ``None`` when it carries none.
+
+    DepthAI v3 attaches to every ``ImgFrame`` the camera matrix of the image actually produced: the
+    calibration at the sensor mode the Camera node picked, then its crop and scale
+    (``getIntrinsicMatrix``). That is the exact source; the calibration's
+    ``getCameraIntrinsics(..., keepAspectRatio=True)`` assumes the calibrated image's field of view and
+    aspect ratio, which a 16:10 output cropped from a 4:3 sensor mode does not keep. Frames built on the
+    host carry an invalid, empty transformation (size 0x0): then ``None``, and the caller falls back
+    to the calibration.
+
+    Parameters
+    ----------
+    tr : dai.ImgTransformation
+    width, height : int
+        The frame's size; a transformation of another size is scaled to it.
+    dist : tuple of float
+        Distortion coefficients to attach (they do not change with crop and scale).
+    """
+    if tr is None or not tr.isValid():
+        return None
+    tw, th = (int(v) for v in tr.getSize())
+    K = np.asarray(tr.getIntrinsicMatrix(), dtype=np.float64)
+    if tw <= 0 or th <= 0 or K.shape != (3, 3) or not np.all(np.isfinite(K)) or min(K[0, 0], K[1, 1]) <= 1.0:
+        return None
+    intr = Intrinsics(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=tw, height=th, dist=tuple(dist))
+    return intr if (tw, th) == (width, height) else intr.scaled(width, height)
+
+
+def intrinsics_disagreement(a: Intrinsics, b: Intrinsics) -> float:
+    """Largest relative difference between two intrinsics of the same image size: focal lengths
+    relative to ``b``'s, principal point relative to the image size."""
+    if (a.width, a.height) != (b.width, b.height):
+        b = b.scaled(a.width, a.height)
+    return max(
+        abs(a.fx - b.fx) / b.fx,
+        abs(a.fy - b.fy) / b.fy,
+        abs(a.cx - b.cx) / a.width,
+        abs(a.cy - b.cy) / a.height,
+    )
+
+
 def imu_rotation_from_calibration(
     calib: dai.CalibrationHandler, socket: dai.CameraBoardSocket = COLOR_SOCKET
 ) -> np.ndarray | None:
@@ -383,7 +433,10 @@ class FrameConverter:
     Parameters
     ----------
     intrinsics : Intrinsics
-        Of the colour output (depth is aligned to it).
+        Of the colour output from the calibration (depth is aligned to it): used for frames that carry
+        no ``ImgTransformation``, and for the distortion coefficients. A frame's own transformation
+        gives its camera matrix (:func:`intrinsics_from_transformation`); when it differs from this by
+        more than :data:`INTRINSICS_TOLERANCE`, a warning says so once.
     imu : ImuMatcher, optional
         Device IMU samples (added with :meth:`add_imu`) give ``Frame.imu`` and ``Frame.gravity``.
     color_key, depth_key : str
@@ -399,6 +452,39 @@ class FrameConverter:
         self.frames = 0
         self.dropped = 0
         self._last_dev_seq: int | None = None
+        self._warned_intrinsics = False
+        #: where the last frame's intrinsics came from: "frame" (its ImgTransformation) or "calibration"
+        self.intrinsics_source = "calibration"
+
+    def _frame_intrinsics(self, color: dai.ImgFrame, width: int, height: int) -> Intrinsics:
+        calib = self.intrinsics
+        if (width, height) != (calib.width, calib.height):
+            calib = calib.scaled(width, height)
+        intr = intrinsics_from_transformation(color.getTransformation(), width, height, calib.dist)
+        if intr is None:
+            self.intrinsics_source = "calibration"
+            return calib
+        self.intrinsics_source = "frame"
+        off = intrinsics_disagreement(intr, calib)
+        if off > INTRINSICS_TOLERANCE and not self._warned_intrinsics:
+            self._warned_intrinsics = True
+            log.warning(
+                "OAK colour intrinsics at %dx%d: the frame's own (fx %.1f fy %.1f cx %.1f cy %.1f) differ from "
+                "the calibration's scale-and-crop (fx %.1f fy %.1f cx %.1f cy %.1f) by %.1f %%; using the frame's "
+                "(the camera picked a sensor mode with another field of view than the calibrated image)",
+                width,
+                height,
+                intr.fx,
+                intr.fy,
+                intr.cx,
+                intr.cy,
+                calib.fx,
+                calib.fy,
+                calib.cx,
+                calib.cy,
+                100 * off,
+            )
+        return intr
 
     def add_imu(self, data: dai.IMUData) -> None:
         if self.imu is not None:
@@ -419,9 +505,7 @@ class FrameConverter:
             self.dropped += seq_dev - self._last_dev_seq - 1
         self._last_dev_seq = seq_dev
         rgb = color_to_rgb(color)
-        intr = self.intrinsics
-        if (rgb.shape[1], rgb.shape[0]) != (intr.width, intr.height):
-            intr = intr.scaled(rgb.shape[1], rgb.shape[0])
+        intr = self._frame_intrinsics(color, rgb.shape[1], rgb.shape[0])
         t_dev = td_to_ns(color.getTimestampDevice())
         frame = Frame(
             seq=self.frames,

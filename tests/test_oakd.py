@@ -13,6 +13,7 @@ from __future__ import annotations
 import copy
 import datetime
 import json
+import logging
 import os
 import time
 
@@ -104,6 +105,10 @@ def test_intrinsics_from_real_calibration_match_scale_and_crop(shared_data):
         assert intr.cy == pytest.approx(K[1, 2] * s - (H * s - h) / 2, abs=0.02)
         assert (intr.width, intr.height) == (w, h)
         assert intr.dist == pytest.approx(tuple(cam_a["distortionCoeff"][:8]), rel=1e-6)
+        # DepthAI's own ImgTransformation of the calibrated mode cropped and scaled the same way agrees
+        crop_w, crop_h = round(w / s), round(h / s)
+        tr = _transformation(K, (W, H), ((W - crop_w) // 2, (H - crop_h) // 2, crop_w, crop_h), (w, h))
+        assert oakd.intrinsics_disagreement(oakd.intrinsics_from_transformation(tr, w, h), intr) < 0.002
     assert oakd.intrinsics_from_calibration(calib, 640, 400, undistorted=True).dist == ()
     # the two mono cameras are there as well (1280x800 sensors, fx ~ 800)
     left = oakd.intrinsics_from_calibration(calib, 1280, 800, socket=oakd.LEFT_SOCKET)
@@ -376,3 +381,75 @@ def test_source_without_reconnect_ends_with_a_clear_error():
         assert src.read() is not None
         with pytest.raises(EndOfStream, match="lost: no frame from OAK host-rig-0 for 0.3 s"):
             src.read()
+
+
+def _transformation(K_sensor, sensor, crop, size, dist=(0.1, -0.2, 0.0, 0.0, 0.05)):
+    """An ImgTransformation as the Camera node attaches it: the calibration at the sensor mode, a crop, a scale."""
+    tr = dai.ImgTransformation(
+        *sensor, [list(map(float, r)) for r in K_sensor], dai.CameraModel.Perspective, list(dist)
+    )
+    x, y, w, h = crop
+    tr.addCrop(x, y, w, h)
+    tr.addScale(size[0] / w, size[1] / h)
+    return tr
+
+
+def _frame_with(tr, i=0, w=640, h=400):
+    f = _img(i, w=w, h=h)
+    f.setTransformation(tr)
+    return f
+
+
+def test_intrinsics_come_from_the_frames_transformation_and_a_mismatch_is_reported_once(caplog):
+    # calibrated at 1920x1080 (16:9); a 640x400 output via the calibration's scale-and-crop
+    K1080 = np.array([[1578.0, 0, 987.3], [0, 1576.0, 552.1], [0, 0, 1]])
+    s = max(640 / 1920, 400 / 1080)
+    calib = Intrinsics(
+        K1080[0, 0] * s, K1080[1, 1] * s, 987.3 * s - (1920 * s - 640) / 2, 552.1 * s, 640, 400, (0.1, -0.2, 0, 0, 0.05)
+    )
+    # ... but the camera picked the 4:3 sensor mode 4056x3040 (the 1080p image is its 3840x2160 centre, halved)
+    # and cropped 16:10 from it: a wider view, so a shorter focal length than the calibration path says
+    K_full = K1080.copy()
+    K_full[:2] *= 2.0
+    K_full[0, 2] += (4056 - 3840) / 2
+    K_full[1, 2] += (3040 - 2160) / 2
+    crop_h = 4056 * 400 // 640
+    tr = _transformation(K_full, (4056, 3040), (0, (3040 - crop_h) // 2, 4056, crop_h), (640, 400))
+    want = np.asarray(tr.getIntrinsicMatrix())
+    assert want[0, 0] == pytest.approx(K_full[0, 0] * 640 / 4056, rel=1e-4)
+    conv = oakd.FrameConverter(calib)
+    caplog.set_level(logging.WARNING, logger="illuminet.hw.oakd")
+    frames = []
+    for i in range(3):
+        g = dai.MessageGroup()
+        g["color"] = _frame_with(tr, i)
+        g["depth"] = _depth(i, w=640, h=400)
+        frames.append(conv.convert(g))
+    f = frames[-1]
+    assert (f.intrinsics.fx, f.intrinsics.fy) == pytest.approx((want[0, 0], want[1, 1]), rel=1e-5)
+    assert (f.intrinsics.cx, f.intrinsics.cy) == pytest.approx((want[0, 2], want[1, 2]), abs=1e-3)
+    assert (f.intrinsics.width, f.intrinsics.height) == (640, 400)
+    assert f.intrinsics.dist == calib.dist  # distortion does not change with crop and scale
+    assert conv.intrinsics_source == "frame"
+    assert oakd.intrinsics_disagreement(f.intrinsics, calib) > 0.05
+    warnings = [r for r in caplog.records if "intrinsics" in r.getMessage()]
+    assert len(warnings) == 1 and "differ from the calibration" in warnings[0].getMessage()
+
+    # a frame whose transformation agrees with the calibration (the 1080p mode, cropped to 16:10): no warning
+    caplog.clear()
+    crop_w = round(1080 * 640 / 400)
+    agree = _transformation(K1080, (1920, 1080), ((1920 - crop_w) // 2, 0, crop_w, 1080), (640, 400))
+    conv2 = oakd.FrameConverter(calib)
+    g = dai.MessageGroup()
+    g["color"] = _frame_with(agree)
+    g["depth"] = _depth(0, w=640, h=400)
+    f2 = conv2.convert(g)
+    assert conv2.intrinsics_source == "frame"
+    assert oakd.intrinsics_disagreement(f2.intrinsics, calib) < 0.01
+    assert not [r for r in caplog.records if "intrinsics" in r.getMessage()]
+
+    # a frame built on the host carries no transformation: the calibration's intrinsics
+    g = dai.MessageGroup()
+    g["color"] = _img(0, w=640, h=400)
+    g["depth"] = _depth(0, w=640, h=400)
+    assert conv2.convert(g).intrinsics == calib and conv2.intrinsics_source == "calibration"
