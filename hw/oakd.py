@@ -453,6 +453,8 @@ class FrameConverter:
         self.dropped = 0
         self._last_dev_seq: int | None = None
         self._warned_intrinsics = False
+        #: frames whose depth carried another camera matrix than their colour (not aligned to it)
+        self.misaligned_depth = 0
         #: where the last frame's intrinsics came from: "frame" (its ImgTransformation) or "calibration"
         self.intrinsics_source = "calibration"
 
@@ -486,6 +488,33 @@ class FrameConverter:
             )
         return intr
 
+    def _check_depth_alignment(self, depth: dai.ImgFrame, intr: Intrinsics) -> None:
+        """Depth aligned to colour must carry the colour frame's camera matrix; count and warn once if not."""
+        d = intrinsics_from_transformation(depth.getTransformation(), intr.width, intr.height)
+        if d is None:  # no transformation (host-built frames): nothing to compare
+            return
+        off = intrinsics_disagreement(d, intr)
+        if off <= INTRINSICS_TOLERANCE:
+            return
+        self.misaligned_depth += 1
+        if self.misaligned_depth == 1:
+            log.warning(
+                "OAK depth is not aligned to the colour frame: its camera matrix scaled to %dx%d (fx %.1f fy %.1f "
+                "cx %.1f cy %.1f) differs from the colour's (fx %.1f fy %.1f cx %.1f cy %.1f) by %.1f %%; planes and "
+                "the object's position will be off (counted as misaligned_depth)",
+                intr.width,
+                intr.height,
+                d.fx,
+                d.fy,
+                d.cx,
+                d.cy,
+                intr.fx,
+                intr.fy,
+                intr.cx,
+                intr.cy,
+                100 * off,
+            )
+
     def add_imu(self, data: dai.IMUData) -> None:
         if self.imu is not None:
             for s in imu_samples_of(data):
@@ -506,6 +535,7 @@ class FrameConverter:
         self._last_dev_seq = seq_dev
         rgb = color_to_rgb(color)
         intr = self._frame_intrinsics(color, rgb.shape[1], rgb.shape[0])
+        self._check_depth_alignment(depth, intr)
         t_dev = td_to_ns(color.getTimestampDevice())
         frame = Frame(
             seq=self.frames,
@@ -568,7 +598,12 @@ def build_device_pipeline(pipeline: dai.Pipeline, opts: OakdOptions, has_imu: bo
     stereo.setSubpixel(opts.subpixel)
     stereo.setExtendedDisparity(opts.extended)
     stereo.setDepthAlign(COLOR_SOCKET)  # depth in the colour camera's view ...
-    stereo.setOutputSize(*opts.size)  # ... at the colour output's size
+    stereo.setOutputSize(*opts.size)  # ... at the colour output's size ...
+    # ... with the colour output's own transformation (sensor mode, crop, scale), not the calibration's
+    # guess of it. That is DepthAI v3's RVC2 path; RVC4 (OAK 4) aligns with an ImageAlign node instead,
+    # not built here. Either way FrameConverter warns when depth's camera matrix differs from colour's.
+    if pipeline.getDefaultDevice().getPlatform() != dai.Platform.RVC4:
+        color_out.link(stereo.inputAlignTo)
     sync, sync_queue = build_sync(pipeline, opts)
     color_out.link(sync.inputs["color"])
     stereo.depth.link(sync.inputs["depth"])
@@ -742,6 +777,7 @@ class OakdSource(Source):
         self.bad_frames = 0
         self.device_id = ""
         self._dropped_before = 0
+        self._misaligned_before = 0
         self._last_converter: FrameConverter | None = None
 
     # -- connection
@@ -750,6 +786,7 @@ class OakdSource(Source):
         session = self._connect_fn(self.opts)
         if self._last_converter is not None:
             self._dropped_before += self._last_converter.dropped
+            self._misaligned_before += self._last_converter.misaligned_depth
         self._session, self._last_converter = session, session.converter
         self.device_id = session.device_id
 
@@ -848,6 +885,7 @@ class OakdSource(Source):
             "dropped": self._dropped_before + (conv.dropped if conv else 0),
             "reconnects": self.reconnects,
             "bad_frames": self.bad_frames,
+            "misaligned_depth": self._misaligned_before + (conv.misaligned_depth if conv else 0),
         }
 
 

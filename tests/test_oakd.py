@@ -336,10 +336,13 @@ class _HostRig:
         self.sessions.append(s)
         return s
 
-    def send(self, i):
+    def send(self, i, depth_tr=None):
         qc, qd = self.inputs
         qc.send(_img(i))
-        qd.send(_depth(i))
+        d = _depth(i)
+        if depth_tr is not None:
+            d.setTransformation(depth_tr)
+        qd.send(d)
 
 
 def test_source_reads_newest_and_reconnects_after_a_stall():
@@ -347,11 +350,13 @@ def test_source_reads_newest_and_reconnects_after_a_stall():
     opts = oakd.parse_url("oakd://?size=64x40&queue=2&timeout_s=0.5")
     src = oakd.OakdSource(opts, reconnect=True, connect=rig.connect)
     src.BACKOFF_START_S = 0.05
+    # the first session's depth carries another camera matrix than its colour (fx 70, not 50)
+    wrong = dai.ImgTransformation(64, 40, [[70.0, 0.0, 32.0], [0.0, 70.0, 20.0], [0.0, 0.0, 1.0]])
     with src:
-        rig.send(0)
+        rig.send(0, wrong)
         f0 = src.read()
         for i in range(1, 6):  # the loop was busy: 5 frames arrive before the next read
-            rig.send(i)
+            rig.send(i, wrong)
         time.sleep(0.3)
         f1 = src.read()
         assert (f0.seq, f1.seq) == (0, 1) and f1.color[5, 5, 1] == 5  # the newest
@@ -370,6 +375,7 @@ def test_source_reads_newest_and_reconnects_after_a_stall():
         assert out["f"].color[5, 5, 1] == 10 and out["f"].seq == 2
         st = src.stats()
     assert st["reconnects"] == 1 and st["device"] == "host-rig-1" and st["dropped"] >= 3
+    assert st["misaligned_depth"] == 2  # counted in the first session, kept over the reconnection
 
 
 def test_source_without_reconnect_ends_with_a_clear_error():
@@ -453,3 +459,38 @@ def test_intrinsics_come_from_the_frames_transformation_and_a_mismatch_is_report
     g["color"] = _img(0, w=640, h=400)
     g["depth"] = _depth(0, w=640, h=400)
     assert conv2.convert(g).intrinsics == calib and conv2.intrinsics_source == "calibration"
+
+
+def test_depth_with_another_camera_matrix_than_its_colour_is_reported_once(caplog):
+    """Depth aligned to colour must carry the colour frame's camera matrix (StereoDepth aligned to the
+    calibration's idea of the crop while the Camera node took another sensor mode must be noticed)."""
+    K1080 = np.array([[1578.0, 0, 987.3], [0, 1576.0, 552.1], [0, 0, 1]])
+    K_full = K1080.copy()
+    K_full[:2] *= 2.0
+    K_full[0, 2] += 108
+    K_full[1, 2] += 440
+    crop_h = 4056 * 400 // 640
+    colour_tr = _transformation(K_full, (4056, 3040), (0, (3040 - crop_h) // 2, 4056, crop_h), (640, 400))
+    crop_w = round(1080 * 640 / 400)
+    other_tr = _transformation(K1080, (1920, 1080), ((1920 - crop_w) // 2, 0, crop_w, 1080), (320, 200))
+    same_tr = _transformation(K_full, (4056, 3040), (0, (3040 - crop_h) // 2, 4056, crop_h), (320, 200))
+    calib = oakd.intrinsics_from_transformation(colour_tr, 640, 400)
+    caplog.set_level(logging.WARNING, logger="illuminet.hw.oakd")
+
+    def group(i, depth_tr):
+        g = dai.MessageGroup()
+        g["color"] = _frame_with(colour_tr, i)
+        d = _depth(i, w=320, h=200)  # depth at half the size: compared after scaling
+        d.setTransformation(depth_tr)
+        g["depth"] = d
+        return g
+
+    conv = oakd.FrameConverter(calib)
+    f = conv.convert(group(0, same_tr))
+    assert conv.misaligned_depth == 0 and f.depth.shape == (400, 640)
+    for i in range(1, 4):
+        f = conv.convert(group(i, other_tr))  # the stream goes on
+    assert f.depth.shape == (400, 640)
+    assert conv.misaligned_depth == 3
+    warnings = [r.getMessage() for r in caplog.records if "not aligned" in r.getMessage()]
+    assert len(warnings) == 1 and "misaligned_depth" in warnings[0]
