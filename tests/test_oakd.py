@@ -308,7 +308,11 @@ def test_live_device_frames():
         pytest.skip("no OAK device connected")
     with oakd.open_url("oakd://?fps=15", defaults()) as src:
         frames = [src.read() for _ in range(10)]
+        st = src.stats()
+        source = src._last_converter.intrinsics_source
     f = frames[-1]
+    # v3 frames carry their own camera matrix, and depth aligned to colour carries the same one
+    assert source == "frame" and st["misaligned_depth"] == 0
     assert f.color.shape == (400, 640, 3) and f.depth.shape == (400, 640)
     assert (f.depth > 0).mean() > 0.3
     assert all(b.t_device_ns > a.t_device_ns for a, b in zip(frames, frames[1:]))
