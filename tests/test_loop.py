@@ -423,3 +423,37 @@ def test_the_heap_trimmer_hands_free_pages_back_between_frames(session):
     assert "memory trim:" in st.format_stats()
     off = run_loop(_asap(session), [Fragmenter()], [NullSink()])  # the API's default: never
     assert off.to_dict()["memory_trim"]["calls"] == 0
+
+
+class OpenCVThreads(Stage):
+    name = "opencv_threads"
+
+    def __init__(self):
+        self.seen = set()
+
+    def process(self, frame):
+        import cv2
+
+        self.seen.add(cv2.getNumThreads())
+        return frame
+
+
+@pytest.mark.parametrize("pipeline", ["serial", "threads"])
+def test_the_loop_sets_opencvs_thread_count_while_it_runs_and_restores_it(session, pipeline):
+    """``[loop] opencv_threads`` (default 1): OpenCV's workers spinning between the frames' small calls
+    cost CPU on a 2-core board; the loop sets the count for its run and puts the old one back."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(2)
+        probe = OpenCVThreads()
+        run_loop(_asap(session), [probe], [NullSink()], pipeline=pipeline)
+        assert probe.seen == {1} and cv2.getNumThreads() == 2
+        probe = OpenCVThreads()
+        run_loop(_asap(session), [probe], [NullSink()], pipeline=pipeline, opencv_threads=0)  # OpenCV's own
+        assert probe.seen == {2} and cv2.getNumThreads() == 2
+        with pytest.raises(ValueError, match="opencv_threads"):
+            run_loop(_asap(session), [OpenCVThreads()], [NullSink()], opencv_threads=-1)
+    finally:
+        cv2.setNumThreads(before)

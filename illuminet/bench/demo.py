@@ -178,6 +178,7 @@ def measure(url: str, cfg, modes: list[str], frames: int, rounds: int, depth: in
                 install_signals=False,
                 pipeline=mode,
                 depth=depth,
+                opencv_threads=int(cfg.loop.opencv_threads),
             )
             worker_cpu[mode] += sum(float(getattr(st, "worker_cpu_s", 0.0)) for st in stages)
             gl_cpu[mode] += gl.cpu_s

@@ -82,7 +82,13 @@ def run(args, cfg) -> dict:
             url = f"synthetic://lamp?seed=3&live=1&fps={fps}&frames={n}&size={w}x{h}&path=orbit"
             src = open_source(url, cfg)
             stats = run_loop(
-                src, demo_stages(cfg), [Null()], install_signals=False, pipeline=mode, depth=int(cfg.loop.depth)
+                src,
+                demo_stages(cfg),
+                [Null()],
+                install_signals=False,
+                pipeline=mode,
+                depth=int(cfg.loop.depth),
+                opencv_threads=int(cfg.loop.opencv_threads),
             )
             d = stats.to_dict()
             s = d["source"]

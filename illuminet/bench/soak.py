@@ -226,6 +226,7 @@ def run(args: argparse.Namespace, cfg) -> dict:
             stats=stats,
             install_signals=False,
             trim_memory_s=float(cfg.loop.trim_memory_s),
+            opencv_threads=int(cfg.loop.opencv_threads),
         )
     finally:
         stop.set()

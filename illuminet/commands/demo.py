@@ -487,6 +487,7 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
             pipeline=cfg.loop.pipeline,
             depth=cfg.loop.depth,
             trim_memory_s=cfg.loop.trim_memory_s,
+            opencv_threads=cfg.loop.opencv_threads,
         )
     except (SourceError, SinkError, OSError) as e:
         status.close()

@@ -261,6 +261,7 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
             pipeline=cfg.loop.pipeline,
             depth=cfg.loop.depth,
             trim_memory_s=cfg.loop.trim_memory_s,
+            opencv_threads=cfg.loop.opencv_threads,
         )
     except IllumiNetError as e:  # these messages say it all; no traceback
         status.close()
