@@ -209,6 +209,8 @@ class CellFusion:
         self.conf = np.zeros(self.n, np.float32)
 
     def update(self, value: np.ndarray, observed: np.ndarray, coverage: np.ndarray) -> None:
+        # element-wise over all cells with np.where (the same float32 operations per cell as boolean-
+        # indexed assignments, without their gathers and scatters)
         f = self.f
         fresh = observed & (self.nobs == 0)
         old = observed & (self.nobs > 0)
@@ -216,7 +218,8 @@ class CellFusion:
         lum_e = self.est @ _LUMA
         rel = np.abs(lum_v - lum_e) / np.maximum(lum_e, 1e-6)
         out = old & (rel > OUTLIER_REL)
-        if f > 0 and old.sum() >= 8 and out.sum() > 0.5 * old.sum():
+        n_old = np.count_nonzero(old)
+        if f > 0 and n_old >= 8 and np.count_nonzero(out) > 0.5 * n_old:
             # more than half the plane changed at once: the light changed, start again
             self.resets += 1
             self.reset()
@@ -227,11 +230,11 @@ class CellFusion:
         persistent = out & (self.run >= OUTLIER_FRAMES)
         take = fresh | persistent
         blend = old & ~out
-        self.outliers_rejected += int((out & ~persistent).sum())
-        self.est[take] = value[take]
-        self.est[blend] = f * self.est[blend] + (1.0 - f) * value[blend]
-        self.nobs[take] = 1
-        self.nobs[blend] += 1
+        kept_out = out & ~persistent
+        self.outliers_rejected += int(np.count_nonzero(kept_out))
+        # take and blend are disjoint (blend needs an earlier value, take is new or a persistent outlier)
+        self.est = np.where(take[:, None], value, np.where(blend[:, None], f * self.est + (1.0 - f) * value, self.est))
+        self.nobs = np.where(take, np.int32(1), self.nobs + blend.astype(np.int32))
         self.run[take] = 0
         # confidence: how many observations the estimate rests on (saturating at the fusion window),
         # times this frame's coverage; decays while the cell is not seen.
@@ -240,7 +243,7 @@ class CellFusion:
         self.conf = np.where(take | blend, np.maximum(c_obs, 0.5 * self.conf), self.conf * max(f, 0.5)).astype(
             np.float32
         )
-        self.conf[out & ~persistent] *= 0.9
+        self.conf[kept_out] *= 0.9
 
     @property
     def has_value(self) -> np.ndarray:
