@@ -172,7 +172,8 @@ def run(args: argparse.Namespace, cfg) -> int:
 
     def progress(step: str, done: int, total: int) -> None:
         if not args.quiet:
-            bars.setdefault(step, Progress(f"prt {step}", total))(done, total, "rays")
+            unit = "vertices" if step.endswith("bounce") else "rays"  # the bounce matrix goes by columns
+            bars.setdefault(step, Progress(f"prt {step}", total))(done, total, unit)
 
     out = Path(args.out)
     t0 = time.perf_counter()
