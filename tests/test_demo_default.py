@@ -51,6 +51,26 @@ def test_make_default_session_is_deterministic_per_seed(tmp_path):
     assert main(["demo", "--make-default-session", str(a), "--seed", "5"]) == 1
 
 
+def test_make_default_session_reports_progress(tmp_path, capsys, monkeypatch):
+    """`illuminet demo --make-default-session DIR` renders for ~35 s (32 frames at two sizes) and
+    printed nothing until its last line: it said nothing of what it was doing or how long it takes."""
+    seen = []
+    make_default_session(tmp_path / "a", seed=5, frames=2, progress=lambda done, total: seen.append((done, total)))
+    assert seen == [(0, 2), (1, 2), (2, 2)]
+    # the command says what it renders, how many frames and about how long, before the first frame
+    import illuminet.commands.demo as demo
+
+    real = demo.make_default_session
+    monkeypatch.setattr(demo, "make_default_session", lambda path, **kw: real(path, frames=1, **kw))
+    assert main(["demo", "--make-default-session", str(tmp_path / "b"), "--seed", "5"]) == 0
+    err = capsys.readouterr().err
+    assert "rendering 1 frames of synthetic://lamp?seed=5" in err and str(tmp_path / "b") in err
+    # a refused folder gets its one line, not the announcement
+    assert main(["demo", "--make-default-session", str(tmp_path / "b"), "--seed", "5"]) == 1
+    err = capsys.readouterr().err
+    assert "rendering" not in err and len(err.strip().splitlines()) == 1
+
+
 def test_committed_session_matches_the_synthetic_camera_today():
     """The fast guard of the slow test below: the shipped session had been made before the synthetic
     camera's auto exposure changed (33.3 ms / ISO 127 per frame against 25.5 ms / ISO 100 now), so
