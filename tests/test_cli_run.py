@@ -432,6 +432,15 @@ def test_bench_command_lists_replay(capsys):
     assert "replay" in capsys.readouterr().out
 
 
+def test_bench_help_describes_replay_by_what_it_measures():
+    """`illuminet bench --help` said replay measured "MJPEG clients' cost", which the replay benchmark
+    never did (that is the mjpeg benchmark's): a user picked the wrong one."""
+    from illuminet.commands.bench import BENCHES
+
+    assert "mjpeg" not in BENCHES["replay"].lower()
+    assert "mjpeg" in BENCHES["mjpeg"].lower()
+
+
 def test_global_options_are_also_taken_after_the_command(tmp_path, capsys):
     # where people type them: `illuminet demo --set a.b=1`; both places count, the later file wins
     cfg = tmp_path / "c.toml"

@@ -17,7 +17,7 @@ from pathlib import Path
 
 #: benchmark name -> one-line description (module illuminet.bench.<name>)
 BENCHES: dict[str, str] = {
-    "replay": "replay throughput of a 640x400 RGB-D session through a null sink; MJPEG clients' cost",
+    "replay": "replay throughput of a 640x400 RGB-D session through a null sink (raw and PNG colour)",
     "mjpeg": "loop throughput with two MJPEG clients attached vs none (ratio)",
     "synthetic": "synthetic camera: render time of a 640x400 RGB-D frame; visibility precomputation",
     "planes": "plane detection + tracking + plane illumination per 640x400 frame",
