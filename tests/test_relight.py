@@ -223,6 +223,34 @@ def test_relight_cli_accepts_upper_case_npy_proportional_intrinsics_and_exposure
     assert float(scaled["exposure_scale"]) == pytest.approx(8000e-6 * 4)  # the metadata was used
 
 
+def test_relight_cli_takes_the_intrinsics_of_a_calibration_file(tmp_path, capsys):
+    """`illuminet calibrate` (and DepthAI) write the camera's K into a calibration file; relight refused it as
+    "expected a JSON object with fx, fy, cx, cy ..., got no fx, fy, cx, cy", so a user copied numbers by hand.
+    FILE[:CAMERA] now gives that camera's K (default: the file's colour camera), scaled as a JSON's is."""
+    _small_inputs(tmp_path)
+    assert main(_small_argv(tmp_path, intrinsics="{tmp}/K_1280.json")) == 0
+    scaled = dict(np.load(tmp_path / "r.npz"))
+
+    def cam(w, h, f):
+        K = [[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]]
+        return {"width": w, "height": h, "model": "pinhole", "K": K, "dist": [0, 0, 0, 0]}
+
+    cameras = {"rgb": cam(1280, 960, 1200), "mono": cam(1280, 800, 800)}
+    calib = {"format": "illuminet-calibration", "version": 1, "cameras": cameras, "color_camera": "mono"}
+    (tmp_path / "rig.json").write_text(json.dumps(calib))
+    capsys.readouterr()
+    assert main(_small_argv(tmp_path, intrinsics="{tmp}/rig.json:rgb")) == 0, capsys.readouterr().err
+    np.testing.assert_allclose(dict(np.load(tmp_path / "r.npz"))["T_cam_obj"], scaled["T_cam_obj"], atol=1e-9)
+    # the default camera (mono, 16:10) does not fit the 4:3 image: one line naming the cameras to choose from
+    assert main(_small_argv(tmp_path, intrinsics="{tmp}/rig.json")) == 2
+    err = capsys.readouterr().err
+    assert "camera mono is 1280x800" in err and "rig.json:CAMERA, one of mono, rgb" in err, err
+    assert len(err.strip().splitlines()) == 1, err
+    assert main(_small_argv(tmp_path, intrinsics="{tmp}/rig.json:nope")) == 2
+    err = capsys.readouterr().err
+    assert "no camera 'nope'" in err and len(err.strip().splitlines()) == 1, err
+
+
 def test_relight_cli_reads_a_uint16_npy_as_millimetres_like_a_png(tmp_path, capsys):
     """uint16 depth is millimetres in a 16-bit PNG and in the Python API; a uint16 .npy was read as metres
     and refused as "millimetres: ... or give uint16 millimetres", which it was."""

@@ -5,15 +5,17 @@ Example::
     illuminet relight --color C.png --depth D.png --intrinsics 500,500,320,180 --anchor 320,250 \\
         --bundle builtin:vase --out result.npz
 
-``--depth`` is a 16-bit PNG in millimetres (0 = invalid) or a float ``.npy`` in metres (a uint16 one:
-millimetres), aligned to the colour image: the same field of view, at the colour's or another resolution
-(a stereo camera's 640x400 for 1280x800 colour is resized nearest-neighbour to the colour size).
-``--intrinsics`` is ``fx,fy,cx,cy`` or a JSON file with those keys (plus optional width/height; scaled
-to the colour size when they differ; another aspect ratio is refused). The npz format is documented in
-docs/models.md ("relight npz"); an ``--out`` name without ``.npz`` gets it appended (numpy's rule), and
-the message names the file written. ``--exposure US,ISO``: exposure time in microseconds and ISO (e.g.
-8000,400). ``--preview PNG`` also writes the lit object composited into the colour image (the runtime's
-renderer: shading, cast shadow, occlusion; needs OpenGL via EGL).
+``--depth`` is a 16-bit PNG in millimetres (0 = invalid) or a float ``.npy`` in metres (a uint16
+one: millimetres), aligned to the colour image: the same field of view, at the colour's or another
+resolution (a stereo camera's 640x400 for 1280x800 colour is resized nearest-neighbour to the colour
+size). ``--intrinsics`` is ``fx,fy,cx,cy`` or a JSON file with those keys (plus optional
+width/height; scaled to the colour size when they differ; another aspect ratio is refused), or a
+calibration file (``illuminet calibrate``'s or DepthAI's) as ``FILE[:CAMERA]``, by default its
+colour camera. The npz format is documented in docs/models.md ("relight npz"); an ``--out`` name
+without ``.npz`` gets it appended (numpy's rule), and the message names the file written.
+``--exposure US,ISO``: exposure time in microseconds and ISO (e.g. 8000,400). ``--preview PNG`` also
+writes the lit object composited into the colour image (the runtime's renderer: shading, cast
+shadow, occlusion; needs OpenGL via EGL).
 """
 
 from __future__ import annotations
@@ -44,7 +46,13 @@ def register(sub) -> None:
         metavar="PNG|NPY",
         help="aligned depth: uint16 PNG in mm, or .npy float metres (0 = invalid)",
     )
-    p.add_argument("--intrinsics", required=True, metavar="FX,FY,CX,CY|JSON", help="colour camera intrinsics")
+    p.add_argument(
+        "--intrinsics",
+        required=True,
+        metavar="FX,FY,CX,CY|JSON|CALIB[:CAMERA]",
+        help="colour camera intrinsics: four numbers, a JSON file with fx, fy, cx, cy, or a calibration file "
+        "(illuminet calibrate's or DepthAI's) and its camera (default: its colour camera)",
+    )
     p.add_argument("--anchor", required=True, metavar="X,Y", help="pixel where the object stands")
     p.add_argument("--bundle", default=None, help="object bundle (default: [model] bundle)")
     p.add_argument(
@@ -307,6 +315,8 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
                 f"--intrinsics {intr}: JSON nested too deeply; expected an object with fx, fy, cx, cy"
             ) from None
         missing = [k for k in ("fx", "fy", "cx", "cy") if k not in d] if isinstance(d, dict) else None
+        if missing and ("cameras" in d or "cameraData" in d):  # `illuminet calibrate`'s file, or DepthAI's
+            return color, depth, _calibration_intrinsics(intr, w, h)
         if missing is None or missing:
             what = f"{type(d).__name__}" if missing is None else f"no {', '.join(missing)}"
             raise ValueError(f"--intrinsics {intr}: expected a JSON object with fx, fy, cx, cy in pixels, got {what}")
@@ -333,6 +343,8 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
             raise ValueError(f"--intrinsics {intr}: fx, fy, cx, cy (and width, height) must be numbers: {e}") from None
         check_intrinsics(K, f"--intrinsics {intr}")
         K = fit_intrinsics(K, w, h, f"--intrinsics {intr}")  # proportional size: scaled; else refused
+    elif ":" in intr and Path(intr.rpartition(":")[0]).is_file():  # FILE:CAMERA of a calibration
+        K = _calibration_intrinsics(intr, w, h)
     else:
         if Path(intr).exists() or intr.lower().endswith(".json") or ("," not in intr and Path(intr).suffix):
             # a file name that is not there: "expected 4 comma-separated numbers" sent users looking in the wrong place
@@ -350,6 +362,39 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
         K = Intrinsics(fx, fy, cx, cy, w, h)
         check_intrinsics(K, f"--intrinsics {intr}")
     return color, depth, K
+
+
+def _calibration_intrinsics(intr: str, w: int, h: int):
+    """``--intrinsics FILE[:CAMERA]`` naming a calibration (``illuminet calibrate``'s file or a DepthAI
+    calibration JSON): that camera's (default: the file's colour camera) pinhole K, scaled to the colour
+    image's size when proportional; its distortion is not applied (the image must be undistorted)."""
+    from illuminet.calibration.calibfile import CalibrationError
+    from illuminet.commands.calibrate import _camera_ref
+    from illuminet.runtime.frame import Intrinsics
+    from illuminet.runtime.relight import check_intrinsics, fit_intrinsics
+
+    try:
+        calib, name = _camera_ref(intr)
+        cam = calib.camera(name)
+    except CalibrationError as e:
+        raise ValueError(f"--intrinsics {intr}: {e}") from None
+    if cam.model != "pinhole":
+        raise ValueError(
+            f"--intrinsics {intr}: camera {name} is {cam.model}; expected a pinhole camera (undistort the image "
+            "and give its FX,FY,CX,CY)"
+        )
+    K = cam.intrinsics()
+    K = Intrinsics(K.fx, K.fy, K.cx, K.cy, K.width, K.height)
+    check_intrinsics(K, f"--intrinsics {intr}")
+    try:
+        return fit_intrinsics(K, w, h, f"--intrinsics {intr}")
+    except ValueError:  # its fix (width/height keys) is a JSON file's; here the camera is what to change
+        path = calib.path or intr.rpartition(":")[0] or intr
+        raise ValueError(
+            f"--intrinsics {intr}: camera {name} is {K.width}x{K.height}, not the colour image's {w}x{h} or a "
+            f"size of its aspect ratio; name the colour image's camera: {path}:CAMERA, one of "
+            f"{', '.join(sorted(calib.cameras))}"
+        ) from None
 
 
 def run(args: argparse.Namespace, cfg) -> int:
