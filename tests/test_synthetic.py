@@ -38,6 +38,8 @@ def test_registered_and_reads_until_end():
         ("synthetic://indoor?path=fly", "path='fly': expected one of static, orbit, look"),
         ("synthetic://indoor?hdr=/x.hdr", "outdoor scene only"),
         ("synthetic://outdoor?hdr=/nonexistent/x.hdr", "HDR map not found: /nonexistent/x.hdr"),
+        # docs/synthetic.md's ../shared/... works from a checkout beside shared/ only: say where it looked
+        ("synthetic://outdoor?hdr=../no/x.hdr", "not found: ../no/x.hdr .relative to the current folder: /"),
         ("synthetic://indoor?table=2", "table='2': expected 0/1"),
         ("synthetic://indoor?size=16x16", "size='16x16': expected WIDTHxHEIGHT with sides in 32..4096"),
         ("synthetic://indoor?frames=0", "frames='0': expected an integer in 1..10000000"),

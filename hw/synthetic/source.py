@@ -528,7 +528,12 @@ def open_url(url: str, config=None) -> SyntheticSource:
         example = f" (e.g. hdr={maps[0]})" if maps else ""
         raise SyntheticError(f"{url!r}: hdr={hdr} is a folder; expected one HDR map file (.hdr or .exr){example}")
     if hdr is not None and not Path(hdr).is_file():
-        raise SyntheticError(f"{url!r}: HDR map not found: {hdr}")
+        # a relative path is from the current folder (the docs' ../shared/... assume a checkout beside shared/)
+        where = "" if Path(hdr).is_absolute() else f" (relative to the current folder: {Path(hdr).resolve()})"
+        raise SyntheticError(
+            f"{url!r}: HDR map not found: {hdr}{where}; expected an .hdr or .exr file, or no hdr= for the "
+            "scene's own sun and sky"
+        )
     size = q.get("size") or (q.get("width", 640), q.get("height", 400))  # or the width=640&height=400 spelling
     frames = q.get("frames", 60)
     work = bake_work(kind, q.get("lights", 32), boxes, q.get("table"), size)
