@@ -343,6 +343,33 @@ def test_bench_drift_figures(orbit):
     assert camera["max_drift_m"] > 0.05 and world["stage"]["median_ms"] > 0
 
 
+def test_bench_look_around_takes_the_hdr_folder(tmp_path, capsys, monkeypatch):
+    """`illuminet bench odometry --look N` looked for the HDR maps only beside the checkout and said
+    "skipped (no held-out HDR maps in /x/shared/data/hdri ...)" with no way to name another folder."""
+    from illuminet.bench import odometry as bench
+    from illuminet.cli import build_parser
+
+    args = build_parser().parse_args(["bench", "odometry", "--look", "1", "--hdr", str(tmp_path)])
+    assert args.hdr == str(tmp_path)
+    assert bench.look_around(defaults(), 1, 10, tmp_path) is None  # no maps there: says so, and how to fix
+    out = capsys.readouterr().out
+    assert f"no held-out HDR maps in {tmp_path}" in out and "--hdr DIR" in out
+    for name in "abcd":  # every 4th map is held out: d.hdr
+        (tmp_path / f"{name}.hdr").write_bytes(b"")
+    urls = []
+    monkeypatch.setattr(bench, "load_frames", lambda cfg, url: urls.append(url) or [])
+    monkeypatch.setattr(
+        bench,
+        "anchor_drift",
+        lambda frames, cfg: (
+            dict.fromkeys(("final_drift_m", "final_yaw_deg", "max_drift_m", "max_yaw_deg"), 0.0)
+            | {"lost_frames": 0, "rotation_frames": 0}
+        ),
+    )
+    assert len(bench.look_around(defaults(), 1, 10, tmp_path)) == 1
+    assert urls and f"hdr={tmp_path / 'd.hdr'}" in urls[0]
+
+
 # ------------------------------------------------------------------------------------ a still camera
 
 

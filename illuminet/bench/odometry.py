@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -127,20 +128,25 @@ def run(args: argparse.Namespace, cfg: Config) -> dict:
             f"yaw max {d['max_yaw_deg']:.2f} deg  (world-lock target <= 2 cm, <= 2 deg)  lost {d['lost_frames']}"
         )
     if look > 0:
-        out["look"] = look_around(cfg, look, 150 if quick else 300)
+        out["look"] = look_around(cfg, look, 150 if quick else 300, getattr(args, "hdr", None))
     return out
 
 
-def look_around(cfg: Config, scenes: int, frames: int) -> list[dict] | None:
+def look_around(cfg: Config, scenes: int, frames: int, hdr_dir: str | Path | None = None) -> list[dict] | None:
     """The world-locked anchor over a look-around on the evaluation's first ``scenes`` outdoor scenes
-    (module docstring); None (and a line saying why) without the held-out HDR maps."""
+    (module docstring); None (and a line saying why) without the held-out HDR maps in ``hdr_dir``
+    (default: ``shared/data/hdri`` beside the checkout)."""
     from illuminet.commands.train import DEFAULT_HDR
     from illuminet.models.camera_eval import SEED_BASE
     from illuminet.models.datagen import hdr_maps
 
-    maps = hdr_maps(str(DEFAULT_HDR), "test") if DEFAULT_HDR.is_dir() else []
+    hdr = Path(hdr_dir) if hdr_dir else DEFAULT_HDR
+    maps = hdr_maps(str(hdr), "test") if hdr.is_dir() else []
     if not maps:
-        print(f"look-around: skipped (no held-out HDR maps in {DEFAULT_HDR}: the outdoor sky comes from them)")
+        print(
+            f"look-around: skipped (no held-out HDR maps in {hdr}: the outdoor sky comes from them; "
+            "--hdr DIR names their folder)"
+        )
         return None
     rows = []
     for i in range(scenes):

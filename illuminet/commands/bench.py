@@ -69,7 +69,12 @@ def register(sub) -> None:
         type=int,
         metavar="N",
         help="odometry: also a look-around (one full turn in place) on the evaluation's first N outdoor scenes "
-        "(needs the held-out HDR maps; default 0)",
+        "(needs the held-out HDR maps, --hdr; default 0)",
+    )
+    p.add_argument(
+        "--hdr",
+        metavar="DIR",
+        help="odometry --look: folder of the HDR maps (default: shared/data/hdri beside the checkout)",
     )
     p.add_argument("--minutes", type=float, metavar="N", help="soak: how long to stream (default 30; with --quick 0.5)")
     p.set_defaults(func=run)
