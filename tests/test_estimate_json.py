@@ -425,6 +425,24 @@ def test_bad_viewer_model_is_refused_before_the_server_starts(tmp_path):
         MjpegSink(port=0, viewer_model=str(tmp_path / "bad.glb"))
 
 
+def test_viewer_model_with_texture_coordinates_and_no_material_is_drawn_grey(tmp_path):
+    """An OBJ with texture coordinates and no material file (Keenan Crane's spot, many scans) gets trimesh's
+    default material, whose image needs Pillow: `demo --mjpeg --viewer-model spot.obj` died at start with a
+    ModuleNotFoundError traceback. With no texture image of its own it is the renderer's grey, as a plain mesh."""
+    import trimesh
+
+    from illuminet.runtime.stream.viewer import model_glb
+
+    lines = ["v 0 0 0", "v 1 0 0", "v 0 1 0", "v 0 0 1", "vt 0 0", "vt 1 0", "vt 0 1", "vt 1 1"]
+    lines += ["f 1/1 3/3 2/2", "f 1/1 2/2 4/4", "f 1/1 4/4 3/3", "f 2/2 3/3 4/4"]
+    (tmp_path / "uv.obj").write_text("\n".join(lines) + "\n")
+    glb = model_glb(str(tmp_path / "uv.obj"), 1.0)
+    assert glb[:4] == b"glTF"
+    scene = trimesh.load(trimesh.util.wrap_as_stream(glb), file_type="glb", force="scene")
+    (mesh,) = scene.geometry.values()
+    assert len(mesh.faces) == 4
+
+
 @pytest.mark.gl
 def test_replay_reproduces_the_recorded_estimates(tmp_path, gl, capsys):
     """run --record --estimates on the default session, then replay the recording: the estimates of the

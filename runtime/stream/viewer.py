@@ -137,7 +137,8 @@ def model_glb(spec: str, scale: float = 1.0) -> bytes:
     if scale != 1.0:
         mesh.apply_scale(float(scale))
     visual = getattr(mesh, "visual", None)
-    plain = visual is None or (getattr(visual, "kind", None) is None)
+    kind = getattr(visual, "kind", None)
+    plain = visual is None or kind is None or (kind == "texture" and not _texture_image(visual))
     if plain:  # no texture or colours of its own: the grey the project's renderer gives it
         a = float(DEFAULT_ALBEDO)
         mesh.visual = trimesh.visual.TextureVisuals(
@@ -146,4 +147,22 @@ def model_glb(spec: str, scale: float = 1.0) -> bytes:
             )
         )
     # with normals: without them glTF viewers shade flat (faceted)
-    return trimesh.exchange.gltf.export_glb(trimesh.Scene(mesh), include_normals=True)
+    try:
+        return trimesh.exchange.gltf.export_glb(trimesh.Scene(mesh), include_normals=True)
+    except Exception as e:  # noqa: BLE001 (trimesh raises many types, e.g. a missing Pillow for a texture)
+        raise ValueError(
+            f"[output] viewer_model = {spec!r}: cannot convert it to glTF ({type(e).__name__}: {e}); "
+            "expected a mesh trimesh can export, or give a .glb"
+        ) from None
+
+
+def _texture_image(visual) -> bool:
+    """Whether a texture visual has an image to export. An OBJ with texture coordinates and no
+    material file gets trimesh's default material, whose image is a stand-in that raises when
+    touched without Pillow: exporting it was a traceback at start (``--viewer-model spot.obj``)."""
+    material = getattr(visual, "material", None)
+    try:
+        image = getattr(material, "image", None) or getattr(material, "baseColorTexture", None)
+        return image is not None and hasattr(image, "size")
+    except Exception:  # noqa: BLE001 (trimesh's ExceptionWrapper re-raises the missing import)
+        return False
