@@ -409,8 +409,12 @@ def relight(
     shading_stage = ShadingStage(apply_overrides(cfg, [("model", "temporal_smoothing", 0.0)]))
     shading_stage.open()
     b = shading_stage.bundle
+    from illuminet.runtime.stages.anchor import AnchorStage
+
     stages = lighting_stages(cfg, response_lut)
     for st in stages:
+        if isinstance(st, AnchorStage):  # the caller gave the pixel, not [anchor] pixel: name it so
+            st.pixel_name = "anchor pixel"
         st.open()
     try:
         f = StageChain(stages)(frame)

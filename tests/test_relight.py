@@ -251,6 +251,21 @@ def test_relight_cli_takes_the_intrinsics_of_a_calibration_file(tmp_path, capsys
     assert "no camera 'nope'" in err and len(err.strip().splitlines()) == 1, err
 
 
+def test_relight_names_its_anchor_pixel_not_a_configuration_key(caplog):
+    """`illuminet relight --anchor 320,40` on a wall warned "[anchor] pixel = [320, 40] lies on a plane labelled
+    wall ...": a configuration key the user never set. Relight's warning names its own argument."""
+    import logging
+
+    from illuminet.hw import open_source
+
+    with open_source("synthetic://lamp?seed=3&frames=1&size=640x400") as src:
+        f = src.read()
+    caplog.set_level(logging.WARNING)
+    relight(f.color, f.depth, f.intrinsics, (320, 40), defaults(), bundle="builtin:vase")
+    assert "anchor pixel = [320, 40] lies on a plane labelled wall" in caplog.text
+    assert "[anchor] pixel" not in caplog.text
+
+
 def test_relight_cli_reads_a_uint16_npy_as_millimetres_like_a_png(tmp_path, capsys):
     """uint16 depth is millimetres in a 16-bit PNG and in the Python API; a uint16 .npy was read as metres
     and refused as "millimetres: ... or give uint16 millimetres", which it was."""

@@ -219,6 +219,10 @@ class AnchorStage(Stage):
     is smoothed over frames with ``[planes] smoothing`` (jumps over 10 cm are taken at once).
     """
 
+    #: how the warnings name ``mode = "pixel"``'s pixel: the configuration key, unless the caller gave the
+    #: pixel another way (relight: its anchor argument, ``--anchor`` / ``anchor_px``)
+    pixel_name = "[anchor] pixel"
+
     name = "anchor"
     requires = (PLANES,)
     optional = (REPLAY_POSITION,)
@@ -268,7 +272,7 @@ class AnchorStage(Stage):
             if not (0 <= u < w and 0 <= v < h):
                 self._warn(
                     "pixel_outside",
-                    f"[anchor] pixel = [{u:g}, {v:g}] is outside the {w}x{h} image; using the image centre",
+                    f"{self.pixel_name} = [{u:g}, {v:g}] is outside the {w}x{h} image; using the image centre",
                 )
                 u, v = (w - 1) / 2.0, (h - 1) / 2.0
             ray = _pixel_ray(frame, u, v)
@@ -334,7 +338,7 @@ class AnchorStage(Stage):
         on = f"a plane labelled {labels}" if labels else "no tracked plane"
         self._warn(
             "pixel_not_support",
-            f"[anchor] pixel = [{u:g}, {v:g}] lies on {on}, not on a floor or table: the object stands "
+            f"{self.pixel_name} = [{u:g}, {v:g}] lies on {on}, not on a floor or table: the object stands "
             f"on the {p.label} (plane {p.id}) {where}; point the pixel at a floor or table to choose the place",
         )
         return p, x
