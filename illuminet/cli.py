@@ -202,6 +202,9 @@ def _not_sparse_fallback(record: logging.LogRecord) -> bool:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit status (0 done, 1 run-time failure, 2 usage/configuration)."""
+    from illuminet.runtime.stream.loop import remember_early_interrupt
+
+    remember_early_interrupt()  # a Ctrl-C during start-up stops the run even if a library swallows it
     parser = build_parser()
     args = _merge_global_options(parser.parse_args(argv))
     # --log-level debug shows tracebacks even when the configuration itself is the mistake

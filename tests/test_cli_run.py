@@ -534,3 +534,29 @@ def test_stats_json_dash_is_standard_output_and_the_report_moves_to_stderr(tmp_p
     assert not (tmp_path / "-").exists()
     assert main(["run", url, "--stats-json", "-", "--estimates", "-"]) == 2
     assert "[logging] stats_json: - (standard output) is where --estimates - writes" in capsys.readouterr().err
+
+
+def test_ctrl_c_swallowed_during_start_up_still_stops_the_run(monkeypatch, capsys):
+    """trimesh wraps its optional imports in ``except BaseException``: a Ctrl-C that landed there while
+    the outputs were being built raised KeyboardInterrupt into that handler and was lost, and the run
+    went on to its end (on a camera: until a second Ctrl-C). The CLI remembers it and the loop stops."""
+    import illuminet.pipeline
+
+    build_sinks = illuminet.pipeline.build_sinks
+
+    def swallowing(*a, **k):
+        try:  # what a library that catches BaseException does with a Ctrl-C during its import
+            signal.raise_signal(signal.SIGINT)
+        except BaseException:
+            pass
+        return build_sinks(*a, **k)
+
+    monkeypatch.setattr(illuminet.pipeline, "build_sinks", swallowing)
+    before = signal.getsignal(signal.SIGINT)
+    try:
+        rc = main(["run", "synthetic://indoor?frames=40&size=64x48"])
+    finally:
+        signal.signal(signal.SIGINT, before)
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "0 frames in" in out and "ended: stopped" in out

@@ -443,6 +443,29 @@ class _HandOff:
             return len(self._q)
 
 
+#: set by the handler of :func:`remember_early_interrupt`: a Ctrl-C came before any loop's handlers
+_early_interrupt = threading.Event()
+
+
+def remember_early_interrupt() -> None:
+    """Make SIGINT raise KeyboardInterrupt as usual *and* remember it, until a loop installs its handlers.
+
+    For the command line's start-up (imports, models, GL): a library that catches ``BaseException``
+    around its imports (trimesh does, for each optional dependency) swallowed the KeyboardInterrupt
+    of a Ctrl-C pressed then, and the run went on as if nothing had been pressed (a camera until a
+    second Ctrl-C). The next loop to start sees the flag and stops before its first frame, closing
+    its outputs. Main thread only; a SIGINT that is ignored (``SIG_IGN``) stays ignored.
+    """
+    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        return
+
+    def handler(signum, frame):
+        _early_interrupt.set()
+        signal.default_int_handler(signum, frame)
+
+    signal.signal(signal.SIGINT, handler)
+
+
 @contextlib.contextmanager
 def _signals_stop(stop: threading.Event, enabled: bool):
     """SIGINT/SIGTERM -> ``stop`` while the loop runs (main thread only); restore handlers after."""
@@ -462,6 +485,10 @@ def _signals_stop(stop: threading.Event, enabled: bool):
     previous = {}
     for s in (signal.SIGINT, signal.SIGTERM):
         previous[s] = signal.signal(s, handler)
+    if _early_interrupt.is_set():  # a Ctrl-C during start-up that a library swallowed
+        _early_interrupt.clear()
+        log.info("SIGINT received during start-up: stopping before the first frame and finalising outputs")
+        stop.set()
     try:
         yield
     finally:
