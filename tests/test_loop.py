@@ -346,6 +346,29 @@ def test_runs_outside_the_main_thread_without_signal_handlers(session):
     assert out["st"].frames == 10 and signal.getsignal(signal.SIGTERM) is before
 
 
+def test_a_second_signal_while_the_front_thread_finishes_still_records_why_the_run_ended(session):
+    # threads: the stop joins the front thread (up to 10 s); a second Ctrl-C there raised
+    # KeyboardInterrupt before the statistics were closed: "ended: " was blank and running stayed True
+    stop = threading.Event()
+
+    class SlowToFinish(Stage):
+        name = "slow"
+
+        def process(self, frame):
+            if frame.seq == 2:
+                stop.set()  # the first Ctrl-C
+                time.sleep(0.5)  # the loop thread is now joining this thread
+                signal.raise_signal(signal.SIGINT)  # the second one
+                time.sleep(1.0)
+            return frame
+
+    st = LoopStats()
+    with pytest.raises(KeyboardInterrupt):
+        run_loop(_asap(session), [SlowToFinish()], [Collect()], pipeline="threads", stop_event=stop, stats=st)
+    assert st.end_reason == "interrupted" and not st.running
+    assert json.loads(st.to_json())["end_reason"] == "interrupted"
+
+
 def test_signal_handlers_are_restored(session):
     before = signal.getsignal(signal.SIGINT)
     run_loop(_asap(session), [], [])

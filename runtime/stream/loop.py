@@ -710,12 +710,17 @@ class _Loop:
             self.reason = f"error: {type(e).__name__}: {e}" if not isinstance(e, KeyboardInterrupt) else "interrupted"
             raise
         finally:
-            self._stop_front()
-            self.stats.stop(self.reason)
             try:
-                self.report()
-            except Exception:  # strict: a failing stats callback must not hide the real outcome
-                log.exception("stats callback failed")
+                self._stop_front()
+            except KeyboardInterrupt:  # a second Ctrl-C while the front thread finishes its frame
+                self.reason = "interrupted"
+                raise
+            finally:
+                self.stats.stop(self.reason)
+                try:
+                    self.report()
+                except Exception:  # strict: a failing stats callback must not hide the real outcome
+                    log.exception("stats callback failed")
 
     def _frames(self) -> str:
         """The frame loop (serial); returns why it ended."""
