@@ -91,6 +91,7 @@ class ReplaySource(Source):
         self._emitted = 0
         self._corrupt = 0
         self._bad_in_row = 0
+        self._warned: set[int] = set()  # session positions whose damage was logged (a loop meets them again)
         self._t0_wall: int | None = None
         self._closed = False
         self._closing = threading.Event()
@@ -194,7 +195,10 @@ class ReplaySource(Source):
             except CorruptFrame as e:
                 self._corrupt += 1
                 self._bad_in_row += 1
-                log.warning("replay %s: skipping frame: %s", self.path, e)
+                # once per damaged frame: a looped replay (demo --mjpeg, --loop) meets it every round
+                level = logging.DEBUG if pos in self._warned else logging.WARNING
+                self._warned.add(pos)
+                log.log(level, "replay %s: skipping frame: %s", self.path, e)
                 if self._bad_in_row >= len(self.session):
                     raise EndOfStream(f"replay {self.path}: every frame of the session is unreadable") from None
                 continue

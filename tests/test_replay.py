@@ -185,3 +185,18 @@ def test_strict_config_refuses_a_damaged_session(tmp_path):
     cfg = apply_overrides(defaults(), [("logging", "strict", True)])
     with pytest.raises(SourceError, match="invalid session"):
         open_source(f"replay://{tmp_path}/s", cfg).open()
+
+
+def test_a_looped_replay_warns_once_per_damaged_frame_and_counts_every_skip(tmp_path, caplog):
+    # `illuminet demo --mjpeg` and `--loop` replay until Ctrl-C: the same damaged frame logged a
+    # warning on every round, a line a second for as long as the stream ran
+    make_session(tmp_path / "s", 4)
+    p = tmp_path / "s" / "frames" / "000002.color.png"
+    p.write_bytes(b"\x89PNG" + b"\0" * (p.stat().st_size - 4))  # same size, undecodable
+    src = ReplaySource(tmp_path / "s", timing="asap", loop=True)
+    with caplog.at_level("DEBUG", logger="illuminet.hw.replay"), src:
+        got = [src.read() for _ in range(15)]  # five rounds of the three intact frames
+    assert [f.seq % 4 for f in got] == [0, 1, 3] * 5
+    assert src.stats()["corrupt"] >= 4  # every skip is counted
+    warnings = [r for r in caplog.records if r.levelname == "WARNING" and "000002.color.png" in r.getMessage()]
+    assert len(warnings) == 1
