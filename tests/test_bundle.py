@@ -177,6 +177,29 @@ def test_bundle_arrays_of_the_wrong_kind_are_refused_naming_them(tmp_path, capsy
     assert len(lines) == 1 and match in lines[0], lines
 
 
+@pytest.mark.parametrize(
+    "key, make, match",
+    [
+        # a 0-d array (a hand-written npz) was "TypeError: len() of unsized object", a traceback
+        ("vertices", lambda a: np.asarray(a.ravel()[0]), "vertices must be (R, 3), got ()"),
+        ("proxy_index", lambda a: np.asarray(a.ravel()[0]), "proxy_index must be (V,) render-vertex indices, got ()"),
+        # no carry neighbours: numpy's "zero-size array to reduction operation minimum", naming no file
+        ("carry_index", lambda a: a[:, :0], "carry_index (9026, 0) and carry_weight (9026, 0) must both be"),
+    ],
+)
+def test_mesh_npz_arrays_of_the_wrong_shape_are_one_line_naming_the_file(tmp_path, key, make, match):
+    d = _copy(tmp_path)
+
+    def edit(arr):
+        arr[key] = make(arr[key])
+        if key == "carry_index":
+            arr["carry_weight"] = arr["carry_weight"][:, :0]
+
+    _edit_npz(d, FILES["mesh"], edit)
+    with pytest.raises(BundleError, match=r"mesh\.npz: " + re.escape(match)):
+        load_bundle(d)
+
+
 def test_a_bundle_json_nested_too_deeply_is_one_line(tmp_path):
     d = _copy(tmp_path)
     (d / "bundle.json").write_text('{"format": ' + "[" * 100000 + "]" * 100000 + "}")  # was a RecursionError

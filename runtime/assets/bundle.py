@@ -429,10 +429,12 @@ def _check_shapes(b: Bundle, where: Path) -> None:
         if not cond:
             raise BundleError(f"{where}: {what}; remake the bundle (`illuminet bundle` or `illuminet train`)")
 
+    # the shapes len() needs first: a 0-d vertices or proxy_index (a hand-written npz) was a TypeError traceback
+    need(b.vertices.ndim == 2 and b.vertices.shape[1] == 3, f"vertices must be (R, 3), got {b.vertices.shape}")
+    need(b.proxy_index.ndim == 1, f"proxy_index must be (V,) render-vertex indices, got {b.proxy_index.shape}")
     R = len(b.vertices)
     V = b.n_proxy
     counts = b.meta["vertices"]
-    need(b.vertices.ndim == 2 and b.vertices.shape[1] == 3, f"vertices must be (R, 3), got {b.vertices.shape}")
     need(b.normals.shape == b.vertices.shape, f"normals {b.normals.shape} must match vertices {b.vertices.shape}")
     need(R > 0, "vertices is empty: the bundle has no mesh to draw")
     need(
@@ -455,8 +457,11 @@ def _check_shapes(b: Bundle, where: Path) -> None:
         f"proxy_edges index outside 0..{V - 1}",
     )
     need(
-        b.carry_index.shape == b.carry_weight.shape and b.carry_index.ndim == 2 and len(b.carry_index) == R,
-        f"carry_index {b.carry_index.shape} and carry_weight {b.carry_weight.shape} must both be (R={R}, k)",
+        b.carry_index.shape == b.carry_weight.shape
+        and b.carry_index.ndim == 2
+        and len(b.carry_index) == R
+        and b.carry_index.shape[1] >= 1,  # k = 0 was numpy's "zero-size array to reduction operation minimum"
+        f"carry_index {b.carry_index.shape} and carry_weight {b.carry_weight.shape} must both be (R={R}, k >= 1)",
     )
     need(b.carry_index.min() >= 0 and b.carry_index.max() < V, f"carry_index outside 0..{V - 1}")
     need(bool(np.allclose(b.carry_weight.sum(1), 1.0, atol=1e-3)), "carry_weight rows must sum to 1")
