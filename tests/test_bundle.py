@@ -200,6 +200,24 @@ def test_mesh_npz_arrays_of_the_wrong_shape_are_one_line_naming_the_file(tmp_pat
         load_bundle(d)
 
 
+@pytest.mark.parametrize("name", [FILES["mesh"], PRT_FILE])
+@pytest.mark.parametrize("data", [b"hello, not an archive", b"\x93NUMPY"])
+def test_a_bundle_npz_that_is_no_zip_archive_is_named_without_advice_to_unpickle_it(tmp_path, name, data):
+    from illuminet.models.export import finalize_bundle
+
+    d = _copy(tmp_path)
+    if data.startswith(b"\x93NUMPY"):  # a .npy array written in its place
+        with open(d / name, "wb") as f:
+            np.save(f, np.zeros(3))
+    else:
+        (d / name).write_bytes(data)
+    finalize_bundle(d, json.loads((d / "bundle.json").read_text()))  # checksums agree: only the file is bad
+    with pytest.raises(BundleError) as e:
+        load_bundle(d)
+    msg = str(e.value)
+    assert f"{name}: not an npz archive" in msg and "pickle" not in msg and "\n" not in msg, msg
+
+
 def test_a_bundle_json_nested_too_deeply_is_one_line(tmp_path):
     d = _copy(tmp_path)
     (d / "bundle.json").write_text('{"format": ' + "[" * 100000 + "]" * 100000 + "}")  # was a RecursionError

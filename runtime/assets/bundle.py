@@ -259,6 +259,7 @@ def load_bundle(spec: str | Path, verify: bool = True) -> Bundle:
                     f"{p}: sha256 {digest} does not match {METADATA} ({rec.get('sha256')}); "
                     "the file is damaged or was replaced"
                 )
+    _check_npz_magic(path / FILES["mesh"])
     try:
         with np.load(path / FILES["mesh"], allow_pickle=False) as z:
             missing = [k for k in MESH_KEYS if k not in z.files]
@@ -275,6 +276,7 @@ def load_bundle(spec: str | Path, verify: bool = True) -> Bundle:
     _check_finite(b, path / FILES["mesh"])
     _check_shapes(b, path / FILES["mesh"])
     if PRT_FILE in meta["files"]:
+        _check_npz_magic(path / PRT_FILE)
         try:
             with np.load(path / PRT_FILE, allow_pickle=False) as z:
                 _check_npz_sizes(z, path / PRT_FILE)
@@ -286,6 +288,21 @@ def load_bundle(spec: str | Path, verify: bool = True) -> Bundle:
         except Exception as e:  # zip/npz errors
             raise BundleError(f"{path / PRT_FILE}: cannot read: {e}") from None
     return b
+
+
+def _check_npz_magic(p: Path) -> None:
+    """Refuse a file that is not a zip archive (an npz) before ``np.load`` reads it: for anything else numpy
+    said "This file contains pickled (object) data. If you trust the file you can load it unsafely using the
+    `allow_pickle=` keyword argument" (advice to unpickle a damaged file), or loaded a ``.npy`` array in its
+    place and failed with an AttributeError."""
+    with open(p, "rb") as f:
+        head = f.read(4)
+    if head not in (b"PK\x03\x04", b"PK\x05\x06"):
+        kind = "a single .npy array" if head == b"\x93NUM" else f"it starts with {head!r}"
+        raise BundleError(
+            f"{p}: not an npz archive ({kind}; expected a zip of arrays written by numpy.savez); the file is "
+            "damaged or was replaced: remake the bundle with `illuminet bundle`"
+        )
 
 
 #: an array in a bundle's npz files larger than this once decompressed is refused before it is read
