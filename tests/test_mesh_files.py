@@ -206,3 +206,22 @@ def test_a_big_mesh_file_says_it_is_being_read(tmp_path, monkeypatch, capsys):
     assert main(argv + ["--transfer-rays", "64", "--directions", "64"]) == 0
     err = capsys.readouterr().err
     assert f"reading {tmp_path / 'box.obj'} (0 MiB) and choosing 8 lighting proxy vertices" in err, err
+
+
+def test_a_closed_mesh_wound_inside_out_is_turned_outwards(tmp_path, caplog):
+    """Flipped faces (normals into the object) made a bundle whose PRT lit the object black, exit 0."""
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    sphere.invert()
+    assert sphere.volume < 0
+    p = tmp_path / "inside_out.obj"
+    sphere.export(p)
+    with caplog.at_level("WARNING"):
+        m = load_object(str(p))
+    assert m.volume > 0
+    centre = m.vertices.mean(0)
+    assert np.all(np.einsum("ij,ij->i", m.vertex_normals, m.vertices - centre) > 0)  # every normal outwards
+    assert "inside out" in caplog.text and "inside_out.obj" in caplog.text
+    # an outward one is left as it is, without a word
+    caplog.clear()
+    trimesh.creation.icosphere(subdivisions=2).export(tmp_path / "ok.obj")
+    assert load_object(str(tmp_path / "ok.obj")).volume > 0 and "inside out" not in caplog.text

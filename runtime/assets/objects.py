@@ -3,8 +3,8 @@
 Every mesh this module returns is in the **object frame**: base on the plane y = 0, centred on
 x = z = 0 (bounding-box centre), +Y up, metres. Built-in objects are generated here (no external
 files); user meshes (GLB/GLTF/OBJ/PLY/STL/OFF) are loaded with trimesh, scenes are flattened into
-one mesh with their transforms applied, materials/UVs are kept as trimesh loads them, and the
-result is scaled so that its height is ``height`` (default 0.25 m).
+one mesh with their transforms applied, materials/UVs are kept as trimesh loads them, a closed mesh
+wound inside out is turned outwards, and the result is scaled so that its height is ``height`` (default 0.25 m).
 
 Built-ins (``builtin:NAME``)
     ``vase``: lathe-turned, 0.26 m high, 0.17 m wide: a bulging body, a narrow neck and a flaring
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import errno
 import io
+import logging
 import os
 import re
 import stat
@@ -25,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+
+log = logging.getLogger(__name__)
 
 #: Names accepted as ``builtin:NAME``.
 BUILTIN_OBJECTS = ("vase", "bowl", "sphere")
@@ -463,6 +466,11 @@ def load_object(
         )
     _check_extent(mesh, path)
     _check_area(mesh, path)
+    if mesh.is_watertight and mesh.is_winding_consistent and mesh.volume < 0:
+        # a closed surface wound inside out (an export with flipped normals): every normal pointed into the
+        # object, and the PRT, which lights a surface from the side its normal faces, made it black (exit 0)
+        mesh.invert()
+        log.warning("%s: the mesh is closed but inside out (its faces wind inwards); turned them outwards", path)
     if up == "z":
         mesh.apply_transform(_Z_UP_TO_Y_UP)
     elif up != "y":
