@@ -141,6 +141,26 @@ def test_no_casters_and_depth_holes_give_none():
     assert shadow_direction(c.color_linear, d, c.intrinsics, c.planes, c.T_cam_obj) is None
 
 
+def test_depth_with_inf_or_nan_for_invalid_gives_the_same_cue_without_numpy_warnings(sunny):
+    """inf marking invalid depth (the planes stage takes it as 0) printed numpy's two-line RuntimeWarning
+    "invalid value encountered in subtract" from the discontinuity test, on every such frame."""
+    import warnings
+
+    c = sunny[0]
+    holes = np.zeros(c.depth.shape, bool)
+    holes[::7, ::5] = True
+    holes[100:140, 200:260] = True
+    d0 = np.where(holes, 0, c.depth).astype(np.float32)
+    ref = shadow_direction(c.color_linear, d0, c.intrinsics, c.planes, c.T_cam_obj)
+    assert ref is not None
+    for bad in (np.inf, np.nan):
+        d = np.where(holes, bad, c.depth).astype(np.float32)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            cue = shadow_direction(c.color_linear, d, c.intrinsics, c.planes, c.T_cam_obj)
+        assert cue is not None and angle_deg(cue.direction, ref.direction) < 1.0
+
+
 # ------------------------------------------------------------------------------ ray-cast scene
 
 

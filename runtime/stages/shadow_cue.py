@@ -278,9 +278,11 @@ def _observe(
     z = np.ascontiguousarray(depth[::s, ::s], np.float32)
     rx, ry = _rays(intr, s, z.shape)
     valid = np.isfinite(z) & (z > 0) & (z < prm.max_range_m)
-    # depth discontinuities: stereo mixes the two sides there (flying pixels), so neither counts
-    jx = np.abs(np.diff(z, axis=1)) > 0.05 * np.minimum(z[:, 1:], z[:, :-1])
-    jy = np.abs(np.diff(z, axis=0)) > 0.05 * np.minimum(z[1:], z[:-1])
+    # depth discontinuities: stereo mixes the two sides there (flying pixels), so neither counts; inf - inf (depth
+    # with inf for invalid, which the planes take) printed numpy's "invalid value encountered in subtract" lines
+    with np.errstate(invalid="ignore"):
+        jx = np.abs(np.diff(z, axis=1)) > 0.05 * np.minimum(z[:, 1:], z[:, :-1])
+        jy = np.abs(np.diff(z, axis=0)) > 0.05 * np.minimum(z[1:], z[:-1])
     valid[:, 1:] &= ~jx
     valid[:, :-1] &= ~jx
     valid[1:] &= ~jy
