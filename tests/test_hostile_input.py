@@ -663,6 +663,12 @@ BAD_RELIGHT = [
     ({"--out": "{tmp}/d.npz", "--depth": "{tmp}/d.npz"}, "--out {tmp}/d.npz: is the --depth input file"),
     ({"--color": "{tmp}/lin.hdr"}, "--color {tmp}/lin.hdr: a Radiance HDR image (linear floating-point)"),
     ({"--depth": "{tmp}/big.npy"}, "--depth {tmp}/big.npy: the array header says 8000x8000 pixels, over the limit"),
+    # an empty path is ".", the current folder: "--color : is a folder"; an empty --preview was skipped, exit 0
+    ({"--color": ""}, "--color '': an empty file name"),
+    ({"--depth": " "}, "--depth ' ': an empty file name"),
+    ({"--out": ""}, "--out '': an empty file name"),
+    ({"--preview": ""}, "--preview '': an empty file name"),
+    ({"--intrinsics": ""}, "--intrinsics '': empty; expected four numbers FX,FY,CX,CY or a JSON file"),
 ]
 
 

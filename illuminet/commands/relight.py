@@ -82,6 +82,8 @@ def _floats(text: str, n: int, what: str) -> list[float]:
 def _input_file(path: str, flag: str) -> Path:
     """``path`` as an existing regular file, or one line naming ``flag``."""
     p = Path(path)
+    if not path.strip():  # Path("") is ".", the current folder: "--color : is a folder"
+        raise ValueError(f"{flag} {path!r}: an empty file name; expected an image or array file")
     if "\x00" in path:
         raise ValueError(f"{flag} {path!r}: a NUL byte in the path; not a file name")
     if p.is_dir():
@@ -101,6 +103,8 @@ def _check_output(path: str, flag: str, image: bool = False) -> None:
     from illuminet.runtime.errors import OutputPathError
 
     p = Path(path)
+    if not path.strip():  # Path("") is ".": "--out : is a folder"; an empty --preview was skipped, exit 0
+        raise OutputPathError(f"{flag} {path!r}: an empty file name; expected a file path")
     if "\x00" in path:
         raise OutputPathError(f"{flag} {path!r}: a NUL byte in the path; not a file name")
     if p.is_dir():
@@ -305,6 +309,10 @@ def load_inputs(color_path: str, depth_path: str, intr: str):
     depth = align_depth(depth, color.shape, what=f"--depth {depth_path}")  # another resolution: nearest
     check_depth(depth, f"--depth {depth_path}")  # none valid, or millimetres in a .npy: named here
     h, w = depth.shape
+    if not intr.strip():  # Path("") is ".": "--intrinsics : is a folder"
+        raise ValueError(
+            f"--intrinsics {intr!r}: empty; expected four numbers FX,FY,CX,CY or a JSON file with fx, fy, cx, cy"
+        )
     if Path(intr).is_file():
         try:
             d = json.loads(Path(intr).read_text(encoding="utf-8"))
@@ -407,7 +415,7 @@ def run(args: argparse.Namespace, cfg) -> int:
         out = npz_path(args.out)  # numpy writes r.out as r.out.npz: check and name that file
         if out != args.out:
             _check_output(out, "--out")
-        if args.preview:
+        if args.preview is not None:
             _check_output(args.preview, "--preview", image=True)
         _check_not_an_input(args, out)
         exp = None
