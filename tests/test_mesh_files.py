@@ -225,3 +225,16 @@ def test_a_closed_mesh_wound_inside_out_is_turned_outwards(tmp_path, caplog):
     caplog.clear()
     trimesh.creation.icosphere(subdivisions=2).export(tmp_path / "ok.obj")
     assert load_object(str(tmp_path / "ok.obj")).volume > 0 and "inside out" not in caplog.text
+
+
+@pytest.mark.parametrize("spec", ["", " "])
+def test_an_empty_object_path_is_named_as_empty_not_as_the_current_folder(tmp_path, monkeypatch, capsys, spec):
+    # Path("") is ".": "--object : is a directory (it holds ...)" listed the meshes of the current folder
+    monkeypatch.chdir(tmp_path)
+    _box().export(tmp_path / "box.obj")
+    with pytest.raises(ObjectLoadError, match=f"object {spec!r}: empty; expected builtin:"):
+        load_object(spec)
+    assert main(["bundle", "--object", spec, "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"--object {spec!r}: empty; expected builtin:" in err, err
+    assert not (tmp_path / "out").exists()

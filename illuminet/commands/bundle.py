@@ -166,6 +166,7 @@ def run(args: argparse.Namespace, cfg) -> int:
     from illuminet.models.prt import add_prt, new_bundle
     from illuminet.models.train import Progress
     from illuminet.runtime.assets.bundle import METADATA, BundleError
+    from illuminet.runtime.assets.objects import _WANT as MESH_WANT
     from illuminet.runtime.assets.objects import ObjectLoadError, check_mesh_path
 
     bars: dict[str, Progress] = {}
@@ -203,6 +204,8 @@ def run(args: argparse.Namespace, cfg) -> int:
                     f"--out {out} exists and is not a bundle folder (no {METADATA}): choose a new or empty folder"
                 )
             if not args.object.startswith("builtin:"):
+                if not args.object.strip():  # Path("") is ".": "is a directory (it holds ...)"
+                    raise _usage(f"--object {args.object!r}: empty; {MESH_WANT}")
                 check_mesh_path(Path(args.object), f"--object {args.object}")
                 size = Path(args.object).stat().st_size
                 if size > BIG_FILE_BYTES and not args.quiet:  # reading it and choosing the proxy take a while

@@ -426,6 +426,8 @@ def load_object(
     spec = str(spec)
     if spec.startswith("builtin:"):
         return builtin_object(spec.split(":", 1)[1], detail)
+    if not spec.strip():  # Path("") is ".", the current folder: "is a directory (it holds ...)"
+        raise ObjectLoadError(f"object {spec!r}: empty; {_WANT}")
     path = Path(spec)
     # single-mesh formats are read unprocessed first: trimesh's processing silently drops the faces of a
     # vertex with NaN or infinite coordinates (a broken export), which the check below then never saw
