@@ -142,9 +142,9 @@ def lighting_stages(cfg: Config, response_lut=None) -> list:
     return stages
 
 
-#: largest image ``relight`` takes (8K UHD is 33 Mpx): the command refuses a PNG/JPEG header claiming more
-#: before decoding it (a minute and gigabytes for a 1 MB PNG that says 20000x20000), the Python API an
-#: array from its shape before any copy
+#: largest image ``relight`` takes (8K UHD is 33 Mpx): the command refuses an image header (PNG, JPEG, BMP,
+#: TIFF, ...) claiming more before decoding it (a minute and gigabytes for a 1 MB PNG that says 20000x20000),
+#: the Python API an array from its shape before any copy
 MAX_IMAGE_PIXELS = 50_000_000
 #: largest image side (pixels) intrinsics may claim: a width or height over it is not a camera's
 MAX_INTRINSICS_SIDE = 100_000

@@ -684,6 +684,59 @@ def test_bad_relight_inputs_are_one_line_each(tmp_path, capsys, change, expect):
     assert not list(tmp_path.glob("r.npz*")) and not (tmp_path / "missing").exists()  # nothing written
 
 
+def _headers(w, h):
+    """A header of each format OpenCV decodes besides PNG and JPEG claiming ``w`` x ``h``, without pixels."""
+    import struct
+
+    bmp = b"BM" + struct.pack("<IHHI", 54, 0, 0, 54) + struct.pack("<IiiHHIIiiII", 40, w, h, 1, 24, 0, 0, 0, 0, 0, 0)
+    ifd = [(256, 4, w), (257, 4, h), (258, 3, 8), (259, 3, 1), (262, 3, 1), (273, 4, 8), (277, 3, 1), (279, 4, 16)]
+    tif = b"II*\x00" + struct.pack("<I", 24) + b"\0" * 16 + struct.pack("<H", len(ifd))
+    for t, k, v in ifd:
+        tif += struct.pack("<HHII", t, k, 1, v) if k == 4 else struct.pack("<HHIHH", t, k, 1, v, 0)
+    webp = b"RIFF" + struct.pack("<I", 22) + b"WEBPVP8X" + struct.pack("<I", 10) + b"\0" * 4
+    webp += (w - 1).to_bytes(3, "little") + (h - 1).to_bytes(3, "little")
+    return {
+        "bmp": bmp,
+        "tif": tif + b"\0\0\0\0",
+        "webp": webp,
+        "gif": b"GIF89a" + struct.pack("<HH", w, h) + b"\0\0\0",
+        "ppm": b"P6\n# a comment\n%d %d\n255\n" % (w, h),
+        "hdr": b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y %d +X %d\n" % (h, w),
+        "ras": b"\x59\xa6\x6a\x95" + struct.pack(">IIIIIII", w, h, 24, 0, 1, 0, 0),
+    }
+
+
+@pytest.mark.parametrize("ext", list(_headers(1, 1)))
+@pytest.mark.parametrize("flag", ["--color", "--depth"])
+def test_an_image_of_another_format_claiming_gigapixels_is_refused_from_its_header(tmp_path, capsys, ext, flag):
+    """Only PNG and JPEG headers were read: a 3 MB run-length BMP or a 1 MB deflated TIFF of 20000x20000 took
+    2.4 GB and 16-28 s in OpenCV before relight refused it (as not aligned with the depth)."""
+    _relight_inputs(tmp_path)
+    (tmp_path / f"big.{ext}").write_bytes(_headers(20000, 20000)[ext] + b"\0" * 4096)
+    assert main(relight_argv(tmp_path, {flag: "{tmp}/big." + ext})) == 2
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and f"{flag} {tmp_path}/big.{ext}: the image header says 20000x20000 pixels" in lines[0]
+
+
+def test_the_header_sizes_of_images_opencv_writes_are_read_right(tmp_path):
+    import cv2
+    import numpy as np
+
+    from illuminet.runtime.imageheader import image_size_of_file
+
+    img = np.random.default_rng(0).integers(0, 256, (37, 53, 3), np.uint8)
+    for ext in ("bmp", "tif", "webp", "ppm", "pgm", "pfm", "hdr", "ras", "jp2", "png", "jpg"):
+        p = tmp_path / f"x.{ext}"
+        a = img.astype(np.float32) / 255 if ext in ("hdr", "pfm") else img[..., 0] if ext == "pgm" else img
+        assert cv2.imwrite(str(p), a), ext
+        assert image_size_of_file(p) == (53, 37), ext
+    assert cv2.imwrite(str(tmp_path / "d.tif"), np.zeros((37, 53), np.uint16))  # a 16-bit depth TIFF
+    assert image_size_of_file(tmp_path / "d.tif") == (53, 37)
+    for ext, data in _headers(640, 360).items():  # and the headers written by hand above
+        (tmp_path / f"h.{ext}").write_bytes(data)
+        assert image_size_of_file(tmp_path / f"h.{ext}") == (640, 360), ext
+
+
 def test_a_damaged_image_is_one_line_without_opencv_log_lines(tmp_path, capfd):
     """OpenCV logs its own decoder errors on the process's stderr: a BMP cut short printed two to five
     ``[ERROR:0@0.1] global loadsave.cpp ...`` lines around relight's one."""

@@ -144,7 +144,8 @@ def _check_not_an_input(args: argparse.Namespace, out: str) -> None:
 
 
 def _check_image_header(p: Path, flag: str) -> None:
-    """Refuse a PNG/JPEG whose header claims more than :data:`MAX_IMAGE_PIXELS`, without decoding it."""
+    """Refuse an image (PNG, JPEG, BMP, TIFF, WebP, ...: ``image_size_of_file``) whose header claims more
+    than :data:`MAX_IMAGE_PIXELS`, without decoding it."""
     from illuminet.runtime.imageheader import image_size_of_file
 
     size = image_size_of_file(p)
