@@ -609,6 +609,9 @@ def _relight_inputs(tmp_path):
     (tmp_path / "K_deep.json").write_text('{"fx": ' + "[" * 100000 + "]" * 100000 + "}")
     (tmp_path / "empty.png").write_bytes(b"")
     cv2.imwrite(str(tmp_path / "lin.hdr"), np.full((48, 64, 3), 0.2, np.float32))  # linear: read as 8-bit sRGB
+    np.save(tmp_path / "d3.npy", np.ones((48, 64, 2)))
+    np.save(tmp_path / "d1.npy", np.ones(3072, np.float32))
+    np.save(tmp_path / "dc.npy", np.ones((48, 64), np.complex64))
     with open(tmp_path / "big.npy", "wb") as f:  # a complete 8000x8000 float64 array: 512 MB read, then copied
         np.lib.format.write_array_header_1_0(f, {"descr": "<f8", "fortran_order": False, "shape": (8000, 8000)})
         f.truncate(f.tell() + 8000 * 8000 * 8)  # sparse: no disk space used
@@ -663,6 +666,10 @@ BAD_RELIGHT = [
     ({"--out": "{tmp}/d.npz", "--depth": "{tmp}/d.npz"}, "--out {tmp}/d.npz: is the --depth input file"),
     ({"--color": "{tmp}/lin.hdr"}, "--color {tmp}/lin.hdr: a Radiance HDR image (linear floating-point)"),
     ({"--depth": "{tmp}/big.npy"}, "--depth {tmp}/big.npy: the array header says 8000x8000 pixels, over the limit"),
+    # refused from the header: a (200000000,) or (8000, 8000, 2) array was read whole first (1.6 GB, 15 s)
+    ({"--depth": "{tmp}/d3.npy"}, "--depth {tmp}/d3.npy: the array header says float64 with shape (48, 64, 2)"),
+    ({"--depth": "{tmp}/d1.npy"}, "--depth {tmp}/d1.npy: the array header says float32 with shape (3072,); expected"),
+    ({"--depth": "{tmp}/dc.npy"}, "--depth {tmp}/dc.npy: the array header says complex64 with shape (48, 64)"),
     # an empty path is ".", the current folder: "--color : is a folder"; an empty --preview was skipped, exit 0
     ({"--color": ""}, "--color '': an empty file name"),
     ({"--depth": " "}, "--depth ' ': an empty file name"),

@@ -199,9 +199,14 @@ def _load_npy(p: Path, flag: str) -> np.ndarray:
         with open(p, "rb") as f:
             version = np.lib.format.read_magic(f)
             read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-            shape = read(f, max_header_size=1 << 16)[0] if version in ((1, 0), (2, 0)) else ()
+            shape, _, dtype = read(f, max_header_size=1 << 16) if version in ((1, 0), (2, 0)) else ((), None, None)
     except (ValueError, OSError, EOFError, SyntaxError) as e:
         raise ValueError(f"{flag} {p}: cannot read the array header: {e}") from None
+    if dtype is not None and (len(shape) != 2 or dtype.kind not in "fiu"):
+        # refused from the header: a (200000000,) or (8000, 8000, 2) array was read whole first (1.6 GB, 15 s)
+        raise ValueError(
+            f"{flag} {p}: the array header says {dtype} with shape {shape}; expected a 2-D array of depths in metres"
+        )
     if len(shape) == 2 and shape[0] * shape[1] > MAX_IMAGE_PIXELS:
         raise ValueError(
             f"{flag} {p}: the array header says {shape[1]}x{shape[0]} pixels, over the limit of "
