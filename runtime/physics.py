@@ -129,11 +129,23 @@ def load_response_lut(path) -> np.ndarray:
     p = Path(path)
     if not p.is_file():
         raise ValueError(f"{p}: response curve file not found (set [source] response_curve = '' for sRGB)")
+    if p.suffix == ".npy":
+        # numpy reads a .npy of anything else as a pickle it then refuses, saying "If you trust the file you can
+        # load it unsafely using the `allow_pickle=` keyword argument", and an .npz archive as a mapping that
+        # became "could not convert string to float: 'a'" without the file
+        with open(p, "rb") as f:
+            magic = f.read(6)
+        if magic != b"\x93NUMPY":
+            kind = "an .npz archive" if magic.startswith(b"PK") else "not a .npy array"
+            raise ValueError(
+                f"{p}: {kind}; expected a (256, 3) response curve saved by numpy.save (illuminet calibrate "
+                "photometric writes one)"
+            )
     try:
         lut = np.load(p, allow_pickle=False) if p.suffix == ".npy" else np.loadtxt(p, ndmin=2)
+        lut = np.asarray(lut, dtype=np.float32)
     except Exception as e:  # numpy raises several types for a corrupt file
         raise ValueError(f"{p}: cannot read response curve: {e}") from None
-    lut = np.asarray(lut, dtype=np.float32)
     if lut.shape != (256, 3):
         raise ValueError(f"{p}: response curve must have shape (256, 3) (code x R,G,B), got {lut.shape}")
     if not np.all(np.isfinite(lut)):

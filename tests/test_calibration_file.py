@@ -160,3 +160,16 @@ def test_response_lut_load_and_use(tmp_path):
         load_response_lut(tmp_path / "dec.npy")
     with pytest.raises(ValueError, match="not found"):
         load_response_lut(tmp_path / "none.npy")
+    # not a .npy: numpy's message advised unpickling it ("load it unsafely using the `allow_pickle=`"); an .npz
+    # archive said "could not convert string to float: 'a'", naming no file
+    (tmp_path / "text.npy").write_text("hello")
+    with pytest.raises(ValueError, match=r"text\.npy: not a \.npy array; expected a \(256, 3\) response curve") as e:
+        load_response_lut(tmp_path / "text.npy")
+    assert "pickle" not in str(e.value)
+    with open(tmp_path / "z.npy", "wb") as f:
+        np.savez(f, a=lut)
+    with pytest.raises(ValueError, match=r"z\.npy: an \.npz archive; expected a \(256, 3\) response curve"):
+        load_response_lut(tmp_path / "z.npy")
+    np.save(tmp_path / "words.npy", np.array([["a"] * 3] * 256))  # text that is no number: the file is named
+    with pytest.raises(ValueError, match=r"words\.npy: cannot read response curve: could not convert"):
+        load_response_lut(tmp_path / "words.npy")
