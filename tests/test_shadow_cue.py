@@ -143,7 +143,8 @@ def test_no_casters_and_depth_holes_give_none():
 
 def test_depth_with_inf_or_nan_for_invalid_gives_the_same_cue_without_numpy_warnings(sunny):
     """inf marking invalid depth (the planes stage takes it as 0) printed numpy's two-line RuntimeWarning
-    "invalid value encountered in subtract" from the discontinuity test, on every such frame."""
+    "invalid value encountered in subtract" from the discontinuity test, on every such frame; 1e30 or
+    float32's max "overflow encountered in square"."""
     import warnings
 
     c = sunny[0]
@@ -153,7 +154,7 @@ def test_depth_with_inf_or_nan_for_invalid_gives_the_same_cue_without_numpy_warn
     d0 = np.where(holes, 0, c.depth).astype(np.float32)
     ref = shadow_direction(c.color_linear, d0, c.intrinsics, c.planes, c.T_cam_obj)
     assert ref is not None
-    for bad in (np.inf, np.nan):
+    for bad in (np.inf, np.nan, 1e30, np.finfo(np.float32).max):
         d = np.where(holes, bad, c.depth).astype(np.float32)
         with warnings.catch_warnings():
             warnings.simplefilter("error")

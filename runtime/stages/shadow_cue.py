@@ -287,6 +287,9 @@ def _observe(
     valid[:, :-1] &= ~jx
     valid[1:] &= ~jy
     valid[:-1] &= ~jy
+    # only valid depths from here on: 1e30 or float32's max for invalid overflowed "z ** 2" below (numpy's
+    # two-line RuntimeWarning on every frame); every use of z is masked by valid
+    z = np.where(valid, z, np.float32(0))
 
     n = np.asarray(receiver.normal, np.float64)
     R = np.asarray(T_cam_obj, np.float64)[:3, :3]
