@@ -517,3 +517,22 @@ def test_a_turn_with_too_few_agreeing_tracks_is_lost_not_guessed(static):
     noise = rng.integers(0, 255, f0.color.shape, dtype=np.uint8)
     r = od.update(_turned(f0.replace(color=noise), np.eye(3), depth_rows=12))
     assert r.state == "lost" and not r.rotation_only and np.array_equal(r.T_cam_world, np.eye(4))
+
+
+@pytest.mark.parametrize("bad", [np.inf, np.nan, 1e30, np.finfo(np.float32).max])
+def test_lifting_corners_on_invalid_depth_refuses_them_without_numpy_warnings(bad):
+    """1e30 or float32's max for invalid depth printed numpy's "overflow encountered in multiply" per frame."""
+    import warnings
+
+    from illuminet.runtime.frame import Intrinsics
+
+    depth = np.full((48, 64), 1.5, np.float32)
+    depth[:, 32:] = bad
+    from illuminet.runtime.stages.odometry import DOWNSCALE
+
+    full = np.array([[10.0, 20.0], [50.0, 20.0]])  # full-resolution pixels: one left, one right of the edge
+    pts = ((full + 0.5) / DOWNSCALE - 0.5).astype(np.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        X, ok = Odometry()._lift(pts, depth, Intrinsics(60, 60, 32, 24, 64, 48))
+    assert ok.tolist() == [True, False] and np.isfinite(X).all()

@@ -713,7 +713,9 @@ class Odometry:
     def _lift(self, pts: np.ndarray, depth: np.ndarray, intr) -> tuple[np.ndarray, np.ndarray]:
         """Camera points of downscaled pixels ``pts`` (N, 2) and whether their depth is usable."""
         u, v, z = self._depth_samples(pts, depth)
-        with np.errstate(invalid="ignore"):
+        # over: 1e30 or float32's max marking invalid depth overflowed "zc * zc" (numpy's two-line warning per
+        # frame); such a corner is refused by Z_MAX anyway
+        with np.errstate(invalid="ignore", over="ignore"):
             # the median of the 5 samples: stereo depth jumps by whole disparity steps at random (the
             # middle of the sorted five: np.median's bits where all five are finite, the only case
             # kept below, in a sixth of its time)
