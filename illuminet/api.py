@@ -396,7 +396,8 @@ def align_depth(depth: np.ndarray, color_shape: tuple[int, ...], what: str = "de
         raise ValueError(f"{what}: expected depths as numbers (float metres or uint16 millimetres), got {d.dtype}")
     if d.dtype == np.uint16:
         d = d.astype(np.float32) * np.float32(1e-3)
-    d = d.astype(np.float32, copy=False)
+    with np.errstate(over="ignore"):  # float64 beyond float32 (1e300 for invalid): inf, invalid, without numpy's lines
+        d = d.astype(np.float32, copy=False)
     h, w = color_shape[:2]
     dh, dw = d.shape
     if (dh, dw) == (h, w):

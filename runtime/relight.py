@@ -291,7 +291,8 @@ def check_depth(depth: np.ndarray, what: str = "depth") -> None:
     # said here, not as a warning followed by "no real plane observed under the anchor pixel"
     from illuminet.runtime.stages.plane_fit import check_depth as planes_check_depth
 
-    problem = planes_check_depth(d.astype(np.float32, copy=False))
+    with np.errstate(over="ignore"):  # float64 beyond float32: inf, which the planes count as invalid
+        problem = planes_check_depth(d.astype(np.float32, copy=False))
     if problem is not None:
         raise ValueError(f"{what}: {problem[1]}")
     # depth beyond the planes' range (a wall 20 m off) is no cloud point: said here, not as "no real plane

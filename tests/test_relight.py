@@ -387,3 +387,26 @@ def test_a_png_cut_short_is_one_line_without_libpng_s_own(tmp_path, capfd):
     err = capfd.readouterr().err
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1 and "cannot read an image from it" in lines[0] and "libpng" not in err, err
+
+
+def test_float64_depth_beyond_float32_for_invalid_is_invalid_without_numpy_warnings(tmp_path):
+    """1e300 marking invalid depth in a float64 array printed numpy's "overflow encountered in cast" (two
+    lines) from the float32 conversion, through the Python API and in a .npy given to the command."""
+    import warnings
+
+    import illuminet
+
+    color, depth, K = floor_rgbd()
+    d = depth.astype(np.float64)
+    d[:, :40] = 1e300
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        res = illuminet.relight(color, d, K, (160, 130), bundle="builtin:vase")
+    assert np.isfinite(res.radiance).all()
+    cv2.imwrite(str(tmp_path / "c.png"), color[..., ::-1])
+    np.save(tmp_path / "d.npy", d)
+    argv = ["relight", "--color", str(tmp_path / "c.png"), "--depth", str(tmp_path / "d.npy")]
+    argv += ["--intrinsics", f"{K.fx},{K.fy},{K.cx},{K.cy}", "--anchor", "160,130", "--out", str(tmp_path / "r.npz")]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # pytest keeps warnings off stderr: make one fail the command
+        assert main(argv) == 0

@@ -222,7 +222,8 @@ def _load_npy(p: Path, flag: str) -> np.ndarray:
         from illuminet.runtime.frame import depth_from_mm
 
         return depth_from_mm(a)
-    return a.astype(np.float32)
+    with np.errstate(over="ignore"):  # float64 beyond float32 (1e300 for invalid): inf, invalid, without numpy's lines
+        return a.astype(np.float32)
 
 
 def _imread(path: str, flags: int):
