@@ -216,7 +216,11 @@ def check_intrinsics(K: Intrinsics, what: str = "intrinsics") -> None:
             f"{what}: expected finite fx, fy > 0 and finite cx, cy in pixels, got fx={K.fx:g} fy={K.fy:g} "
             f"cx={K.cx:g} cy={K.cy:g}"
         )
-    if not (math.isfinite(K.width) and math.isfinite(K.height)) or K.width <= 0 or K.height <= 0:
+    if not (math.isfinite(K.width) and math.isfinite(K.height)):  # 1e400 in JSON is inf: was "must be > 0"
+        raise ValueError(
+            f"{what}: width and height must be finite, got {K.width}x{K.height}; expected the image size in pixels"
+        )
+    if K.width <= 0 or K.height <= 0:
         raise ValueError(f"{what}: width and height must be > 0 pixels, got {K.width}x{K.height}")
     if K.width != int(K.width) or K.height != int(K.height):
         raise ValueError(f"{what}: width and height must be whole pixels, got {K.width:g}x{K.height:g}")

@@ -599,6 +599,7 @@ def _relight_inputs(tmp_path):
     (tmp_path / "K_bool.json").write_text('{"fx": true, "fy": 60, "cx": 32, "cy": 24}')
     (tmp_path / "K_huge.json").write_text(f'{{{k}, "width": 1e30, "height": 1e30}}')
     (tmp_path / "K_half.json").write_text(f'{{{k}, "width": 1280}}')
+    (tmp_path / "K_inf.json").write_text(f'{{{k}, "width": 1e400, "height": 1e400}}')
     noise = np.random.default_rng(0).integers(0, 256, (48, 64, 3), np.uint8)
     cv2.imwrite(str(tmp_path / "c.jpg"), noise)
     jpg = (tmp_path / "c.jpg").read_bytes()
@@ -637,6 +638,8 @@ BAD_RELIGHT = [
     ({"--intrinsics": "{tmp}/K_bool.json"}, "--intrinsics {tmp}/K_bool.json: fx is true; expected a number"),
     ({"--intrinsics": "{tmp}/K_huge.json"}, "1e+30x1e+30 is over 100000 pixels a side"),
     ({"--intrinsics": "{tmp}/K_half.json"}, "has width but not height; give both"),
+    # 1e400 is inf to JSON: "width and height must be > 0 pixels, got infxinf"
+    ({"--intrinsics": "{tmp}/K_inf.json"}, "width and height must be finite, got infxinf; expected the image size"),
     ({"--exposure": "0,0"}, "--exposure 0,0: the exposure time must be a finite number"),
     ({"--exposure": "nan,100"}, "--exposure nan,100: the exposure time must be a finite number"),
     ({"--exposure": "-5,100"}, "--exposure -5,100: the exposure time must be"),
