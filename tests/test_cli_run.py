@@ -560,3 +560,38 @@ def test_ctrl_c_swallowed_during_start_up_still_stops_the_run(monkeypatch, capsy
     out = capsys.readouterr().out
     assert rc == 0
     assert "0 frames in" in out and "ended: stopped" in out
+
+
+@pytest.mark.parametrize("cmd", ["run", "demo"])
+def test_signals_during_the_final_cleanup_keep_the_stats_json(tmp_path, cmd):
+    """A second SIGTERM (or a Ctrl-C) while `run`/`demo` wrote their report after the loop killed the
+    process with the default handler (or raised inside the write): no --stats-json file at all. The
+    signals here arrive exactly then, sent by the process to itself from the report's first step."""
+    import subprocess
+    import sys
+
+    from ._sessions import REPO, env
+
+    out = tmp_path / "st.json"
+    out.write_text("previous")
+    if cmd == "run":
+        argv = ["run", "synthetic://indoor?frames=2&size=64x48", "--timing", "asap", "--stats-json", str(out)]
+    else:
+        argv = ["demo", "--frames", "2", "--no-video", "--still", str(tmp_path / "s.png"), "--stats-json", str(out)]
+    script = (
+        "import os, signal, sys\n"
+        "from illuminet.runtime.stream.loop import LoopStats\n"
+        "from illuminet.cli import main\n"
+        "orig = LoopStats.format_stats\n"
+        "def format_stats(self, *a, **k):\n"
+        "    for s in (signal.SIGTERM, signal.SIGTERM, signal.SIGINT):\n"
+        "        os.kill(os.getpid(), s)\n"
+        "    return orig(self, *a, **k)\n"
+        "LoopStats.format_stats = format_stats\n"
+        f"sys.exit(main({argv!r}))\n"
+    )
+    p = subprocess.run([sys.executable, "-c", script], cwd=REPO, env=env(), capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, (p.returncode, p.stderr[-2000:])
+    assert json.loads(out.read_text())["frames"] == 2
+    assert "Traceback" not in p.stderr
+    assert not list(tmp_path.glob(".st.tmp-*"))

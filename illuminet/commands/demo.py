@@ -416,7 +416,7 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
     from illuminet.hw.replay import session_folder
     from illuminet.pipeline import build_sinks, check_creatable, check_output_paths, session_root
     from illuminet.runtime.errors import OutputPathError
-    from illuminet.runtime.stream.loop import LoopStats, run_loop
+    from illuminet.runtime.stream.loop import LoopStats, run_loop, signals_held
     from illuminet.runtime.stream.sinks import SinkError
 
     if args.make_default_session:
@@ -486,31 +486,33 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
     from illuminet.progress import StatusLine
 
     status = StatusLine()  # a live line on a terminal; nothing when piped
-    try:
-        run_loop(
-            source,
-            stages,
-            sinks,
-            strict=cfg.logging.strict,
-            max_frames=frames,
-            stats=stats,
-            on_stats=status.update,
-            stats_interval_s=0.5,
-            pipeline=cfg.loop.pipeline,
-            depth=cfg.loop.depth,
-            trim_memory_s=cfg.loop.trim_memory_s,
-            opencv_threads=cfg.loop.opencv_threads,
-        )
-    except (SourceError, SinkError, OSError) as e:
-        status.close()
-        if cfg.logging.strict:
-            raise
-        print(f"illuminet demo: {e}", file=sys.stderr)
-        rc = 1
-    finally:
-        status.close()
-        if rc == 0 or stats.frames:  # a source that failed to open leaves its one line, not a report of nothing
-            _print_report(stats, stages, probe, cfg, rc, report)
+    # a signal in the cleanup after the loop (a second SIGTERM) must not lose the report or --stats-json
+    with signals_held():
+        try:
+            run_loop(
+                source,
+                stages,
+                sinks,
+                strict=cfg.logging.strict,
+                max_frames=frames,
+                stats=stats,
+                on_stats=status.update,
+                stats_interval_s=0.5,
+                pipeline=cfg.loop.pipeline,
+                depth=cfg.loop.depth,
+                trim_memory_s=cfg.loop.trim_memory_s,
+                opencv_threads=cfg.loop.opencv_threads,
+            )
+        except (SourceError, SinkError, OSError) as e:
+            status.close()
+            if cfg.logging.strict:
+                raise
+            print(f"illuminet demo: {e}", file=sys.stderr)
+            rc = 1
+        finally:
+            status.close()
+            if rc == 0 or stats.frames:  # a source that failed to open leaves its one line, not a report of nothing
+                _print_report(stats, stages, probe, cfg, rc, report)
     if stats.end_reason.startswith("source error"):
         rc = 1
     return rc or lost_frames_status(stats, "illuminet demo")

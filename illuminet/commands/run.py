@@ -23,7 +23,7 @@ from urllib.parse import quote
 from illuminet.progress import StatusLine
 from illuminet.runtime.config import Config, ConfigError, apply_overrides
 from illuminet.runtime.errors import IllumiNetError, OutputPathError
-from illuminet.runtime.stream.loop import LoopStats, run_loop
+from illuminet.runtime.stream.loop import LoopStats, run_loop, signals_held
 from illuminet.runtime.stream.session import SessionError, SessionReader, printable
 
 log = logging.getLogger("illuminet.run")
@@ -207,7 +207,11 @@ def write_stats_json(cfg: Config, stats) -> None:
         sys.stdout.write(stats.to_json() + "\n")
         sys.stdout.flush()
     else:
-        Path(cfg.logging.stats_json).write_text(stats.to_json() + "\n")
+        from illuminet.runtime.files import written_whole
+
+        # beside, then moved into place: a kill while writing leaves the previous file whole
+        with written_whole(cfg.logging.stats_json) as tmp:
+            tmp.write_text(stats.to_json() + "\n")
 
 
 def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
@@ -248,55 +252,58 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
             )
         status.update(snap)
 
-    try:
-        run_loop(
-            source,
-            stages,
-            sinks,
-            strict=cfg.logging.strict,
-            max_frames=cfg.source.max_frames,
-            stats=stats,
-            on_stats=on_stats,
-            stats_interval_s=0.5,
-            pipeline=cfg.loop.pipeline,
-            depth=cfg.loop.depth,
-            trim_memory_s=cfg.loop.trim_memory_s,
-            opencv_threads=cfg.loop.opencv_threads,
-        )
-    except IllumiNetError as e:  # these messages say it all; no traceback
-        status.close()
-        if log.isEnabledFor(logging.DEBUG):
-            log.debug("traceback of the error below", exc_info=e)
-        print(f"illuminet: {e.one_line()}", file=sys.stderr)
-        rc = e.exit_code
-    except OSError as e:
-        status.close()
-        if cfg.logging.strict:  # strict: the traceback, as for any failure
-            raise
-        print(f"illuminet: {e}", file=sys.stderr)
-        rc = 1
-    finally:
-        status.close()
-        if stats.frames or stats.end_reason:
-            print(stats.format_stats(), file=report_stream(cfg))
-            # each stage's own counters, as the demo prints them (the serial IMU's skipped lines, the
-            # planes' bad depth, the anchor's placements ...: docs/runtime.md points users here)
-            print_stage_counters(stages, report_stream(cfg))
-        if stats.frames and no_output and not told:
-            # a first `illuminet run SOURCE` processed its frames and showed only a timing table: say why
-            print(
-                "illuminet: no output was given, so the frames were processed and dropped; add --video FILE, "
-                "--png-dir DIR, --record DIR, --estimates FILE or --mjpeg",
-                file=sys.stderr,
+    # a signal in the cleanup after the loop (a second SIGTERM) must not lose the statistics file
+    with signals_held():
+        try:
+            run_loop(
+                source,
+                stages,
+                sinks,
+                strict=cfg.logging.strict,
+                max_frames=cfg.source.max_frames,
+                stats=stats,
+                on_stats=on_stats,
+                stats_interval_s=0.5,
+                pipeline=cfg.loop.pipeline,
+                depth=cfg.loop.depth,
+                trim_memory_s=cfg.loop.trim_memory_s,
+                opencv_threads=cfg.loop.opencv_threads,
             )
-        if cfg.logging.stats_json:
-            try:
-                write_stats_json(cfg, stats)
-                if cfg.logging.stats_json != "-":
-                    print(f"statistics written to {cfg.logging.stats_json}", file=report_stream(cfg))
-            except OSError as e:  # checked before the start; the folder went away during the run
-                print(f"illuminet: [logging] stats_json: cannot write {cfg.logging.stats_json}: {e}", file=sys.stderr)
-                rc = 1
+        except IllumiNetError as e:  # these messages say it all; no traceback
+            status.close()
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug("traceback of the error below", exc_info=e)
+            print(f"illuminet: {e.one_line()}", file=sys.stderr)
+            rc = e.exit_code
+        except OSError as e:
+            status.close()
+            if cfg.logging.strict:  # strict: the traceback, as for any failure
+                raise
+            print(f"illuminet: {e}", file=sys.stderr)
+            rc = 1
+        finally:
+            status.close()
+            if stats.frames or stats.end_reason:
+                print(stats.format_stats(), file=report_stream(cfg))
+                # each stage's own counters, as the demo prints them (the serial IMU's skipped lines, the
+                # planes' bad depth, the anchor's placements ...: docs/runtime.md points users here)
+                print_stage_counters(stages, report_stream(cfg))
+            if stats.frames and no_output and not told:
+                # a first `illuminet run SOURCE` processed its frames and showed only a timing table: say why
+                print(
+                    "illuminet: no output was given, so the frames were processed and dropped; add --video FILE, "
+                    "--png-dir DIR, --record DIR, --estimates FILE or --mjpeg",
+                    file=sys.stderr,
+                )
+            if cfg.logging.stats_json:
+                try:
+                    write_stats_json(cfg, stats)
+                    if cfg.logging.stats_json != "-":
+                        print(f"statistics written to {cfg.logging.stats_json}", file=report_stream(cfg))
+                except OSError as e:  # checked before the start; the folder went away during the run
+                    where = cfg.logging.stats_json
+                    print(f"illuminet: [logging] stats_json: cannot write {where}: {e}", file=sys.stderr)
+                    rc = 1
     if stats.end_reason.startswith("source error"):
         rc = 1
     return rc or lost_frames_status(stats, "illuminet")

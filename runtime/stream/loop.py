@@ -496,6 +496,33 @@ def _signals_stop(stop: threading.Event, enabled: bool):
             signal.signal(s, h)
 
 
+@contextlib.contextmanager
+def signals_held():
+    """SIGINT/SIGTERM are noted, not acted on, in the block (main thread only; handlers restored
+    after). Around a command's run and its final reports: :func:`run_loop` installs its own handlers
+    while it runs and puts these back when it returns, so a signal in the cleanup after it (the
+    statistics file being written) no longer kills the process half-way (default SIGTERM) or raises
+    in the middle of a write (default SIGINT). The cleanup is short and ends the process anyway."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, _frame):
+        # before run_loop's handlers are in (a short window): its loop sees this and stops at once
+        _early_interrupt.set()
+        log.info("%s received: finishing the statistics and reports, then exiting", signal.Signals(signum).name)
+
+    previous = {}
+    for s in (signal.SIGINT, signal.SIGTERM):
+        previous[s] = signal.signal(s, handler)
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+        _early_interrupt.clear()  # one in the cleanup after the loop is for no later loop
+
+
 def _name(component: Any, fallback: str) -> str:
     return getattr(component, "name", None) or fallback
 
