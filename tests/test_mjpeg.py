@@ -309,6 +309,25 @@ class _Unserialisable:
         raise _BadJson("cannot be shown")
 
 
+def test_idle_refused_connections_do_not_delay_the_503_of_others():
+    """The refusing thread waited up to 0.5 s for each refused connection's request in turn: eight idle
+    ones queued before a real client held its 503 back for 4 s. Each now waits on its own."""
+    with MjpegSink(port=0, max_clients=1) as sink:
+        p = sink.port
+        held = socket.create_connection(("127.0.0.1", p), timeout=5)  # takes the only slot
+        assert _wait_for(lambda: sink.connections == 1)
+        idle = [socket.create_connection(("127.0.0.1", p), timeout=5) for _ in range(8)]
+        assert _wait_for(lambda: sink.refused_busy == 8)
+        t0 = time.monotonic()
+        assert _status(p) == 503
+        dt = time.monotonic() - t0
+        assert dt < 1.5, dt
+        for s in idle:  # they get theirs too, after their own wait
+            assert s.recv(4096).startswith(b"HTTP/1.1 503")
+            s.close()
+        held.close()
+
+
 def test_a_slow_request_head_is_dropped_at_the_deadline_and_frees_its_slot():
     """Slowloris: clients trickling header lines hold every slot only until the head deadline."""
     with MjpegSink(port=0, max_clients=2, head_timeout_s=1.0) as sink:

@@ -79,6 +79,7 @@ import json
 import logging
 import queue
 import select
+import selectors
 import socket
 import sys
 import threading
@@ -108,6 +109,7 @@ LISTEN_BACKLOG = 128
 #: refused connections waiting for their 503; more are closed without one
 REFUSE_QUEUE = 64
 #: how long the refusing thread waits for a refused client's request before answering it, seconds
+#: (each connection's own wait: the thread waits for all of them at once, so an idle one delays no other)
 REFUSE_READ_S = 0.5
 #: default total time a client has to send its request line and headers, seconds. The per-read
 #: timeout (30 s, for idle keep-alive) does not bound a client that trickles one header line every
@@ -662,6 +664,10 @@ class _Server(ThreadingHTTPServer):
         self.sink = sink
         self._refuse_q: queue.Queue = queue.Queue(maxsize=REFUSE_QUEUE)
         self._refuser: threading.Thread | None = None
+        # wakes the refusing thread from its select() when a connection is queued or the server closes
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._wake_w.setblocking(False)
         # the sockets of the connections being served: server_close() shuts them down, or a kept-alive
         # connection (a page polling /stats.json) would go on being answered after close()
         self._live: set[socket.socket] = set()
@@ -695,6 +701,14 @@ class _Server(ThreadingHTTPServer):
             self._refuse_q.put_nowait(request)
         except queue.Full:  # a flood: no 503 for these, just the close
             self.shutdown_request(request)
+            return
+        self._wake()
+
+    def _wake(self) -> None:
+        try:
+            self._wake_w.send(b"x")
+        except OSError:  # its buffer is full (it is awake anyway) or the server is closed
+            pass
 
     def process_request_thread(self, request, client_address) -> None:
         try:
@@ -717,27 +731,70 @@ class _Server(ThreadingHTTPServer):
         log.debug("MJPEG %s: request failed", who, exc_info=exc)
 
     def _refuse_loop(self) -> None:
-        """One thread answers every refused connection: read its request (briefly), 503, close."""
+        """One thread answers every refused connection: read its request (briefly), 503, close. It
+        waits for all of them at once (select), each for at most :data:`REFUSE_READ_S`: a refused
+        client that sends nothing (or slowly) does not hold up the 503 of the ones after it."""
         body = b"too many connections to this server; try again shortly\n"
         msg = (
             b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain; charset=utf-8\r\n"
             b"Content-Length: %d\r\nRetry-After: 2\r\nConnection: close\r\n\r\n%s" % (len(body), body)
         )
-        while True:
-            request = self._refuse_q.get()
-            if request is None:
-                return
+        sel = selectors.DefaultSelector()
+        sel.register(self._wake_r, selectors.EVENT_READ)
+        waiting: dict[socket.socket, float] = {}  # refused connection -> when its 503 goes out unread
+
+        def answer(request: socket.socket, read: bool) -> None:
             try:
-                request.settimeout(REFUSE_READ_S)
-                try:
-                    request.recv(65536)  # the request: read so that closing does not reset the connection
-                except OSError:
-                    pass
-                request.sendall(msg)
+                if read:  # the request: read so that closing does not reset the connection
+                    request.recv(65536)
+                request.send(msg)  # small: fits the socket's buffer, never waits
             except OSError:
                 pass
             finally:
+                sel.unregister(request)
+                del waiting[request]
                 self.shutdown_request(request)
+
+        try:
+            while True:
+                timeout = max(0.0, min(waiting.values()) - time.monotonic()) if waiting else None
+                for key, _ in sel.select(timeout):
+                    if key.fileobj is not self._wake_r:
+                        answer(key.fileobj, read=True)
+                        continue
+                    try:
+                        while self._wake_r.recv(4096):
+                            pass
+                    except OSError:
+                        pass
+                    while True:
+                        try:
+                            request = self._refuse_q.get_nowait()
+                        except queue.Empty:
+                            break
+                        if request is None:
+                            return
+                        if len(waiting) >= REFUSE_QUEUE:  # a flood: no 503 for these, just the close
+                            self.shutdown_request(request)
+                            continue
+                        request.setblocking(False)
+                        waiting[request] = time.monotonic() + REFUSE_READ_S
+                        sel.register(request, selectors.EVENT_READ)
+                now = time.monotonic()
+                for request in [r for r, deadline in waiting.items() if deadline <= now]:
+                    answer(request, read=False)
+        finally:
+            for request in list(waiting):
+                sel.unregister(request)
+                self.shutdown_request(request)
+            sel.close()
+            while True:  # queued after the close
+                try:
+                    request = self._refuse_q.get_nowait()
+                except queue.Empty:
+                    break
+                if request is not None:
+                    self.shutdown_request(request)
 
     def server_close(self) -> None:
         super().server_close()
@@ -748,13 +805,15 @@ class _Server(ThreadingHTTPServer):
                 request.shutdown(socket.SHUT_RDWR)
             except OSError:
                 pass  # already closed by its thread
-        if self._refuser is None:
-            return
-        try:
-            self._refuse_q.put_nowait(None)
-        except queue.Full:
-            pass
-        self._refuser.join(timeout=2.0)
+        if self._refuser is not None:
+            try:
+                self._refuse_q.put_nowait(None)
+            except queue.Full:
+                pass
+            self._wake()
+            self._refuser.join(timeout=2.0)
+        self._wake_r.close()
+        self._wake_w.close()
 
 
 class MjpegSink(Sink):
