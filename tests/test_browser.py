@@ -125,6 +125,27 @@ def test_stream_page_says_when_the_server_stops_backs_off_and_reopens_the_stream
     assert [p for p in page.problems if not any(k in p for k in down)] == []
 
 
+def test_stream_page_says_when_the_stream_stops_while_the_server_stays_up_and_reopens_it(page):
+    """The source ending or stalling while the server stayed up froze the picture with nothing said
+    (/stats.json still answered, so the page thought all was well)."""
+    with MjpegSink(port=0) as sink:
+        requests: list[str] = []
+        page.on("request", lambda r: requests.append(r.url))
+        with _Feeder(sink):
+            page.goto(f"http://127.0.0.1:{sink.port}/")
+            page.wait_for_function("document.getElementById('stream').naturalWidth === 320", timeout=10000)
+            assert page.evaluate("document.getElementById('conn').hidden")
+        # the frames stop; the server answers on
+        page.wait_for_function("!document.getElementById('conn').hidden", timeout=8000)
+        line = page.evaluate("document.getElementById('conn').textContent")
+        assert "no new frame" in line and "picture has stopped" in line and "Checking again" in line, line
+        n = len(requests)
+        with _Feeder(sink):  # frames again: the line goes and the stream is reopened
+            page.wait_for_function("document.getElementById('conn').hidden", timeout=10000)
+            assert any("/stream.mjpg?t=" in u for u in requests[n:]), requests[n:]
+    assert page.problems == []
+
+
 def test_stream_page_overlay_fits_a_phone_and_shows_server_text_as_text(page):
     """The overlay (~650 px tall) ran off a landscape phone's screen with no way to scroll (body
     overflow: hidden); strings from /stats.json were inserted as HTML."""
