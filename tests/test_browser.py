@@ -235,6 +235,32 @@ def test_viewer_over_the_camera_picture_draws_the_model_where_the_anchor_project
     assert page.problems == []
 
 
+def test_viewer_bad_query_parameters_fall_back_to_the_defaults_with_a_note(page):
+    """`/viewer?exposure=abc` drew a black canvas (NaN exposure) and said nothing; a bad tonemap, ui or
+    background was silently taken as something else."""
+    with MjpegSink(port=0) as sink, _Feeder(sink):
+        base = f"http://127.0.0.1:{sink.port}/viewer"
+        wait = "window.illuminetViewer && illuminetViewer.modelLoaded && illuminetViewer.rendered > 3"
+        page.goto(base + "?ui=0")
+        page.wait_for_function(wait, timeout=20000)
+        good = _shot(page)
+        page.goto(base + "?exposure=abc&tonemap=bogus&ui=2&background=yes")
+        page.wait_for_function(wait, timeout=20000)
+        text = page.evaluate("document.getElementById('status').textContent")
+        page.add_style_tag(content="#status { visibility: hidden !important }")  # the picture alone
+        page.wait_for_timeout(200)
+        bad = _shot(page)
+    for note in (
+        "?exposure=abc: expected a number > 0; using exposure=1",
+        "?tonemap=bogus: expected neutral, aces, agx, none; using tonemap=neutral",
+        "?ui=2: expected 1 or 0; using ui=true",
+        "?background=yes: expected 1 or 0; using background=false",
+    ):
+        assert note in text, text
+    assert abs(bad.mean() - good.mean()) < 3 and bad.max() > 100, (bad.mean(), good.mean(), bad.max())
+    assert page.problems == []
+
+
 def test_viewer_keeps_a_model_error_on_screen_with_the_servers_reason(page):
     """A /model.glb the server cannot make: the error line was overwritten by the next estimate's figures
     (and named only the status code)."""

@@ -16,14 +16,31 @@ import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 
 const params = new URLSearchParams(location.search);
-const withBackground = params.get("background") === "1";
-const showUi = params.get("ui") !== "0";
-const exposure = Number(params.get("exposure") || "1");
 const TONEMAPS = {
   neutral: THREE.NeutralToneMapping, aces: THREE.ACESFilmicToneMapping, agx: THREE.AgXToneMapping,
   none: THREE.NoToneMapping,
 };
-const tonemap = TONEMAPS[params.get("tonemap") || "neutral"] ?? THREE.NeutralToneMapping;
+// Every query parameter the page reads: a bad value (?exposure=abc drew a black canvas) falls back to
+// the default, and a note on the status line names it, what was expected and what is used instead.
+const paramNotes = [];
+function param(name, fallback, parse, expected) {
+  const raw = params.get(name);
+  if (raw === null) return fallback;
+  const v = parse(raw);
+  if (v !== undefined) return v;
+  paramNotes.push(`?${name}=${raw.slice(0, 40)}: expected ${expected}; using ${name}=${String(fallback)}`);
+  return fallback;
+}
+const flag = (raw) => (raw === "1" ? true : raw === "0" ? false : undefined);
+const withBackground = param("background", false, flag, "1 or 0");
+const showUi = param("ui", true, flag, "1 or 0");
+const exposure = param("exposure", 1, (raw) => {
+  const v = Number(raw);
+  return raw.trim() !== "" && Number.isFinite(v) && v > 0 ? v : undefined;
+}, "a number > 0");
+const tonemapName = param("tonemap", "neutral", (raw) => (Object.hasOwn(TONEMAPS, raw) ? raw : undefined),
+  Object.keys(TONEMAPS).join(", "));
+const tonemap = TONEMAPS[tonemapName];
 
 const state = { estimates: 0, frameId: null, last: null, modelLoaded: false, rendered: 0, errors: [] };
 window.illuminetViewer = state;
@@ -34,11 +51,13 @@ const statusEl = document.getElementById("status");
 if (!showUi) statusEl.style.display = "none";
 // the status line: a problem (the model, WebGL) stays on it, shown even with ui=0, above the
 // connection's state and the latest estimate's figures
-const status = { problem: "", connection: "", estimate: "loading…" };
+const status = { params: paramNotes.join("\n"), problem: "", connection: "", estimate: "loading…" };
 function showStatus() {
-  statusEl.textContent = [status.problem, status.connection, status.estimate].filter(Boolean).join("\n");
-  if (status.problem) statusEl.style.display = "";
+  statusEl.textContent = [status.params, status.problem, status.connection, status.estimate].filter(Boolean)
+    .join("\n");
+  if (status.params || status.problem) statusEl.style.display = "";
 }
+if (status.params) showStatus();
 
 // ---- camera picture behind the model (background=1)
 let bgImage = null;
