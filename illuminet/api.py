@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from illuminet.runtime.config import SCHEMA, Config, ConfigError, apply_overrides, defaults, load
+from illuminet.runtime.errors import IllumiNetError
 from illuminet.runtime.frame import Exposure, Frame, Intrinsics
 from illuminet.runtime.scene import ANCHOR, COMPOSITE, LIGHT, SHADING
 
@@ -185,6 +186,10 @@ class Result:
         return frame_estimate(self.frame)
 
 
+class StreamClosed(IllumiNetError, RuntimeError):
+    """A closed :class:`Stream` was opened, iterated or read again (it cannot be: open a new one)."""
+
+
 class Stream:
     """An iterator of :class:`Result` over a source, through the configured pipeline (and sinks).
 
@@ -204,14 +209,27 @@ class Stream:
         self._stack: contextlib.ExitStack | None = None
         self._source = self._chain = None
         self._sinks: list = []
-        self._done = False
         # a frame in progress and close() exclude each other: close() from another thread (a stop
         # button) waits for the frame instead of closing the stages and sinks under it
         self._busy = threading.RLock()
         self._finalizer: weakref.finalize | None = None
+        # closed (close(), the end of its `with`, or its source ended): reading it again raises
+        # StreamClosed, except the one next() that ends a loop another thread's close() interrupted
+        self._closed = False
+        self._end_pending = False
+        self._reader: int | None = None  # the thread that last called next()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise StreamClosed(
+                f"this stream of {self.url} is closed (its source ended, or close() or the end of its `with` "
+                f"block closed it) and cannot be read again; open a new one: illuminet.open({self.url!r}, ...)"
+            )
 
     def open(self) -> Stream:
-        """Open the source, the stages and the sinks (done by ``with`` or the first ``next``)."""
+        """Open the source, the stages and the sinks (done by ``with`` or the first ``next``).
+        :class:`StreamClosed` once the stream is closed."""
+        self._check_open()
         if self._stack is not None:
             return self
         from illuminet.hw import open_source
@@ -246,20 +264,23 @@ class Stream:
         self.close()
 
     def __iter__(self) -> Iterator[Result]:
+        self._check_open()
         return self
 
     def __next__(self) -> Result:
+        self._reader = threading.get_ident()
         with self._busy:
             return self._next()
 
     def _next(self) -> Result:
-        if self._done:
+        if self._end_pending:  # closed from another thread: the loop reading it ends
+            self._end_pending = False
             raise StopIteration
+        self._check_open()
         self.open()
         limit = self.cfg.source.max_frames
         frame = None if limit and self.frames >= limit else self._source.read()
         if frame is None:
-            self._done = True
             self.close()
             raise StopIteration
         frame, events = self._chain.run(frame)
@@ -272,10 +293,13 @@ class Stream:
 
     def close(self) -> None:
         """Close sinks, stages and source (outputs are finalised). Idempotent; from another thread it
-        waits for the frame in progress, and the iteration then ends."""
+        waits for the frame in progress, and the iteration then ends. Opening, iterating or reading
+        the stream after that raises :class:`StreamClosed`."""
         with self._busy:
             stack, self._stack = self._stack, None
-            self._done = True
+            if stack is not None and self._reader not in (None, threading.get_ident()):
+                self._end_pending = True
+            self._closed = True
             if self._finalizer is not None:
                 self._finalizer.detach()
                 self._finalizer = None

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import illuminet
+from illuminet.api import StreamClosed
 from illuminet.runtime.config import ConfigError
 from illuminet.runtime.frame import depth_to_mm
 from illuminet.runtime.stream.estimate_json import load_schema
@@ -50,8 +51,27 @@ def test_open_streams_results_with_estimates_and_closes():
     jsonschema.validate(d, schema)
     assert d["frameId"] == 4
     assert stream.failures == {} and stream.frames == 5
-    assert list(stream) == []  # exhausted and closed
+    with pytest.raises(StreamClosed, match="is closed"):  # exhausted and closed
+        list(stream)
     stream.close()  # idempotent
+
+
+def test_a_closed_stream_cannot_be_reopened_or_read_and_says_so():
+    """A closed stream could be reopened (`with`), iterated and read with next(): each silently gave
+    nothing, as if the source had no frames."""
+    url = "synthetic://indoor?frames=50&size=64x48"
+    s = illuminet.open(url, render=False, timing="asap")
+    with s:
+        assert next(s).frame.seq == 0
+    for attempt in (lambda: list(s), lambda: next(s), lambda: s.open(), lambda: s.__enter__()):
+        with pytest.raises(StreamClosed) as e:
+            attempt()
+        msg = str(e.value)
+        assert "\n" not in msg and "is closed" in msg and f"illuminet.open({url!r}" in msg, msg
+    never = illuminet.open(url, render=False)
+    never.close()  # closed before its first frame
+    with pytest.raises(StreamClosed):
+        next(never)
 
 
 def test_open_overrides_and_their_errors(tmp_path):
@@ -448,7 +468,10 @@ def test_stream_closed_from_another_thread_waits_for_the_frame_in_progress():
         closer.join(10)
         assert events == ["frame started", "frame done", "closed"]
         assert r.frame.seq == 1 and r.estimate is not None
-        assert list(s) == []  # closed: the iteration ends
+        with pytest.raises(StopIteration):  # closed from another thread: the loop reading it ends
+            next(s)
+        with pytest.raises(StreamClosed):  # and a new read says it is closed
+            list(s)
 
 
 def test_a_stream_left_open_is_closed_when_dropped_and_at_exit(tmp_path):
