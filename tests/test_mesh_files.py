@@ -238,3 +238,31 @@ def test_an_empty_object_path_is_named_as_empty_not_as_the_current_folder(tmp_pa
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and f"--object {spec!r}: empty; expected builtin:" in err, err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("name,expect", BAD_GEOMETRY, ids=[n for n, _ in BAD_GEOMETRY])
+def test_the_renderers_and_the_viewers_loaders_refuse_what_the_object_loader_refuses(tmp_path, capfd, name, expect):
+    """The renderer's own loader (RenderStage(mesh=PATH), the API) and --viewer-model's GLB drew a mesh the
+    bundle's object loader refuses: zero-area triangles (nothing to see), coordinates of 1e299 (inf once
+    in float32), with numpy's overflow warnings."""
+    from illuminet.runtime.stream.viewer import model_glb
+
+    _bad_geometry_files(tmp_path)
+    with pytest.raises(ValueError, match="expected") as e:
+        load_render_mesh(tmp_path / name)
+    assert expect in str(e.value) and "\n" not in str(e.value), str(e.value)
+    with pytest.raises(ValueError) as e:
+        model_glb(str(tmp_path / name))
+    assert expect in str(e.value) and f"viewer_model = {str(tmp_path / name)!r}" in str(e.value), str(e.value)
+    assert "Warning" not in capfd.readouterr().err
+
+
+def test_the_renderers_loader_refuses_a_mesh_over_the_bundle_array_limit(tmp_path, monkeypatch):
+    """The bundle loader refuses arrays over MAX_ARRAY_BYTES; the renderer's loader took any size."""
+    from illuminet.runtime.assets import bundle
+
+    (tmp_path / "box.ply").write_bytes(trimesh.exchange.ply.export_ply(_box()))
+    assert len(load_render_mesh(tmp_path / "box.ply").faces) == 12
+    monkeypatch.setattr(bundle, "MAX_ARRAY_BYTES", 100)  # 12 faces take 144 bytes
+    with pytest.raises(ObjectLoadError, match=r"box.ply: 12 faces would take 0 MB; expected at most 0 MB"):
+        load_render_mesh(tmp_path / "box.ply")

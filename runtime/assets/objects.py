@@ -399,6 +399,31 @@ def read_mesh(path: Path, process: bool = True, label: str | None = None):
         ) from None
 
 
+def check_geometry(mesh, path: Path) -> None:
+    """Refuse a loaded mesh the pipeline cannot draw or light, in one :class:`ObjectLoadError` line
+    naming ``path``: no triangles, not x y z, NaN or inf coordinates, more than the bundle loader's
+    :data:`~illuminet.runtime.assets.bundle.MAX_ARRAY_BYTES` per array, stray far vertices, no area.
+    What :func:`load_object` (the ``bundle`` command's loader) and the renderer's own loader check."""
+    from illuminet.runtime.assets.bundle import MAX_ARRAY_BYTES
+
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0 or len(mesh.vertices) == 0:
+        raise ObjectLoadError(f"{path}: holds no triangles (a point cloud or empty mesh?)")
+    _check_xyz(mesh, path)
+    for what, n in (("vertices", len(mesh.vertices)), ("faces", len(mesh.faces))):
+        if 12 * n > MAX_ARRAY_BYTES:  # three float32 / uint32 each, as drawn
+            raise ObjectLoadError(
+                f"{path}: {n} {what} would take {12 * n / 2**20:.0f} MB; expected at most "
+                f"{MAX_ARRAY_BYTES // 2**20} MB per array: simplify (decimate) the mesh"
+            )
+    if not np.all(np.isfinite(mesh.vertices)):
+        raise ObjectLoadError(
+            f"{path}: has non-finite vertex coordinates (NaN or inf, in the file or from a node's transform); "
+            "fix or re-export the mesh"
+        )
+    _check_extent(mesh, path)
+    _check_area(mesh, path)
+
+
 def load_object(
     spec: str, detail: str = "render", height: float | None = DEFAULT_HEIGHT, up: str = "y"
 ) -> trimesh.Trimesh:
@@ -458,16 +483,7 @@ def load_object(
             raise ObjectLoadError(f"{path}: cannot flatten the scene into one mesh ({e})") from None
     else:
         mesh = loaded
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0 or len(mesh.vertices) == 0:
-        raise ObjectLoadError(f"{path}: holds no triangles (a point cloud or empty mesh?)")
-    _check_xyz(mesh, path)
-    if not np.all(np.isfinite(mesh.vertices)):
-        raise ObjectLoadError(
-            f"{path}: has non-finite vertex coordinates (NaN or inf, in the file or from a node's transform); "
-            "fix or re-export the mesh"
-        )
-    _check_extent(mesh, path)
-    _check_area(mesh, path)
+    check_geometry(mesh, path)
     if mesh.is_watertight and mesh.is_winding_consistent and mesh.volume < 0:
         # a closed surface wound inside out (an export with flipped normals): every normal pointed into the
         # object, and the PRT, which lights a surface from the side its normal faces, made it black (exit 0)

@@ -309,10 +309,17 @@ def _load_obj(path: Path) -> RenderMesh:
     import trimesh
     from trimesh.exchange.obj import load_obj
 
-    from illuminet.runtime.assets.objects import ObjectLoadError, _text_safe, _TextResolver
+    from illuminet.runtime.assets.objects import (
+        ObjectLoadError,
+        _check_obj_indices,
+        _check_xyz,
+        _text_safe,
+        _TextResolver,
+    )
 
     # not UTF-8 (a Latin-1 comment): read as Latin-1, not guessed by trimesh with an optional module
     data = _text_safe(path.read_bytes(), ".obj")
+    _check_obj_indices(data, path)  # `f 0 1 2`: the object loader's check (trimesh reads 0 as the last vertex)
     try:
         loaded = load_obj(io.BytesIO(data), resolver=_TextResolver(str(path)), skip_materials=False)
     except Exception as e:  # trimesh raises many types for broken files
@@ -336,6 +343,7 @@ def _load_obj(path: Path) -> RenderMesh:
         vis = g.get("visual")
         uv = getattr(vis, "uv", None) if vis is not None else None
         m = trimesh.Trimesh(vertices=g["vertices"], faces=g["faces"], process=False)
+        _check_xyz(m, path)  # `v x y` lines: the object loader's line, not a numpy error from the normals
         if uv is not None and len(uv) == len(m.vertices):
             m.visual = trimesh.visual.TextureVisuals(uv=uv)
         elif "vertex_colors" in g:
@@ -454,7 +462,9 @@ def load_render_mesh(src: Any) -> RenderMesh:
         return src
     if not isinstance(src, (str, os.PathLike)):
         return RenderMesh.from_trimesh(src)
-    from illuminet.runtime.assets.objects import check_mesh_path, read_mesh
+    import trimesh
+
+    from illuminet.runtime.assets.objects import check_geometry, check_mesh_path, read_mesh
 
     path = Path(src)
     if not path.exists() and not path.is_symlink():
@@ -462,11 +472,18 @@ def load_render_mesh(src: Any) -> RenderMesh:
     check_mesh_path(path, str(path))  # a directory, a symlink loop, an empty file: one line saying so
     ext = path.suffix.lower()
     if ext == ".obj":
-        return _load_obj(path)
+        mesh = _load_obj(path)  # this module's own parser (materials, textures); then the same checks
+        check_geometry(trimesh.Trimesh(mesh.vertices, mesh.faces, process=False), path)
+        return mesh
     if ext not in (".glb", ".gltf", ".ply", ".stl", ".off"):
         raise ValueError(f"{path}: unknown mesh kind {ext!r}; expected .glb, .gltf, .obj, .ply, .stl or .off")
-    loaded = read_mesh(path, process=False, label=str(path))  # ObjectLoadError (a ValueError) naming the file
-    mesh = RenderMesh.from_trimesh(loaded, source=str(path))
+    with np.errstate(all="ignore"):  # a node scaled by 1e300: the check below says so, not numpy's warnings
+        loaded = read_mesh(path, process=False, label=str(path))  # ObjectLoadError (a ValueError) naming the file
+        if isinstance(loaded, trimesh.Trimesh):
+            check_geometry(loaded, path)  # before RenderMesh: its float32 turns 1e300 into inf
+        elif isinstance(loaded, trimesh.Scene) and loaded.geometry:
+            check_geometry(loaded.to_mesh(), path)
+        mesh = RenderMesh.from_trimesh(loaded, source=str(path))
     if ext in (".glb", ".gltf") and mesh.uv is not None and all(p.texture is None for p in mesh.parts):
         texs = _gltf_textures(path)
         if texs:  # trimesh could not decode the images (no Pillow): give the first one to textured parts

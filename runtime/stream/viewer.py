@@ -123,6 +123,13 @@ def model_glb(spec: str, scale: float = 1.0) -> bytes:
             raise ValueError(f"[output] viewer_model = {spec!r}: not a readable glTF binary ({e})") from None
         if not any(len(getattr(g, "faces", ())) for g in scene.geometry.values()):
             raise ValueError(f"[output] viewer_model = {spec!r}: holds no triangles to draw")
+        from illuminet.runtime.assets.objects import check_geometry
+
+        try:  # what the bundle's and the renderer's loaders refuse: NaN, far stray vertices, no area, too large
+            with np.errstate(all="ignore"):
+                check_geometry(scene.to_mesh(), Path(spec))
+        except ObjectLoadError as e:
+            raise ValueError(f"[output] viewer_model = {spec!r}: {e}") from None
         return Path(spec).read_bytes()
 
     from illuminet.runtime.assets.objects import load_object
