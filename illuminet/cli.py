@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import difflib
+import errno
 import importlib
 import logging
 import os
@@ -196,6 +197,19 @@ def report_error(e: IllumiNetError, *, debug: bool) -> int:
     return e.exit_code
 
 
+def _name_too_long(e: OSError, *, debug: bool) -> int:
+    """A path the system refuses as too long (a name over 255 bytes, a path over 4096): one line naming
+    it, exit 2. Every path option met it first in an existence check (pathlib's ``exists`` raises it)."""
+    if debug:
+        traceback.print_exception(e, file=sys.stderr)
+    print(
+        f"illuminet: {e.filename}: the path is too long for this system ({e.strerror}); expected file and "
+        "folder names of at most 255 bytes: give a shorter path",
+        file=sys.stderr,
+    )
+    return 2
+
+
 def _not_sparse_fallback(record: logging.LogRecord) -> bool:
     return "unable to use sparse matrix" not in record.getMessage()
 
@@ -217,6 +231,10 @@ def main(argv: list[str] | None = None) -> int:
         # the doctor still diagnoses the machine: a broken config.toml is one of its findings, not a
         # reason to refuse (the checks then use the built-in defaults)
         args.config_error, cfg = e.one_line(), None
+    except OSError as e:
+        if e.errno != errno.ENAMETOOLONG:
+            raise
+        return _name_too_long(e, debug=debug)
     level = getattr(logging, (cfg.logging.level if cfg is not None else args.log_level or "info").upper())
     logging.basicConfig(level=level, format="%(asctime)s %(levelname).1s %(name)s: %(message)s")
     if level > logging.DEBUG:
@@ -232,6 +250,10 @@ def main(argv: list[str] | None = None) -> int:
         return report_error(e, debug=debug or level <= logging.DEBUG)
     except KeyboardInterrupt:
         return 130
+    except OSError as e:
+        if e.errno != errno.ENAMETOOLONG:
+            raise
+        return _name_too_long(e, debug=debug or level <= logging.DEBUG)
     except BrokenPipeError:  # `illuminet config | head`: the reader left; nothing to report
         try:
             sys.stdout = open(os.devnull, "w")  # noqa: SIM115 (the interpreter flushes stdout at exit)

@@ -158,6 +158,11 @@ BAD_INPUTS += [
     # a pipe where a file is read waited for a writer for ever
     (["--config", "{tmp}/hdrpipe/config.toml", "config"], 2, "config.toml: not a regular file (a pipe or device?)"),
     (_DATAGEN + ["--hdr", "{tmp}/hdrpipe"], 2, "--hdr {tmp}/hdrpipe: none of its training maps"),
+    # a name over 255 bytes: pathlib's exists() raised "OSError: [Errno 36] File name too long", a traceback
+    (["--config", "{tmp}/" + "c" * 300, "config"], 2, "c" * 300 + ": the path is too long for this system"),
+    (["record", "synthetic://indoor?frames=1", "{tmp}/" + "s" * 300], 2, "the path is too long for this system"),
+    (["run", "synthetic://indoor", "--png-dir", "{tmp}/" + "p" * 300], 2, "the path is too long for this system"),
+    (_DATAGEN + ["--out", "{tmp}/" + "d" * 300 + ".npz"], 2, "the path is too long for this system"),
 ]
 
 
