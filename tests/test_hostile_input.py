@@ -155,6 +155,9 @@ BAD_INPUTS += [
     (_DATAGEN + ["--out", "/proc/dg.npz"], 2, "--out /proc/dg.npz: cannot write files there (No such file"),
     (_TRAIN + ["--out", "/proc/t"], 2, "--out /proc/t: cannot write files there"),
     (_EVAL + ["--out", "/proc/ev"], 2, "--out /proc/ev: cannot write files there"),
+    # an empty --out read as none: the job ran and wrote ./bundles/<object> or ./eval/<bundle>, exit 0
+    (_TRAIN + ["--out", ""], 2, "--out '': the path is empty; expected a folder: name one, or leave --out out"),
+    (_EVAL + ["--out", " "], 2, "--out ' ': the path is empty; expected a folder"),
     # a pipe where a file is read waited for a writer for ever
     (["--config", "{tmp}/hdrpipe/config.toml", "config"], 2, "config.toml: not a regular file (a pipe or device?)"),
     (_DATAGEN + ["--hdr", "{tmp}/hdrpipe"], 2, "--hdr {tmp}/hdrpipe: none of its training maps"),

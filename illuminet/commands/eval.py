@@ -231,7 +231,7 @@ def _crosscheck(args, hdr: str) -> int:
 
 def check_eval_arguments(args: argparse.Namespace) -> None:
     """Every count, seed, number and path of the flags, before a bundle is loaded or a suite run."""
-    from illuminet.commands.train import check_count, check_hdr, check_out, check_seed
+    from illuminet.commands.train import check_count, check_hdr, check_out, check_out_given, check_seed
 
     for flag, value, least, note in (
         ("--cases", args.cases, 0, " (0 skips it)"),
@@ -259,6 +259,7 @@ def check_eval_arguments(args: argparse.Namespace) -> None:
     if args.object_albedo is not None and not 0.0 <= args.object_albedo < 1.0:  # NaN fails it too
         raise _usage(f"--object-albedo: expected a number in [0, 1), got {args.object_albedo!r} (0 = a black object)")
     check_hdr(args.hdr, held_out=True)
+    check_out_given(args.out, "./eval/<bundle name>")
     if args.out:
         check_out("--out", Path(args.out), folder=True)
 

@@ -175,6 +175,13 @@ def check_data_size(flag: str, samples: int, grid: int, n_proxy: int, fix: str) 
         )
 
 
+def check_out_given(out: str | None, default: str) -> None:
+    """``--out ''`` (or blanks): it read as no --out at all, so the job ran for minutes and wrote its
+    folder at the default place without a word."""
+    if out is not None and not out.strip():
+        raise _usage(f"--out {out!r}: the path is empty; expected a folder: name one, or leave --out out for {default}")
+
+
 def check_out(flag: str, out: Path, folder: bool, what: str = "files") -> None:
     """Refuse an output path that cannot be made: a file where a folder is needed (``folder``: ``out``
     itself), a file where one of its parent folders would be, or a folder that cannot be created or
@@ -467,6 +474,7 @@ def check_train_arguments(args: argparse.Namespace) -> list[tuple[str, str]] | N
         fix = "give fewer (the paper-like gpu preset trains on 10000)"
         check_data_size(flag, n, tcfg.grid, tcfg.n_proxy, fix)
     check_hdr(args.hdr)
+    check_out_given(args.out, "./bundles/<object>")
     if args.out:
         check_out("--out", Path(args.out), folder=True)
     if args.objects is not None:
