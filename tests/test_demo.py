@@ -169,6 +169,10 @@ def test_demo_rejects_bad_arguments(tmp_path, capsys):
     rc = main(["demo", "--frames", "1", "--source", "nope://x", "--no-video", "--still", ""])
     assert rc == 2  # a malformed or unknown source URL is a usage mistake, as for `run` (was 1 here)
     assert "nope" in capsys.readouterr().err
+    # an empty value read as none: the demo ran (and wrote out/demo.mp4) or replayed the built-in session
+    for flag in ("--out", "--source", "--make-default-session"):
+        assert main(["demo", "--frames", "1", flag, " ", "--still", ""]) == 2
+        assert f"illuminet demo: {flag} ' ' is empty; expected " in capsys.readouterr().err
 
 
 def test_demo_missing_session_is_one_line(tmp_path, capsys):

@@ -419,6 +419,14 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
     from illuminet.runtime.stream.loop import LoopStats, run_loop, signals_held
     from illuminet.runtime.stream.sinks import SinkError
 
+    for flag, value, expected in (
+        ("--out", args.out, "a video file; leave --out out for out/demo.mp4, or --no-video for none"),
+        ("--source", args.source, "a frame source URL; leave --source out for the built-in session"),
+        ("--make-default-session", args.make_default_session, "the new folder to write the session into"),
+    ):
+        if value is not None and not value.strip():  # read as not given: the demo ran as without the flag
+            print(f"illuminet demo: {flag} {value!r} is empty; expected {expected}", file=sys.stderr)
+            return 2
     if args.make_default_session:
         return _make_session(args)
     if args.seed != DEFAULT_SESSION_SEED:
