@@ -519,3 +519,61 @@ def test_a_faded_primary_light_takes_its_position_with_it():
         out = st._filter(gone, f(i))
         assert (out["dir"] is None) == (out["pos"] is None), (i, out["dir"], out["pos"])
     assert out["dir"] is None and out["pos"] is None
+
+
+@pytest.mark.shared_data
+@pytest.mark.parametrize("device", ["1944301021A7751300", "19443010A1D3731300", "19443010A1AC731300"])
+def test_the_white_plate_under_the_object_needs_no_albedo_over_one(shared_data, device):
+    """Real OAK-D frames: a white plate 18 cm above a green floor, the object placed on the plate. The
+    floor's many pixels outweigh the plate's few cells in the solve; the light it gave lit the plate at
+    a third of what the plate itself measures, so the plate would have needed an albedo of 1.5-2 and
+    the virtual white object came out far darker than the white plate beside it. Energy conservation:
+    the light on the plate is at least its radiance x pi / 1 (albedo <= 1)."""
+    import cv2
+
+    import illuminet
+    from illuminet.runtime.physics import linearize
+    from illuminet.runtime.sh import sh9
+
+    d = shared_data / "oakd_rgbd" / device / "01"
+    color = cv2.cvtColor(cv2.imread(str(d / "color.png")), cv2.COLOR_BGR2RGB)
+    depth = cv2.imread(str(d / "depth.png"), cv2.IMREAD_UNCHANGED)
+    K = np.array([[512.0, 0, 320], [0, 512.0, 180], [0, 0, 1]])
+    est = illuminet.relight(color, depth, K, (320, 180), bundle="builtin:vase").light
+    up = np.array([[0.0, 1.0, 0.0]])
+    e_up = (sh9(up) @ est.sh9)[0] + est.primary_rgb * max(0.0, float(est.primary_dir[1]))
+    patch = color[150:210, 280:360].reshape(-1, 3)
+    lum = linearize(patch[patch.max(1) < 250]) @ [0.2126, 0.7152, 0.0722]  # unclipped plate pixels
+    albedo = np.pi * float(np.median(lum)) / (float(e_up @ [0.2126, 0.7152, 0.0722]) * est.exposure_scale)
+    # the bound is taken over the plate's grid cells, whose edge cells mix in the floor's colour (these
+    # recordings' depth and colour are misaligned at the plate's edges): the plate's centre reads up
+    # to ~10 % higher than its median cell (before: 1.61 on the first device)
+    assert albedo <= 1.2, albedo
+
+
+def test_no_plane_needs_an_albedo_over_one_under_the_estimate():
+    """A small white table top (the anchor grid) beside a large dark floor with the same normal: the
+    least-squares light follows the floor's many rows; scaled by the energy bound, the table top's
+    measured irradiance (at the assumed albedo) needs no albedo above ALBEDO_MAX."""
+    from illuminet.runtime.sh import SH_A_HAT, sh9
+    from illuminet.runtime.stages.light_estimate import ALBEDO_MAX, LightEstimateStage
+
+    stage = LightEstimateStage(apply_overrides(defaults(), [("light", "environment", False)]))
+    rng = np.random.default_rng(1)
+    top = np.c_[rng.uniform(-0.1, 0.1, (40, 1)), np.zeros((40, 1)), rng.uniform(-0.1, 0.1, (40, 1))]
+    floor = np.c_[rng.uniform(-1, 1, (1700, 1)), np.full((1700, 1), -0.18), rng.uniform(-1, 1, (1700, 1))]
+    xs = np.concatenate([top, floor])
+    ns = np.tile([0.0, 1.0, 0.0], (len(xs), 1))
+    # the same light on both; the top is white (albedo 0.85), the floor dark (0.2), read at albedo 0.5
+    E = 1.0
+    es = np.concatenate([np.full(40, E * 0.85 / 0.5), np.full(1700, E * 0.2 / 0.5)])[:, None] * np.ones(3)
+    gs = np.repeat([0, 1], [40, 1700])
+    ws = np.ones(len(xs))
+    L_rad, E_p = stage._solve(xs, ns, es, ws, None, None)
+    k = stage._albedo_bound(xs, ns, es, gs, L_rad, E_p, None, None)
+    e_up = float((sh9(np.array([[0.0, 1.0, 0.0]])) @ (L_rad * SH_A_HAT[:, None]))[0, 1])
+    assert 0.85 / 0.5 * stage.albedo / e_up > 1.2  # the solve alone: the top needs an albedo over 1
+    assert 0.85 / 0.5 * stage.albedo / (k * e_up) == pytest.approx(ALBEDO_MAX, rel=1e-6)
+    assert k * e_up <= E  # a lower bound: never brighter than the true light
+    # a plane already consistent with the light is left alone
+    assert stage._albedo_bound(xs[40:], ns[40:], es[40:], gs[40:], L_rad, E_p, None, None) == 1.0

@@ -110,6 +110,10 @@ EMITTER_CLIPPED = 0.3
 #: the emitter cue needs its bright bins gathered: the length of their luminance-weighted mean direction
 #: at least this (0.95: within ~18 deg of their centre on average; a lamp, a window, the sun's bins)
 EMITTER_COMPACT = 0.95
+#: a diffuse surface sends back at most the light it receives (energy conservation): the estimate must
+#: light every tracked plane at least as brightly as its measured radiance asks of an albedo this high
+#: (:meth:`LightEstimateStage._albedo_bound`)
+ALBEDO_MAX = 1.0
 #: the neutral prior's weight against the share of pixels that voted (0.1: a tenth of the view on the locus
 #: already gives half the measured colour)
 LOCUS_PRIOR = 0.1
@@ -817,6 +821,9 @@ class LightEstimateStage(Stage):
             }.get(cues[0], 0.5)
         if primary_dir is not None and float(E_p @ LUMA) <= 0:
             primary_dir, primary_pos, E_p, conf_dir = None, None, np.zeros(3), 0.0
+        if self.use_planes:
+            k = self._albedo_bound(xs, ns, es, gs, L_rad, E_p, primary_dir, primary_pos)
+            L_rad, E_p = L_rad * k, E_p * k
         raw = {"sh9": L_rad * SH_A_HAT[:, None], "dir": primary_dir, "rgb": E_p, "pos": primary_pos}
         filt = self._filter(raw, frame)
         obs = {
@@ -1065,6 +1072,36 @@ class LightEstimateStage(Stage):
             rel = float(np.std(X[:, 1:] @ coef[1:]) / max(float(np.mean(lum[m])), 1e-12))
             out[m] *= 1.0 / (1.0 + (rel / LOCAL_VARIATION) ** 2)
         return out
+
+    def _albedo_bound(self, xs, ns, es, gs, L_rad, E_p, primary_dir, primary_pos) -> float:
+        """Factor (>= 1) the light must grow by so that no tracked plane needs an albedo over ALBEDO_MAX.
+
+        Every plane's irradiance row assumes ``[plane_light] assumed_albedo``, and the solve weighs the
+        planes by their rows: a large dark floor outweighs the small white table top the object stands
+        on. A real OAK-D frame (a white plate 18 cm above a green floor, the plate's 38 cells against
+        the floor's 1700 pixels) lit the object at a third of what the plate itself measured: the plate
+        would have needed an albedo of 1.4-1.6 under that light, so the virtual white vase came out far
+        darker than the real white plate beside it. No diffuse surface reflects more than it receives,
+        so the median ratio of measured to predicted irradiance of each plane (a few glossy or clipped
+        cells move no median) times the assumed albedo is a lower bound on the light's level; the
+        ambient and the primary are scaled together (their split and directions stay as solved)."""
+        if not len(xs):
+            return 1.0
+        pred = sh9(ns) * SH_A_HAT[None, :] @ L_rad
+        if primary_dir is not None:
+            if primary_pos is not None:
+                col = _near_basis(primary_pos[None], xs, ns)[0] * float(np.sum((primary_pos - CENTRE) ** 2))
+            else:
+                col = np.maximum(ns @ primary_dir, 0.0)
+            pred = pred + col[:, None] * np.asarray(E_p, np.float64)[None, :]
+        pred_l, obs_l = pred @ LUMA, es @ LUMA
+        k = 1.0
+        for g in np.unique(gs):
+            m = (gs == g) & (pred_l > 1e-12)
+            if m.sum() < 8:
+                continue
+            k = max(k, float(np.median(obs_l[m] / pred_l[m])) * self.albedo / ALBEDO_MAX)
+        return k
 
     @staticmethod
     def _grid_half_extent(pl: PlaneLight) -> float | None:
