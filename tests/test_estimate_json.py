@@ -501,3 +501,52 @@ def test_record_refuses_estimates_it_cannot_make(tmp_path, capsys):
 
     assert main(["record", "synthetic://indoor", str(tmp_path / "r"), "--estimates", str(tmp_path / "e.jsonl")]) == 2
     assert "use `illuminet run SOURCE --record OUT --estimates FILE`" in capsys.readouterr().err
+
+
+def test_an_estimates_file_on_a_full_disk_keeps_only_whole_lines(tmp_path):
+    """A file that reaches its size limit (RLIMIT_FSIZE: what a full disk does to a write) ended with a
+    torn line, half a JSON object that its reader choked on; a line is written whole or not at all."""
+    import resource
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = (
+        "import sys\n"
+        "from tests._sessions import frames\n"
+        "from tests.test_estimate_json import _with_light\n"
+        "from illuminet.runtime.stream.sinks import EstimateSink, SinkError\n"
+        "sink = EstimateSink(sys.argv[1]); sink.open(); fails = 0\n"
+        "for f in frames(20):\n"
+        "    try:\n"
+        "        sink.write(_with_light(f))\n"
+        "    except OSError:\n"
+        "        fails += 1\n"
+        "try:\n"
+        "    sink.close()\n"
+        "except SinkError as e:\n"
+        "    print(e, file=sys.stderr)\n"
+        "print(fails, sink.stats()['estimates'])\n"
+    )
+    path = tmp_path / "est.jsonl"
+    limit = 10_000  # a few lines of ~1.4 kB: the limit falls inside a line
+
+    def small_disk():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+
+    p = subprocess.run(
+        [sys.executable, "-c", code, str(path)],
+        cwd=Path(__file__).resolve().parents[1],
+        preexec_fn=small_disk,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert p.returncode == 0, p.stderr
+    fails, written = map(int, p.stdout.split())
+    data = path.read_bytes()
+    assert 0 < len(data) <= limit and data.endswith(b"\n"), data[-80:]
+    lines = data.decode().splitlines()
+    assert [json.loads(x)["frameId"] for x in lines] == list(range(written))
+    assert fails == 20 - written > 0
+    assert f"estimates {path}: cannot write the last lines: File too large" in p.stderr

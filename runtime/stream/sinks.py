@@ -452,9 +452,11 @@ class EstimateSink(Sink):
         if not p.parent.is_dir():
             raise SinkError(f"estimates {p}: folder {p.parent} does not exist")
         try:
-            self._fh = open(p, "w", encoding="utf-8")
+            self._fh = open(p, "wb", buffering=0)  # unbuffered: each line goes out whole in write()
         except OSError as e:
             raise SinkError(f"estimates {p}: cannot write: {e.strerror or e}") from None
+        self._whole = 0  # the file's length up to its last whole line
+        self._error = None
 
     def write(self, frame: Frame) -> None:
         from illuminet.runtime.stream.estimate_json import frame_estimate, to_line
@@ -464,6 +466,10 @@ class EstimateSink(Sink):
         self.frames += 1
         d = frame_estimate(frame)
         if d is None:
+            return
+        if self.path != "-":
+            self._write_whole(to_line(d).encode("utf-8") + b"\n")
+            self.written += 1
             return
         try:
             self._fh.write(to_line(d) + "\n")
@@ -475,12 +481,35 @@ class EstimateSink(Sink):
             raise OutputClosed("estimates -: the reader of standard output has gone; the run ends") from None
         self.written += 1
 
+    def _write_whole(self, data: bytes) -> None:
+        """Write one line to the file whole or not at all: a full disk (or a file size limit) that
+        stops it half-way left a torn JSON line at the end of the file; it is cut back to the last
+        whole line, and the error raised (the loop counts the frame as missing from this output)."""
+        fh = self._fh
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[fh.write(view) :]
+        except OSError as e:
+            try:
+                fh.truncate(self._whole)
+                fh.seek(self._whole)
+            except OSError:  # a device (/dev/full) has no length to cut back
+                pass
+            self._error = e
+            raise
+        self._whole += len(data)
+        self._error = None
+
     def close(self) -> None:
         fh, self._fh = self._fh, None
         if fh is not None and self.path != "-":
             try:
                 fh.close()
-            except OSError as e:  # the last lines' flush on a full disk: it printed "[Errno 28] ..." alone
+            except OSError as e:
+                self._error = e
+            if self._error is not None:  # the last lines were lost to a full disk: name the file
+                e, self._error = self._error, None
                 raise SinkError(f"estimates {self.path}: cannot write the last lines: {e.strerror or e}") from None
 
     def stats(self) -> dict:
