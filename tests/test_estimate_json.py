@@ -151,7 +151,7 @@ def test_jsonl_sink_writes_one_valid_line_per_frame_with_an_estimate(tmp_path):
     with EstimateSink(path) as sink:
         for k, f in enumerate(fs):
             sink.write(_with_light(f) if k != 2 else f)  # frame 2: no estimate (no anchor yet)
-        assert sink.stats() == {"frames": 5, "estimates": 4}
+        assert sink.stats() == {"frames": 5, "estimates": 4, "dropped_lines": 0}
     lines = path.read_text().splitlines()
     assert [json.loads(x)["frameId"] for x in lines] == [0, 1, 3, 4]
     for x in lines:
@@ -550,3 +550,123 @@ def test_an_estimates_file_on_a_full_disk_keeps_only_whole_lines(tmp_path):
     assert [json.loads(x)["frameId"] for x in lines] == list(range(written))
     assert fails == 20 - written > 0
     assert f"estimates {path}: cannot write the last lines: File too large" in p.stderr
+
+
+def _pipe_as_stdout(monkeypatch):
+    """``--estimates -`` piped into a consumer: sys.stdout is the write end of an os.pipe; returns its read end."""
+    import os
+    import sys
+
+    r, w = os.pipe()
+    monkeypatch.setattr(sys, "stdout", os.fdopen(w, "w"))
+    return r
+
+
+def _read_all(fd: int) -> bytes:
+    import os
+
+    out = b""
+    while chunk := os.read(fd, 1 << 16):
+        out += chunk
+    return out
+
+
+def test_estimates_to_a_pipe_whose_reader_stops_reading_do_not_block_the_loop(monkeypatch):
+    """``run LIVE --estimates - | consumer`` where the consumer stops reading but keeps the pipe open:
+    the loop blocked in write() once the pipe's 64 kB were full, freezing the whole stream (MJPEG too),
+    and close() blocked for ever. Lines are now dropped (oldest first, counted) and close is bounded."""
+    import os
+
+    r = _pipe_as_stdout(monkeypatch)
+    fs = [_with_light(f) for f in frames(300)]  # ~1.4 kB each: far more than the pipe holds
+    sink = EstimateSink("-")
+    sink.open()
+    done = {}
+
+    def loop():
+        for f in fs:
+            sink.write(f)
+        t0 = time.monotonic()
+        sink.close()
+        done["close_s"] = time.monotonic() - t0
+
+    t = threading.Thread(target=loop, daemon=True)
+    t.start()
+    t.join(30)
+    try:
+        assert not t.is_alive(), "the loop blocked writing to a pipe nobody reads"
+        assert done["close_s"] < 5
+        st = sink.stats()
+        assert st["frames"] == 300 and st["dropped_lines"] > 0
+        assert st["estimates"] + st["dropped_lines"] == 300
+        sys_stdout_w = __import__("sys").stdout
+        sys_stdout_w.close()  # the test's end of the pipe; the reader then sees what got through
+        lines = _read_all(r).decode().splitlines()
+    finally:
+        os.close(r)
+    ids = [json.loads(x)["frameId"] for x in lines]  # every line whole, in order
+    assert len(ids) == st["estimates"] and ids == sorted(set(ids)) and set(ids) <= set(range(300))
+
+
+def test_estimates_to_a_pipe_whose_reader_keeps_up_keep_every_line_in_order(monkeypatch):
+    import os
+    import sys
+
+    r = _pipe_as_stdout(monkeypatch)
+    got = []
+    reader = threading.Thread(target=lambda: got.append(_read_all(r)), daemon=True)
+    reader.start()
+    fs = [_with_light(f) for f in frames(300)]
+    sink = EstimateSink("-")
+    sink.open()
+    for f in fs:
+        sink.write(f)
+        time.sleep(0.002)  # a live stream's pace; the reader keeps up
+    sink.close()
+    sys.stdout.close()
+    reader.join(10)
+    os.close(r)
+    assert sink.stats() == {"frames": 300, "estimates": 300, "dropped_lines": 0}
+    assert [json.loads(x)["frameId"] for x in got[0].decode().splitlines()] == list(range(300))
+
+
+def test_a_run_whose_estimates_reader_stops_reading_stops_at_one_sigterm(tmp_path):
+    """``illuminet run LIVE --estimates - --video V | consumer``, the consumer stalled: the stream froze
+    and one SIGTERM (a service manager's stop) did nothing, so the SIGKILL after it left the video
+    unfinished. Now the stream goes on, the SIGTERM ends it, the video is finalised."""
+    import fcntl
+    import signal
+    import subprocess
+    import sys
+
+    video = tmp_path / "v.mp4"
+    argv = [sys.executable, "-m", "illuminet", "run", "synthetic://lamp?frames=100000&size=160x100"]
+    argv += ["--estimates", "-", "--video", str(video)]
+    p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    errs: list[bytes] = []
+    drain = threading.Thread(target=lambda: errs.extend(p.stderr), daemon=True)
+    drain.start()
+    try:
+        fcntl.fcntl(p.stdout.fileno(), 1031, 4096)  # F_SETPIPE_SZ: the smallest pipe, full after a few lines
+        deadline = time.monotonic() + 60
+        while not int.from_bytes(fcntl.ioctl(p.stdout.fileno(), 0x541B, b"\0\0\0\0"), sys.byteorder):  # FIONREAD
+            assert time.monotonic() < deadline and p.poll() is None, b"".join(errs).decode()
+            time.sleep(0.1)
+        deadline = time.monotonic() + 15  # the stream goes on past the full pipe, and drops lines
+        while not any(b"not keeping up" in x for x in errs) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        p.send_signal(signal.SIGTERM)
+        try:
+            rc = p.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            raise AssertionError("one SIGTERM did not stop a run whose estimates reader stalled") from None
+    finally:
+        p.kill()
+        p.wait()
+    drain.join(10)
+    err = b"".join(errs).decode()
+    assert rc == 0, err
+    assert "ended: stopped" in err and "Traceback" not in err, err
+    assert "not keeping up" in err and "dropped_lines=" in err, err
+    cap = cv2.VideoCapture(str(video))
+    assert cap.isOpened() and cap.read()[0], "the video was not finalised"

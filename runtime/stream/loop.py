@@ -100,6 +100,9 @@ class LoopStats:
         that owns it, if at all (the light stage's ``cpu_ms`` in its stats; the replay's ``decode_cpu_ms``).
     memory_trim : dict
         The heap trimmer's counters (``[loop] trim_memory_s``; :class:`~illuminet.runtime.stream.memtrim.HeapTrimmer`).
+    sinks : dict
+        Sink name -> its own counters (``stats()``) once the sinks are closed, e.g. the estimates
+        sink's ``dropped_lines`` for a pipe reader that did not keep up.
     """
 
     def __init__(self) -> None:
@@ -124,6 +127,7 @@ class LoopStats:
         self._cpu_end: float | None = None
         self.stage_cpu_s: dict[str, float] = {}
         self.memory_trim: dict[str, Any] = {}
+        self.sinks: dict[str, dict[str, Any]] = {}
 
     # -- recording (called by the loop)
 
@@ -189,6 +193,10 @@ class LoopStats:
     def set_memory_trim(self, d: dict[str, Any]) -> None:
         with self._lock:
             self.memory_trim = dict(d)
+
+    def set_sink_stats(self, d: dict[str, dict[str, Any]]) -> None:
+        with self._lock:
+            self.sinks = {k: dict(v) for k, v in d.items()}
 
     # -- reading
 
@@ -274,6 +282,7 @@ class LoopStats:
                 "depth": self.depth,
                 "in_flight_max": self.in_flight_max,
                 "memory_trim": dict(self.memory_trim),
+                "sinks": {k: dict(v) for k, v in self.sinks.items()},
                 "stage_cpu_ms_per_frame": {
                     k: v / self.frames * 1e3 if self.frames else 0.0 for k, v in self.stage_cpu_s.items()
                 },
@@ -315,6 +324,9 @@ class LoopStats:
                 f"  memory trim: {mt['calls']} calls (every {mt['interval_s']:g} s), median {mt['median_ms']:.1f} ms, "
                 f"max {mt['max_ms']:.1f} ms, gave back {mt['released_mb']:.1f} MB"
             )
+        for name, st in d["sinks"].items():
+            if st.get("dropped_lines"):
+                rows.append(f"  sink {name}: dropped_lines={st['dropped_lines']} (its reader did not keep up)")
         if d["source"]:
             rows.append("  source: " + ", ".join(f"{k}={v}" for k, v in d["source"].items()))
         return "\n".join(rows)
@@ -1041,9 +1053,16 @@ def run_loop(
     with _signals_stop(loop.stop, install_signals), contextlib.ExitStack() as stack:
         loop.open(stack)
         loop.run()
-    # after close: the source's final counters (e.g. frames it dropped itself)
+    # after close: the source's final counters (e.g. frames it dropped itself), and the sinks'
     try:
         stats.set_source_stats(source.stats())
     except Exception:  # pragma: no cover
         pass
+    sink_stats = {}
+    for sk, name in zip(loop.sinks, loop.sink_names):
+        try:
+            sink_stats[name] = sk.stats() if hasattr(sk, "stats") else {}
+        except Exception:  # a sink's counters must not hide the run's outcome
+            pass
+    stats.set_sink_stats(sink_stats)
     return stats

@@ -418,6 +418,109 @@ def _stdout_to_devnull():
     return sys.stdout
 
 
+#: lines a pipe, FIFO or socket given to ``--estimates`` may hold back for a reader that lags, on top of
+#: the pipe's own buffer (64 kB); beyond that the oldest are dropped (``dropped_lines``)
+PIPE_BACKLOG = 64
+#: how long closing waits for the reader of such a pipe to take the last lines
+PIPE_CLOSE_WAIT_S = 2.0
+
+
+def _is_stream(fd: int) -> bool:
+    """A pipe, FIFO or socket: what a reader that stops reading can block for ever."""
+    import stat
+
+    try:
+        mode = os.fstat(fd).st_mode
+    except OSError:
+        return False
+    return stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode)
+
+
+class _PipeWriter:
+    """Writes lines to a pipe, FIFO or socket on its own thread, so that a reader that stops reading but
+    keeps the pipe open never blocks the loop (a blocked write() froze the whole stream, MJPEG too,
+    and one SIGTERM could not stop it). Lines keep their order; when more than :data:`PIPE_BACKLOG`
+    wait, the oldest is dropped and counted. The thread writes only when ``poll`` says the pipe has
+    room, a chunk of at most ``PIPE_BUF`` bytes at a time, so it never blocks either and can always
+    be stopped."""
+
+    def __init__(self, fd: int, label: str) -> None:
+        import collections
+
+        self.fd, self.label = fd, label
+        self.written = self.dropped = 0
+        self.gone = False  # the reader closed its end (EPIPE)
+        self._lines: collections.deque[bytes] = collections.deque()
+        self._cond = threading.Condition()
+        self._closing = self._abandon = False
+        self._thread = threading.Thread(target=self._run, name="illuminet-estimates-writer", daemon=True)
+        self._thread.start()
+
+    def put(self, line: bytes) -> bool:
+        """Queue one line; False when the reader has gone."""
+        with self._cond:
+            if self.gone:
+                return False
+            first = False
+            if len(self._lines) >= PIPE_BACKLOG:
+                self._lines.popleft()
+                self.dropped += 1
+                first = self.dropped == 1
+            self._lines.append(line)
+            self._cond.notify()
+        if first:
+            log.warning(
+                "estimates %s: the reader is not keeping up; dropping the oldest lines so the stream goes on "
+                "(their count, dropped_lines, is in the final statistics)",
+                self.label,
+            )
+        return True
+
+    def _run(self) -> None:
+        import select
+
+        poller = select.poll()
+        poller.register(self.fd, select.POLLOUT)
+        while True:
+            with self._cond:
+                while not self._lines and not self._closing:
+                    self._cond.wait()
+                if not self._lines:
+                    return
+                view = memoryview(self._lines.popleft())
+            while view:
+                if self._abandon:
+                    with self._cond:
+                        self.dropped += 1  # the line it was writing
+                    return
+                try:
+                    if poller.poll(100):
+                        view = view[os.write(self.fd, view[: select.PIPE_BUF]) :]
+                except OSError as e:
+                    with self._cond:
+                        self.gone = True
+                        self._lines.clear()
+                    if not isinstance(e, (BrokenPipeError, ConnectionResetError)):
+                        log.error("estimates %s: cannot write: %s; no more lines go there", self.label, e.strerror or e)
+                    return
+            with self._cond:
+                self.written += 1
+
+    def close(self, wait_s: float = PIPE_CLOSE_WAIT_S) -> None:
+        """Let the thread write what is queued, for at most ``wait_s`` (a reader that stopped reading
+        gets no more; those lines count as dropped)."""
+        with self._cond:
+            self._closing = True
+            self._cond.notify()
+        self._thread.join(wait_s)
+        if self._thread.is_alive():
+            self._abandon = True
+            self._thread.join(1.0)
+            with self._cond:
+                self.dropped += len(self._lines)
+                self._lines.clear()
+
+
 class EstimateSink(Sink):
     """Write each frame's lighting estimate as one JSON line (JSONL) to a file (``--estimates FILE``).
 
@@ -425,6 +528,11 @@ class EstimateSink(Sink):
     placed have none and write nothing), in the format of
     :func:`~illuminet.runtime.stream.estimate_json.estimate_dict` (``docs/estimate.md``). Lines are
     flushed as they are written, so ``tail -f FILE`` follows a live run.
+
+    When the output is a pipe, FIFO or socket (``--estimates - | consumer``), lines go out on a writer
+    thread (:class:`_PipeWriter`): a reader that stops reading never blocks the loop; it loses the
+    oldest lines instead (``dropped_lines``), and closing waits for it at most
+    :data:`PIPE_CLOSE_WAIT_S`. A regular file gets every line.
 
     Parameters
     ----------
@@ -437,8 +545,11 @@ class EstimateSink(Sink):
     def __init__(self, path: str | os.PathLike):
         self.path = str(path)
         self._fh = None
+        self._pipe: _PipeWriter | None = None
+        self._pipe_gone = False
         self.frames = 0
         self.written = 0
+        self.dropped = 0
 
     def open(self) -> None:
         if self.path == "-":
@@ -447,6 +558,7 @@ class EstimateSink(Sink):
             if sys.stdout is None:  # started with stdout closed (>&-): every frame failed "write() before open()"
                 raise SinkError("estimates -: standard output is closed; give a file (--estimates FILE) instead")
             self._fh = sys.stdout
+            self._start_pipe("-")
             return
         p = Path(self.path)
         if not p.parent.is_dir():
@@ -457,6 +569,16 @@ class EstimateSink(Sink):
             raise SinkError(f"estimates {p}: cannot write: {e.strerror or e}") from None
         self._whole = 0  # the file's length up to its last whole line
         self._error = None
+        self._start_pipe(str(p))
+
+    def _start_pipe(self, label: str) -> None:
+        try:
+            fd = self._fh.fileno()
+        except (OSError, ValueError, AttributeError):  # not a real file (a test's StringIO)
+            return
+        if _is_stream(fd):
+            self._fh.flush()
+            self._pipe = _PipeWriter(fd, label)
 
     def write(self, frame: Frame) -> None:
         from illuminet.runtime.stream.estimate_json import frame_estimate, to_line
@@ -466,6 +588,10 @@ class EstimateSink(Sink):
         self.frames += 1
         d = frame_estimate(frame)
         if d is None:
+            return
+        if self._pipe is not None:
+            if not self._pipe.put(to_line(d).encode("utf-8") + b"\n"):
+                self._reader_gone()
             return
         if self.path != "-":
             self._write_whole(to_line(d).encode("utf-8") + b"\n")
@@ -480,6 +606,16 @@ class EstimateSink(Sink):
             self._fh = _stdout_to_devnull()
             raise OutputClosed("estimates -: the reader of standard output has gone; the run ends") from None
         self.written += 1
+
+    def _reader_gone(self) -> None:
+        """The pipe's reader has closed its end: the run ends (once), as a Unix filter's does."""
+        if self._pipe_gone:
+            return
+        self._pipe_gone = True
+        if self.path == "-":
+            self._fh = _stdout_to_devnull()
+            raise OutputClosed("estimates -: the reader of standard output has gone; the run ends")
+        raise OutputClosed(f"estimates {self.path}: its reader has gone; the run ends")
 
     def _write_whole(self, data: bytes) -> None:
         """Write one line to the file whole or not at all: a full disk (or a file size limit) that
@@ -502,6 +638,12 @@ class EstimateSink(Sink):
         self._error = None
 
     def close(self) -> None:
+        pipe, self._pipe = self._pipe, None
+        if pipe is not None:
+            pipe.close()
+            self.written, self.dropped = pipe.written, pipe.dropped
+            if pipe.gone and self.path == "-" and not self._pipe_gone:
+                _stdout_to_devnull()  # no "BrokenPipeError" noise from Python's flush at exit
         fh, self._fh = self._fh, None
         if fh is not None and self.path != "-":
             try:
@@ -513,7 +655,10 @@ class EstimateSink(Sink):
                 raise SinkError(f"estimates {self.path}: cannot write the last lines: {e.strerror or e}") from None
 
     def stats(self) -> dict:
-        return {"frames": self.frames, "estimates": self.written}
+        pipe = self._pipe
+        if pipe is not None:
+            return {"frames": self.frames, "estimates": pipe.written, "dropped_lines": pipe.dropped}
+        return {"frames": self.frames, "estimates": self.written, "dropped_lines": self.dropped}
 
 
 class SessionRecorderSink(Sink):
