@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
 from illuminet.bench.soak import heap_mb, rise_by_thirds, slope_mb_per_min
 from illuminet.cli import main
+
+from .conftest import REPO
 
 
 def test_slope_is_the_least_squares_line_in_mb_per_minute():
@@ -93,3 +97,30 @@ def test_bench_refuses_a_json_path_it_cannot_write_before_running(tmp_path, caps
         assert "# machine" not in out  # nothing ran
         err = [ln for ln in err.splitlines() if ln.strip()]
         assert len(err) == 1 and "--json" in err[0] and says in err[0], err
+
+
+@pytest.mark.parametrize(
+    "argv,flag",
+    [
+        (["--quick", "--frames", "-1"], "--frames"),  # demo's flag: replay..render ran first (over 60 s)
+        (["replay", "--minutes", "-1"], "--minutes"),  # soak's flag, soak not named: silently ignored
+        (["replay", "--fps", ""], "--fps"),  # '' read as not given: the default rates
+        (["replay", "--json", ""], "--json"),  # '' read as not given: no JSON, exit 0
+        (["replay", "--size", ""], "--size"),
+        (["replay", "--pipeline", ","], "--pipeline"),
+    ],
+)
+def test_every_bench_flag_is_checked_before_the_first_benchmark(argv, flag):
+    """Each benchmark checked its own flags only when it started: `bench --quick --frames -1` ran the
+    benchmarks before demo for minutes, then refused. Now refused before the header, in a few seconds."""
+    r = subprocess.run(
+        [sys.executable, "-m", "illuminet", "bench", *argv],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=20,
+    )
+    assert r.returncode == 2, (r.stdout, r.stderr)
+    assert "# machine" not in r.stdout and "==" not in r.stdout, r.stdout
+    err = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(err) == 1 and flag in err[0] and "expected" in err[0] and "Traceback" not in r.stderr, err

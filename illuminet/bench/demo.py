@@ -52,7 +52,7 @@ def parse_size(text: str | None) -> tuple[int, int]:
     """``"WxH"`` -> (W, H); None -> the default session's 1280x800."""
     from illuminet.commands.demo import DEFAULT_SESSION_SIZE
 
-    if not text:
+    if text is None:  # '' is a mistake, not "not given"
         return DEFAULT_SESSION_SIZE
     try:
         w, h = (int(x) for x in text.lower().split("x"))
@@ -230,21 +230,34 @@ def measure(url: str, cfg, modes: list[str], frames: int, rounds: int, depth: in
     return out
 
 
-def run(args, cfg) -> dict:
-    from illuminet.commands.demo import default_source_url, describe_shading, peak_rss_mb
-
-    quick = bool(getattr(args, "quick", False))
-    size = parse_size(getattr(args, "size", None))
-    modes = [m.strip() for m in (getattr(args, "pipeline", None) or "serial,threads").split(",") if m.strip()]
+def parse_modes(text: str | None, default: str) -> list[str]:
+    """``--pipeline``: loop modes, comma-separated (``default`` when not given)."""
+    modes = [m.strip() for m in (default if text is None else text).split(",") if m.strip()]
+    if not modes:
+        raise ConfigError(f"--pipeline: expected serial, threads or auto (comma-separated), got {text!r}")
     for m in modes:
         if m not in ("serial", "threads", "auto"):
             raise ConfigError(f"--pipeline: expected serial, threads or auto (comma-separated), got {m!r}")
+    return modes
+
+
+def check_args(args, cfg) -> tuple[tuple[int, int], list[str], int, int]:
+    """This benchmark's flags (size, modes, frames, rounds); ``illuminet bench`` calls it before any
+    benchmark runs, so a mistake is refused before the header, whichever benchmarks are named."""
+    quick = bool(getattr(args, "quick", False))
+    size = parse_size(getattr(args, "size", None))
+    modes = parse_modes(getattr(args, "pipeline", None), "serial,threads")
     n, rounds = getattr(args, "frames", None), getattr(args, "rounds", None)
     for flag, v in (("--frames", n), ("--rounds", rounds)):
         if v is not None and v < 1:
             raise ConfigError(f"{flag}: expected a whole number >= 1, got {v}; leave it out for the default")
-    n = int(n or (30 if quick else 150))
-    rounds = int(rounds or (1 if quick else 2))
+    return size, modes, int(n or (30 if quick else 150)), int(rounds or (1 if quick else 2))
+
+
+def run(args, cfg) -> dict:
+    from illuminet.commands.demo import default_source_url, describe_shading, peak_rss_mb
+
+    size, modes, n, rounds = check_args(args, cfg)
     cfg = apply_overrides(cfg, [("source", "timing", "asap")])
     tmp = None
     try:

@@ -26,7 +26,7 @@ DEFAULT_FPS = (60, 120)
 
 
 def _rates(text: str | None) -> list[int]:
-    if not text:
+    if text is None:  # '' is a mistake, not "not given" (it ran the default rates)
         return list(DEFAULT_FPS)
     try:
         rates = [int(x) for x in text.split(",") if x.strip()]
@@ -35,6 +35,22 @@ def _rates(text: str | None) -> list[int]:
     if not rates or any(not 1 <= r <= 1000 for r in rates):
         raise ConfigError(f"--fps: each rate must be 1..1000 frames per second, got {text!r}")
     return rates
+
+
+def check_args(args, cfg) -> tuple[list[int], float, tuple[int, int], list[str]]:
+    """This benchmark's flags (rates, seconds per rate, size, modes); ``illuminet bench`` calls it
+    before any benchmark runs, so a mistake is refused before the header, whichever are named."""
+    from illuminet.bench.demo import parse_modes, parse_size
+
+    quick = bool(getattr(args, "quick", False))
+    rates = _rates(getattr(args, "fps", None))
+    given = getattr(args, "seconds", None)  # `or` took --seconds 0 for "not given": 10 s per rate, silently
+    seconds = float(given) if given is not None else (3.0 if quick else 10.0)
+    if not 0.5 <= seconds <= 3600:
+        raise ConfigError(f"--seconds: expected 0.5..3600, got {seconds!r}")
+    size = getattr(args, "size", None)
+    size = parse_size("640x400" if size is None else size)
+    return rates, seconds, size, parse_modes(getattr(args, "pipeline", None), cfg.loop.pipeline)
 
 
 def quarters(values: list[float]) -> list[dict[str, float]]:
@@ -50,23 +66,12 @@ def quarters(values: list[float]) -> list[dict[str, float]]:
 
 
 def run(args, cfg) -> dict:
-    from illuminet.bench.demo import parse_size
     from illuminet.commands.demo import demo_stages
     from illuminet.hw import open_source
     from illuminet.runtime.stage import Sink
     from illuminet.runtime.stream.loop import run_loop
 
-    quick = bool(getattr(args, "quick", False))
-    rates = _rates(getattr(args, "fps", None))
-    given = getattr(args, "seconds", None)  # `or` took --seconds 0 for "not given": 10 s per rate, silently
-    seconds = float(given) if given is not None else (3.0 if quick else 10.0)
-    if not 0.5 <= seconds <= 3600:
-        raise ConfigError(f"--seconds: expected 0.5..3600, got {seconds!r}")
-    w, h = parse_size(getattr(args, "size", None) or "640x400")
-    modes = [m.strip() for m in (getattr(args, "pipeline", None) or cfg.loop.pipeline).split(",") if m.strip()]
-    for m in modes:
-        if m not in ("serial", "threads", "auto"):
-            raise ConfigError(f"--pipeline: expected serial, threads or auto (comma-separated), got {m!r}")
+    rates, seconds, (w, h), modes = check_args(args, cfg)
 
     class Null(Sink):
         name = "null"

@@ -85,14 +85,20 @@ def load_frames(cfg: Config, url: str = URL) -> list:
     return frames
 
 
+def check_args(args: argparse.Namespace, cfg: Config) -> int:
+    """``--look`` (``illuminet bench`` calls this before any benchmark runs)."""
+    look = int(getattr(args, "look", 0) or 0)
+    if look < 0:
+        raise ConfigError(f"--look: expected a number of scenes >= 0, got {look}")
+    return look
+
+
 def run(args: argparse.Namespace, cfg: Config) -> dict:
     """Time the odometry and report the world-locked anchor's drift (module docstring)."""
     from illuminet.runtime.stages.odometry import Odometry
 
     quick = bool(getattr(args, "quick", False))
-    look = int(getattr(args, "look", 0) or 0)
-    if look < 0:
-        raise ConfigError(f"--look: expected a number of scenes >= 0, got {look}")
+    look = check_args(args, cfg)
     frames = load_frames(cfg)
     path = frames + frames[-2:0:-1]  # forwards then backwards: a continuous camera path
     reps = 1 if quick else 4

@@ -170,17 +170,24 @@ class _Client(threading.Thread):
                 conn.close()
 
 
+def check_args(args: argparse.Namespace, cfg) -> float:
+    """``--minutes`` (the default when not given); ``illuminet bench`` calls it before any benchmark
+    runs, also when soak is not named (a bad --minutes was then silently ignored)."""
+    minutes = getattr(args, "minutes", None)
+    if minutes is None:
+        minutes = 0.5 if getattr(args, "quick", False) else DEFAULT_MINUTES
+    if not (isinstance(minutes, (int, float)) and math.isfinite(minutes) and minutes > 0):
+        raise ConfigError(f"bench soak --minutes: expected a finite number of minutes > 0, got {minutes!r}")
+    return float(minutes)
+
+
 def run(args: argparse.Namespace, cfg) -> dict:
     from illuminet.commands.demo import default_source_url, demo_stages
     from illuminet.hw import open_source
     from illuminet.runtime.stream.loop import LoopStats, run_loop
     from illuminet.runtime.stream.mjpeg import MjpegSink
 
-    minutes = getattr(args, "minutes", None)
-    if minutes is None:
-        minutes = 0.5 if getattr(args, "quick", False) else DEFAULT_MINUTES
-    if not (isinstance(minutes, (int, float)) and math.isfinite(minutes) and minutes > 0):
-        raise ConfigError(f"bench soak --minutes: expected a finite number of minutes > 0, got {minutes!r}")
+    minutes = check_args(args, cfg)
     duration = float(minutes) * 60.0
     # the demo session in real time, looped: the pace of a camera, for as long as asked
     cfg = apply_overrides(cfg, [("source", "timing", "recorded"), ("source", "loop", True)])

@@ -89,11 +89,27 @@ def run(args: argparse.Namespace, cfg) -> int:
             file=sys.stderr,
         )
         return 2
-    if getattr(args, "size", None):
-        from illuminet.bench.demo import parse_size
-
-        parse_size(args.size)  # a bad --size: its one line before the header, not after it
-    if args.json:
+    for flag, expected in (
+        ("--json", "a file path for the figures"),
+        ("--size", "WxH such as 640x400"),
+        ("--pipeline", "serial, threads or auto, comma-separated"),
+        ("--fps", "comma-separated frame rates such as 60,120"),
+        ("--hdr", "a folder of HDR maps"),
+    ):
+        value = getattr(args, flag[2:], None)
+        if value is not None and not value.strip():  # was read as not given: the default, silently
+            print(
+                f"illuminet bench: {flag} {value!r} is empty; expected {expected}, or leave {flag} out for the default",
+                file=sys.stderr,
+            )
+            return 2
+    # every benchmark's flags, named or not, before the header: each checked its own only when it
+    # started, after the benchmarks before it had run (or never, when it was not named)
+    for n in BENCHES:
+        check = getattr(importlib.import_module(f"illuminet.bench.{n}"), "check_args", None)
+        if check is not None:
+            check(args, cfg)
+    if args.json is not None:
         # checked before the benchmarks run: a bad path found at the end lost their figures' JSON
         out = Path(args.json)
         parent = out.parent if str(out.parent) else Path(".")
@@ -117,7 +133,7 @@ def run(args: argparse.Namespace, cfg) -> int:
     for n in names:
         print(f"\n== {n}: {BENCHES[n]}")
         results[n] = importlib.import_module(f"illuminet.bench.{n}").run(args, cfg)
-    if args.json:
+    if args.json is not None:
         try:
             with open(args.json, "w") as f:
                 json.dump(results, f, indent=2)
