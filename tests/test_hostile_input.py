@@ -139,6 +139,11 @@ BAD_INPUTS += [
     # absurd sample counts: ran until killed, memory growing
     (_TRAIN + ["--n-train", "100000000"], 2, "--n-train 100000000: the samples would take about 718 GB"),
     (_DATAGEN + ["--samples", "10000000000"], 2, "--samples 10000000000: the samples would take about 233 TB"),
+    # no upper bound: ran for years (datagen and train refuse such counts with a size estimate)
+    (_EVAL + ["--cases", "1000000000"], 2, "--cases 1000000000: the run would take about 11.4 years here"),
+    (_EVAL + ["--flicker-scenes", "1000000000"], 2, "--flicker-scenes 1000000000: the run would take about"),
+    (_EVAL + ["--camera-scenes", "100000"], 2, "--camera-scenes 100000: the run would take about 38.2 days"),
+    (_EVAL + ["--camera-scenes", "8", "--camera-frames", "10000000"], 2, "--camera-frames 10000000: the run would"),
     (_EVAL + ["--out", "{tmp}/afile"], 2, "--out {tmp}/afile: is a file, expected a folder"),
     (_EVAL + ["--hdr", "{tmp}/nothing"], 2, "--hdr {tmp}/nothing: no such folder"),
     (_EVAL + ["--hdr", "{tmp}/afile"], 2, "--hdr {tmp}/afile: is a file, not a folder"),
@@ -1014,3 +1019,15 @@ def test_datagen_replaces_only_its_own_earlier_data(tmp_path, capsys):
     assert "replaced" not in capsys.readouterr().out
     assert main(argv) == 0
     assert "it replaced the earlier data there (2 samples of builtin:sphere)" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("flag", ["--cases", "--flicker-scenes"])
+def test_an_eval_count_that_would_run_for_years_is_refused_at_once(tmp_path, flag):
+    """`eval --cases 1000000000` ran for years (nothing written until the end); refused in seconds now,
+    with the estimate, before a bundle is loaded."""
+    argv = ["eval", "--no-figure", "--camera-scenes", "0", "--out", str(tmp_path / "ev"), flag, "1000000000"]
+    r = subprocess.run([sys.executable, "-m", "illuminet", *argv], cwd=REPO, capture_output=True, text=True, timeout=20)
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert f"{flag} 1000000000: the run would take about" in lines[0] and "expected at most" in lines[0]
+    assert not (tmp_path / "ev").exists()

@@ -229,6 +229,57 @@ def _crosscheck(args, hdr: str) -> int:
     return 0
 
 
+#: the longest run ``eval`` starts (estimated on one core, from the per-unit costs below): a count beyond it
+#: (``--cases 1000000000``) ran for years, nothing written until the end
+EVAL_MAX_S = 24 * 3600
+#: seconds per lighting test case and per flicker scene, per lighting suite (measured on the 2-core machine:
+#: ~0.09 and ~0.07), and per camera frame (~0.22, scene setup included); the estimate is a lower bound
+CASE_S, FLICKER_SCENE_S, CAMERA_FRAME_S = 0.09, 0.07, 0.22
+#: lighting suites at most (indoor, outdoor, spatial; hdr with held-out maps)
+LIGHTING_SUITES_MAX = 4
+
+
+def duration_text(s: float) -> str:
+    """``s`` seconds as a short text: 40 s, 12 min, 5.2 h, 3.1 days, 46 years."""
+    for unit, size in (("years", 365 * 86400), ("days", 86400), ("h", 3600), ("min", 60)):
+        if s >= 2 * size or unit == "min" and s >= 60:
+            return f"{s / size:.3g} {unit}"
+    return f"{s:.0f} s"
+
+
+def check_eval_duration(args: argparse.Namespace) -> None:
+    """Refuse a count whose part of the run alone would take over :data:`EVAL_MAX_S` (before any work)."""
+    n = max(1, len([s for s in args.camera_suites.split(",") if s.strip()]))
+    lighting = f"over the {LIGHTING_SUITES_MAX} lighting suites"
+    camera = (  # scenes x frames: the flag further above its default is named
+        (
+            "--camera-scenes",
+            args.camera_scenes,
+            n * args.camera_frames * CAMERA_FRAME_S,
+            f"scene in each of {n} suites",
+        ),
+        (
+            "--camera-frames",
+            args.camera_frames,
+            n * args.camera_scenes * CAMERA_FRAME_S,
+            f"frame in each of {args.camera_scenes} scenes x {n} suites",
+        ),
+    )
+    if args.camera_frames / 30 > args.camera_scenes / 8:
+        camera = camera[::-1]
+    for flag, value, each, what in (
+        ("--cases", args.cases, LIGHTING_SUITES_MAX * CASE_S, f"test case {lighting}"),
+        ("--flicker-scenes", args.flicker_scenes, LIGHTING_SUITES_MAX * FLICKER_SCENE_S, f"scene {lighting}"),
+        *camera,
+    ):
+        if each > 0 and value * each > EVAL_MAX_S:
+            raise _usage(
+                f"{flag} {value}: the run would take about {duration_text(value * each)} here (at least "
+                f"{each:.3g} s a {what}), over the {duration_text(EVAL_MAX_S)} limit: expected at most "
+                f"{int(EVAL_MAX_S // each)}; give a smaller count"
+            )
+
+
 def check_eval_arguments(args: argparse.Namespace) -> None:
     """Every count, seed, number and path of the flags, before a bundle is loaded or a suite run."""
     from illuminet.commands.train import check_count, check_hdr, check_out, check_out_given, check_seed
@@ -248,6 +299,7 @@ def check_eval_arguments(args: argparse.Namespace) -> None:
         from illuminet.hw.synthetic.scene import MAX_BOUNCES
 
         check_count("--crosscheck-bounces", args.crosscheck_bounces, 0, MAX_BOUNCES, note=" (0 = direct light only)")
+    check_eval_duration(args)
     if args.cases == 0 and args.camera_scenes == 0 and not args.crosscheck:
         # both suites skipped: the run wrote a report with a title only and exit code 0 (and never
         # looked at --bundle, so a missing bundle went unnoticed)
