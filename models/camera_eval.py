@@ -165,6 +165,22 @@ def parse_variant(spec: str) -> Variant:
     return Variant(name, [parse_override(s) for s in items])
 
 
+def check_variants(cfg: Config, variants) -> list[Variant]:
+    """``ours`` and ``variants``, each with its configuration (``.cfg``): a repeated or reserved name, or a
+    wrong key or value, is a :class:`ConfigError` (``illuminet eval`` calls this before any work, also
+    with ``--camera-scenes 0``, where a bad variant once went unnoticed with exit 0)."""
+    out = [Variant("ours", [])] + list(variants)
+    names = [v.name for v in out]
+    if len(set(names)) != len(names) or set(names) & set(BASELINES):
+        raise ConfigError(f"--variant names must be unique and not one of ours, {', '.join(BASELINES)}: got {names}")
+    for v in out:
+        try:
+            v.cfg = apply_overrides(cfg, v.overrides)
+        except ConfigError as e:  # "override: [render] msaa ..." did not say which flag
+            raise ConfigError(f"--variant {v.name}: {e}") from None
+    return out
+
+
 # ------------------------------------------------------------------------------------- metrics
 
 
@@ -304,14 +320,7 @@ class CameraEval:
         self.bundle = load_bundle(self.spec)
         b = self.bundle
         self.base = apply_overrides(cfg, [("model", "bundle", str(self.spec))])
-        self.variants = [Variant("ours", [])] + list(variants)
-        names = [v.name for v in self.variants]
-        if len(set(names)) != len(names) or set(names) & set(BASELINES):
-            raise ConfigError(
-                f"--variant names must be unique and not one of ours, {', '.join(BASELINES)}: got {names}"
-            )
-        for v in self.variants:  # a wrong key fails here, before any scene is built
-            v.cfg = apply_overrides(self.base, v.overrides)
+        self.variants = check_variants(self.base, variants)
         self.model_cfg = apply_overrides(self.base, [("model", "shading", "model")])
         # the bundle's own normals: the truth's evaluated points are then exactly the mesh's vertices
         self.mesh = trimesh.Trimesh(b.vertices, b.faces, vertex_normals=b.normals, process=False)

@@ -144,6 +144,10 @@ BAD_INPUTS += [
     (_EVAL + ["--flicker-scenes", "1000000000"], 2, "--flicker-scenes 1000000000: the run would take about"),
     (_EVAL + ["--camera-scenes", "100000"], 2, "--camera-scenes 100000: the run would take about 38.2 days"),
     (_EVAL + ["--camera-scenes", "8", "--camera-frames", "10000000"], 2, "--camera-frames 10000000: the run would"),
+    # a bad --variant was checked only when the camera suites started: with --camera-scenes 0, exit 0
+    (_EVAL + ["--variant", "x"], 2, "--variant 'x': expected NAME:section.key=value"),
+    (_EVAL + ["--variant", "a:render.msaa=64"], 2, "--variant a: override: [render] msaa: expected int in 0..16"),
+    (_EVAL + ["--variant", "ours:render.msaa=4"], 2, "--variant names must be unique and not one of ours"),
     (_EVAL + ["--out", "{tmp}/afile"], 2, "--out {tmp}/afile: is a file, expected a folder"),
     (_EVAL + ["--hdr", "{tmp}/nothing"], 2, "--hdr {tmp}/nothing: no such folder"),
     (_EVAL + ["--hdr", "{tmp}/afile"], 2, "--hdr {tmp}/afile: is a file, not a folder"),

@@ -319,6 +319,10 @@ def check_eval_arguments(args: argparse.Namespace) -> None:
 def run(args: argparse.Namespace, cfg) -> int:
     cluster.check_arguments(args)
     check_eval_arguments(args)
+    if args.variant:  # a bad one was found only when the camera suites started (never with --camera-scenes 0)
+        from illuminet.models.camera_eval import check_variants, parse_variant
+
+        check_variants(cfg, [parse_variant(v) for v in args.variant])
     # every camera scene places its object once: one "anchor: placed on plane ..." line per scene
     # buried the progress (--log-level debug shows them); the level is restored after the run
     anchor_log = logging.getLogger("illuminet.runtime.stages.anchor")
