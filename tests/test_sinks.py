@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import time
 
 import cv2
@@ -362,3 +363,16 @@ def test_build_sinks_estimates_and_viewer_model(tmp_path):
     bad = apply_overrides(cfg, [("output", "viewer_model", str(tmp_path / "nope.glb"))])
     with pytest.raises(ConfigError, match=r"\[output\] viewer_model = .*nope.glb.*no such file"):
         build_sinks(bad)
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (a device that is always full)")
+def test_png_sequence_on_a_full_disk_is_one_error_without_libpng_lines(tmp_path, capfd):
+    """`--png-dir` on a full disk: libpng printed "libpng error: Write Error" three times straight to
+    descriptor 2 above the one line. Now the error says why (ENOSPC) and nothing else is printed."""
+    (tmp_path / "p").mkdir()
+    os.symlink("/dev/full", tmp_path / "p" / "frame_000000.png")  # writes to it fail: no space left
+    with PngSequenceSink(tmp_path / "p") as sink:
+        with pytest.raises(SinkError, match=r"cannot write .*frame_000000.png: No space left on device"):
+            sink.write(frames(1)[0])
+    out, err = capfd.readouterr()
+    assert "libpng" not in err and "libpng" not in out, err

@@ -13,6 +13,7 @@ line (:mod:`illuminet.runtime.stream.estimate_json`). The session recorder write
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import queue
@@ -396,8 +397,19 @@ class PngSequenceSink(Sink):
             cv2.IMWRITE_PNG_STRATEGY,
             cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY,
         ]
-        if not cv2.imwrite(str(path), bgr, params):
-            raise SinkError(f"PNG sequence: OpenCV could not write {path} (disk full or not writable?)")
+        # encoded in memory and written here: cv2.imwrite's libpng printed "libpng error: Write Error" three
+        # times straight to descriptor 2 on a full disk, over the one line (and the loop's other threads
+        # share that descriptor, so it is not silenced); a failed write also says why, and leaves no cut file
+        ok, png = cv2.imencode(".png", bgr, params)
+        if not ok:
+            raise SinkError(f"PNG sequence: OpenCV could not encode frame {frame.seq} as PNG")
+        try:
+            with open(path, "wb") as f:
+                f.write(png.data)
+        except OSError as e:
+            with contextlib.suppress(OSError):
+                path.unlink()
+            raise SinkError(f"PNG sequence: cannot write {path}: {e.strerror or e}") from None
         self.frames += 1
 
     def stats(self) -> dict:
