@@ -205,6 +205,37 @@ def test_a_mistake_is_one_line_with_its_exit_status(tmp_path, capsys, argv, code
     assert not any((tmp_path / p).exists() for p in ("b", "dg.npz", "t", "ev")), sorted(tmp_path.iterdir())
 
 
+def test_record_leaves_no_cut_frame_file_when_a_write_fails(tmp_path):
+    """An RLIMIT_FSIZE smaller than one frame left a cut frames/000000.color.rgb that no index line names."""
+    import resource
+
+    def small_files():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (20480, 20480))
+
+    out = tmp_path / "rec"
+    r = subprocess.run(
+        [sys.executable, "-m", "illuminet", "record", "synthetic://indoor?frames=2", str(out)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        preexec_fn=small_files,
+    )
+    assert r.returncode == 1 and "File too large" in r.stderr, r.stderr
+    assert sorted(p.name for p in (out / "frames").iterdir()) == []
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (a device that is always full)")
+def test_a_manifest_write_on_a_full_disk_leaves_no_tmp_file(tmp_path):
+    """A full disk left manifest.json.tmp beside the session's manifest."""
+    from illuminet.runtime.stream import session
+
+    os.symlink("/dev/full", tmp_path / "manifest.json.tmp")  # every write to it: No space left on device
+    with pytest.raises(OSError, match="No space left"):
+        session._atomic_write_json(tmp_path / "manifest.json", {"frames": 1})
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
 def test_datagen_leaves_no_half_written_file_when_the_disk_fills(tmp_path, monkeypatch):
     import errno
     import os

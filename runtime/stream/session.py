@@ -40,6 +40,7 @@ Validation
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import json
 import logging
@@ -124,7 +125,10 @@ _datasync = getattr(os, "fdatasync", os.fsync)
 
 
 def _write_file(path: Path, data: bytes, fsync: bool) -> None:
+    """Write ``data`` to a new ``path``; a write that fails (disk full, RLIMIT_FSIZE) removes the cut file,
+    which was left behind (a cut first frame in frames/ that no index line names)."""
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    done = False
     try:
         view = memoryview(data)
         while view:
@@ -132,15 +136,25 @@ def _write_file(path: Path, data: bytes, fsync: bool) -> None:
             view = view[n:]
         if fsync:
             _datasync(fd)
+        done = True
     finally:
         os.close(fd)
+        if not done:
+            with contextlib.suppress(OSError):
+                os.unlink(path)
 
 
 def _atomic_write_json(path: Path, obj: Any, fsync: bool = True) -> None:
-    """Write JSON to ``path`` so that a reader sees either the old or the new file, never half of one."""
+    """Write JSON to ``path`` so that a reader sees either the old or the new file, never half of one
+    (and no ``.tmp`` file is left when the write fails: a full disk left ``manifest.json.tmp``)."""
     tmp = path.with_name(path.name + ".tmp")
     _write_file(tmp, (json.dumps(obj, indent=2) + "\n").encode("utf-8"), fsync)
-    os.replace(tmp, path)
+    try:
+        os.replace(tmp, path)
+    except OSError:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
     if fsync:
         _fsync_dir(path.parent)
 
