@@ -642,3 +642,14 @@ def test_sbs_capture_then_stereo_cli(tmp_path, capsys):
     c = load_calibration(out)
     assert abs(c.stereo.baseline_m / np.linalg.norm(_SbsBoardSource.T) - 1) < 0.01
     assert c.stereo.rectification is not None and c.color_camera == "left"
+
+
+def test_board_page_is_checked_for_a_png_too(tmp_path, capsys):
+    """`calibrate board -o x.png --page A0x` wrote the PNG, exit 0: only the PDF writer looked at --page."""
+    png = tmp_path / "x.png"
+    assert main(["calibrate", "board", "-o", str(png), "--page", "A0x"]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and "--page 'A0x': expected one of a4, a3" in err[0], err
+    assert not png.exists()
+    assert main(["calibrate", "board", "-o", str(png), "--page", "a3"]) == 0  # a valid page: a note, not a refusal
+    assert "--page applies to a PDF only" in capsys.readouterr().out and png.exists()

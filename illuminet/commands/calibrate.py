@@ -88,18 +88,29 @@ def _camera_ref(ref: str):
 
 def cmd_board(args, cfg) -> int:
     """``calibrate board``: write the board PDF/PNG and its ``.json`` description."""
-    from illuminet.calibration.board import board_image, write_pdf, write_png
+    from illuminet.calibration.board import PAGES_MM, board_image, write_pdf, write_png
 
     spec = _spec(args)
     out = Path(args.output)
     if out.suffix.lower() not in (".pdf", ".png"):
         print(f"illuminet calibrate board: output must end in .pdf or .png, got {out}", file=sys.stderr)
         return 2
+    if args.page is not None and args.page not in (*PAGES_MM, "fit"):
+        # checked for a PNG too: only write_pdf looked at it, so -o x.png --page A0x was accepted
+        print(
+            f"illuminet calibrate board: --page {args.page!r}: expected one of {', '.join(PAGES_MM)} or fit",
+            file=sys.stderr,
+        )
+        return 2
+    if args.page is not None and out.suffix.lower() == ".png":
+        print(f"illuminet calibrate board: note: --page applies to a PDF only; {out} is a PNG, written without a page")
     side = out.with_suffix(".json")
     _check_board_sidecar(side, out)
     img = board_image(spec, dpi=args.dpi)
     if out.suffix.lower() == ".pdf":
-        write_pdf(out, img, spec.size_mm, page=args.page, caption=spec.describe() + " - print at 100% (actual size)")
+        write_pdf(
+            out, img, spec.size_mm, page=args.page or "a4", caption=spec.describe() + " - print at 100% (actual size)"
+        )
     else:
         write_png(out, img, args.dpi)
     side.write_text(json.dumps({"board": spec.to_dict()}, indent=2) + "\n")
@@ -330,7 +341,9 @@ def register(sub) -> None:
     _board_args(b)
     b.add_argument("-o", "--output", default="board.pdf", help="output .pdf or .png (default board.pdf)")
     b.add_argument("--dpi", type=float, default=300.0, help="raster resolution, at most 10000 (default 300)")
-    b.add_argument("--page", default="a4", help="PDF page: a4, a3, letter, tabloid or fit (default a4)")
+    b.add_argument(
+        "--page", default=None, help="PDF page: a4, a3, letter, tabloid or fit (default a4; a PNG has no page)"
+    )
     b.set_defaults(func=_guard(cmd_board))
 
     c = csub.add_parser("capture", help="collect diverse board views from a source URL")
