@@ -232,6 +232,9 @@ def _crosscheck(args, hdr: str) -> int:
 #: the longest run ``eval`` starts (estimated on one core, from the per-unit costs below): a count beyond it
 #: (``--cases 1000000000``) ran for years, nothing written until the end
 EVAL_MAX_S = 24 * 3600
+#: with ``--ray`` the run is shared by the cluster's workers (how many is not known before it starts): the
+#: limit on the one-core estimate is this many times larger
+RAY_MAX_FACTOR = 100
 #: seconds per lighting test case and per flicker scene, per lighting suite (measured on the 2-core machine:
 #: ~0.09 and ~0.07), and per camera frame (~0.22, scene setup included); the estimate is a lower bound
 CASE_S, FLICKER_SCENE_S, CAMERA_FRAME_S = 0.09, 0.07, 0.22
@@ -250,6 +253,8 @@ def duration_text(s: float) -> str:
 def check_eval_duration(args: argparse.Namespace) -> None:
     """Refuse a count whose part of the run alone would take over :data:`EVAL_MAX_S` (before any work)."""
     n = max(1, len([s for s in args.camera_suites.split(",") if s.strip()]))
+    limit = EVAL_MAX_S * (RAY_MAX_FACTOR if getattr(args, "ray", None) is not None else 1)
+    where = f"on one core ({RAY_MAX_FACTOR} x {duration_text(EVAL_MAX_S)} with --ray)" if limit > EVAL_MAX_S else "here"
     lighting = f"over the {LIGHTING_SUITES_MAX} lighting suites"
     camera = (  # scenes x frames: the flag further above its default is named
         (
@@ -272,11 +277,11 @@ def check_eval_duration(args: argparse.Namespace) -> None:
         ("--flicker-scenes", args.flicker_scenes, LIGHTING_SUITES_MAX * FLICKER_SCENE_S, f"scene {lighting}"),
         *camera,
     ):
-        if each > 0 and value * each > EVAL_MAX_S:
+        if each > 0 and value * each > limit:
             raise _usage(
-                f"{flag} {value}: the run would take about {duration_text(value * each)} here (at least "
-                f"{each:.3g} s a {what}), over the {duration_text(EVAL_MAX_S)} limit: expected at most "
-                f"{int(EVAL_MAX_S // each)}; give a smaller count"
+                f"{flag} {value}: the run would take about {duration_text(value * each)} {where} (at least "
+                f"{each:.3g} s a {what}), over the {duration_text(limit)} limit: expected at most "
+                f"{int(limit // each)}; give a smaller count"
             )
 
 
