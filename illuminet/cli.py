@@ -250,13 +250,14 @@ def main(argv: list[str] | None = None) -> int:
         return report_error(e, debug=debug or level <= logging.DEBUG)
     except KeyboardInterrupt:
         return 130
-    except OSError as e:
-        if e.errno != errno.ENAMETOOLONG:
-            raise
-        return _name_too_long(e, debug=debug or level <= logging.DEBUG)
     except BrokenPipeError:  # `illuminet config | head`: the reader left; nothing to report
+        # (before OSError, its base class: the clause below re-raised it as a traceback)
         try:
             sys.stdout = open(os.devnull, "w")  # noqa: SIM115 (the interpreter flushes stdout at exit)
         except OSError:
             pass
         return 0
+    except OSError as e:
+        if e.errno != errno.ENAMETOOLONG:
+            raise
+        return _name_too_long(e, debug=debug or level <= logging.DEBUG)
