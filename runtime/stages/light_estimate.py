@@ -589,6 +589,20 @@ def _solve_nonnegative(G: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     return sol
 
 
+def _plane_basis(xs: np.ndarray, ns: np.ndarray, primary_dir, primary_pos) -> np.ndarray:
+    """The plane rows' irradiance per unknown of the solve, (N, 9 or 10): the 9 ambient radiance SH
+    coefficients (cosine-convolved), then, with a primary light, its irradiance (a near lamp's falloff
+    scaled to 1 at the object, else the cosine of a distant light)."""
+    A = np.zeros((len(xs), 9 if primary_dir is None else 10))
+    A[:, :9] = sh9(ns) * SH_A_HAT[None, :]
+    if primary_dir is not None:
+        if primary_pos is not None:
+            A[:, 9] = _near_basis(primary_pos[None], xs, ns)[0] * float(np.sum((primary_pos - CENTRE) ** 2))
+        else:
+            A[:, 9] = np.maximum(ns @ primary_dir, 0.0)
+    return A
+
+
 def _sh_extract_primary(L_rad: np.ndarray) -> tuple[np.ndarray | None, float]:
     """Direction of the luminance gradient of radiance SH and how directional the light is (0-1)."""
     lum = L_rad @ LUMA
@@ -1087,13 +1101,10 @@ class LightEstimateStage(Stage):
         ambient and the primary are scaled together (their split and directions stay as solved)."""
         if not len(xs):
             return 1.0
-        pred = sh9(ns) * SH_A_HAT[None, :] @ L_rad
+        A = _plane_basis(xs, ns, primary_dir, primary_pos)  # the solve's own rows
+        pred = A[:, :9] @ L_rad
         if primary_dir is not None:
-            if primary_pos is not None:
-                col = _near_basis(primary_pos[None], xs, ns)[0] * float(np.sum((primary_pos - CENTRE) ** 2))
-            else:
-                col = np.maximum(ns @ primary_dir, 0.0)
-            pred = pred + col[:, None] * np.asarray(E_p, np.float64)[None, :]
+            pred = pred + A[:, 9:] * np.asarray(E_p, np.float64)[None, :]
         pred_l, obs_l = pred @ LUMA, es @ LUMA
         k = 1.0
         for g in np.unique(gs):
@@ -1254,14 +1265,7 @@ class LightEstimateStage(Stage):
             wts.append(BIN_OMEGA[seen] / (4 * np.pi) * 4.0)
             env_scale = max(float(np.median(L @ LUMA)), 1e-9)
         if len(xs) and self.use_planes:
-            B = sh9(ns) * SH_A_HAT[None, :]
-            A = np.zeros((len(xs), ncol))
-            A[:, :9] = B
-            if has_p:
-                if primary_pos is not None:
-                    A[:, 9] = _near_basis(primary_pos[None], xs, ns)[0] * float(np.sum((primary_pos - CENTRE) ** 2))
-                else:
-                    A[:, 9] = np.maximum(ns @ primary_dir, 0.0)
+            A = _plane_basis(xs, ns, primary_dir, primary_pos)
             rows.append(A / np.pi)  # irradiance rows in radiance units, comparable with the bins
             rhs.append(es / np.pi)
             wts.append(ws / max(ws.sum(), 1e-12))
