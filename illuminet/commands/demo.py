@@ -416,7 +416,7 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
     from illuminet.hw.replay import session_folder
     from illuminet.pipeline import build_sinks, check_creatable, check_output_paths, session_root
     from illuminet.runtime.errors import OutputPathError
-    from illuminet.runtime.stream.loop import LoopStats, run_loop, signals_held
+    from illuminet.runtime.stream.loop import LoopStats, loop_options, run_loop, signals_held
     from illuminet.runtime.stream.sinks import SinkError
 
     for flag, value, expected in (
@@ -506,10 +506,7 @@ def cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
                 stats=stats,
                 on_stats=status.update,
                 stats_interval_s=0.5,
-                pipeline=cfg.loop.pipeline,
-                depth=cfg.loop.depth,
-                trim_memory_s=cfg.loop.trim_memory_s,
-                opencv_threads=cfg.loop.opencv_threads,
+                **loop_options(cfg.loop),
             )
         except (SourceError, SinkError, OSError) as e:
             status.close()

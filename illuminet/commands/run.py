@@ -23,7 +23,7 @@ from urllib.parse import quote
 from illuminet.progress import StatusLine
 from illuminet.runtime.config import Config, ConfigError, apply_overrides
 from illuminet.runtime.errors import IllumiNetError, OutputPathError
-from illuminet.runtime.stream.loop import LoopStats, run_loop, signals_held
+from illuminet.runtime.stream.loop import LoopStats, loop_options, run_loop, signals_held
 from illuminet.runtime.stream.session import SessionError, SessionReader, printable
 
 log = logging.getLogger("illuminet.run")
@@ -264,10 +264,7 @@ def _execute(cfg: Config, url: str, *, with_stages: bool) -> int:
                 stats=stats,
                 on_stats=on_stats,
                 stats_interval_s=0.5,
-                pipeline=cfg.loop.pipeline,
-                depth=cfg.loop.depth,
-                trim_memory_s=cfg.loop.trim_memory_s,
-                opencv_threads=cfg.loop.opencv_threads,
+                **loop_options(cfg.loop),
             )
         except IllumiNetError as e:  # these messages say it all; no traceback
             status.close()

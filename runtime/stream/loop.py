@@ -535,6 +535,17 @@ def signals_held():
         _early_interrupt.clear()  # one in the cleanup after the loop is for no later loop
 
 
+def loop_options(loop_cfg: Any) -> dict[str, Any]:
+    """:func:`run_loop`'s keyword arguments from a configuration's ``[loop]`` section (``cfg.loop``): what
+    the ``run`` and ``demo`` commands pass alike, so a new ``[loop]`` key reaches both."""
+    return {
+        "pipeline": loop_cfg.pipeline,
+        "depth": loop_cfg.depth,
+        "trim_memory_s": loop_cfg.trim_memory_s,
+        "opencv_threads": loop_cfg.opencv_threads,
+    }
+
+
 def _name(component: Any, fallback: str) -> str:
     return getattr(component, "name", None) or fallback
 
